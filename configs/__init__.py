@@ -1,0 +1,1 @@
+"""Packaged configs: default.toml, presets/ (overrides only) and lenses/ (JSON lens files)."""

@@ -1,0 +1,78 @@
+"""CFA mosaic R(p) = <I(p), phi[p mod T]> (paper eq. 4) as Warp kernels.
+
+Layouts: rgb [B,3,H,W], phi [T,T,3] (per-site spectral response), raw [B,1,H,W].
+"""
+
+from typing import Any
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def cfa_forward(rgb: wp.array4d(dtype=Any), phi: wp.array3d(dtype=Any), raw: wp.array4d(dtype=Any)):
+    b, y, x = wp.tid()
+    tile = phi.shape[0]
+    sy = y % tile
+    sx = x % tile
+    raw[b, 0, y, x] = rgb[b, 0, y, x] * phi[sy, sx, 0] + rgb[b, 1, y, x] * phi[sy, sx, 1] + rgb[b, 2, y, x] * phi[sy, sx, 2]
+
+
+@wp.kernel
+def cfa_backward(
+    rgb: wp.array4d(dtype=Any),
+    phi: wp.array3d(dtype=Any),
+    grad_raw: wp.array4d(dtype=Any),
+    want_grad_rgb: wp.int32,
+    grad_rgb: wp.array4d(dtype=Any),
+    phi_partials: wp.array3d(dtype=Any),
+):
+    """One thread per (CFA site, lane): the lane walks that site's pixels with a stride, writes grad_rgb for each and
+    keeps a private sum for grad_phi, stored in phi_partials[site, lane, channel] (summed by the caller), so the
+    phi gradient needs no atomics and is deterministic."""
+    site, lane = wp.tid()
+    tile = phi.shape[0]
+    lanes = phi_partials.shape[1]
+    sy = site / tile
+    sx = site % tile
+    height = rgb.shape[2]
+    width = rgb.shape[3]
+    rows = (height - sy + tile - 1) / tile
+    cols = (width - sx + tile - 1) / tile
+    per_image = rows * cols
+    total = rgb.shape[0] * per_image
+    acc0 = rgb.dtype(0.0)
+    acc1 = rgb.dtype(0.0)
+    acc2 = rgb.dtype(0.0)
+    for m in range(lane, total, lanes):
+        b = m / per_image
+        r = m - b * per_image
+        y = sy + (r / cols) * tile
+        x = sx + (r % cols) * tile
+        g = grad_raw[b, 0, y, x]
+        acc0 += g * rgb[b, 0, y, x]
+        acc1 += g * rgb[b, 1, y, x]
+        acc2 += g * rgb[b, 2, y, x]
+        if want_grad_rgb != 0:
+            grad_rgb[b, 0, y, x] = g * phi[sy, sx, 0]
+            grad_rgb[b, 1, y, x] = g * phi[sy, sx, 1]
+            grad_rgb[b, 2, y, x] = g * phi[sy, sx, 2]
+    phi_partials[site, lane, 0] = acc0
+    phi_partials[site, lane, 1] = acc1
+    phi_partials[site, lane, 2] = acc2
+
+
+for _float in (wp.float32, wp.float64):
+    wp.overload(cfa_forward, [wp.array4d(dtype=_float), wp.array3d(dtype=_float), wp.array4d(dtype=_float)])
+    wp.overload(
+        cfa_backward,
+        [
+            wp.array4d(dtype=_float),
+            wp.array3d(dtype=_float),
+            wp.array4d(dtype=_float),
+            wp.int32,
+            wp.array4d(dtype=_float),
+            wp.array3d(dtype=_float),
+        ],
+    )

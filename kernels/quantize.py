@@ -1,0 +1,44 @@
+"""ADC quantization with a clipped straight-through gradient (paper eq. 6, corrected as in SPEC section 1):
+
+    Q(R) = floor(clip(R, 0, w) / w * L + 1/2) / L * w,   L = 2^b - 1 steps,   dQ/dR = 1 on [0, w], else 0.
+
+Layouts: values [B, N] (one row per image), white [B] (per-image white level w > 0).
+"""
+
+from typing import Any
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def quantize_forward(
+    values: wp.array2d(dtype=Any), white: wp.array(dtype=Any), steps: wp.int32, out: wp.array2d(dtype=Any)
+):
+    b, i = wp.tid()
+    w = white[b]
+    levels = values.dtype(steps)
+    clipped = wp.clamp(values[b, i], values.dtype(0.0), w)
+    out[b, i] = wp.floor(clipped / w * levels + values.dtype(0.5)) / levels * w
+
+
+@wp.kernel
+def quantize_backward(
+    values: wp.array2d(dtype=Any),
+    white: wp.array(dtype=Any),
+    grad_out: wp.array2d(dtype=Any),
+    grad_values: wp.array2d(dtype=Any),
+):
+    b, i = wp.tid()
+    v = values[b, i]
+    if v >= values.dtype(0.0) and v <= white[b]:
+        grad_values[b, i] = grad_out[b, i]
+    else:
+        grad_values[b, i] = values.dtype(0.0)
+
+
+for _float in (wp.float32, wp.float64):
+    _rows = wp.array2d(dtype=_float)
+    wp.overload(quantize_forward, [_rows, wp.array(dtype=_float), wp.int32, _rows])
+    wp.overload(quantize_backward, [_rows, wp.array(dtype=_float), _rows, _rows])

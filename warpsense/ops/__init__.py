@@ -1,0 +1,12 @@
+"""Differentiable camera ops: Warp kernels registered into torch autograd (functional API, SPEC section 4)."""
+
+from warpsense.ops.cfa import cfa_mosaic
+from warpsense.ops.exposure import exposure, exposure_gain
+from warpsense.ops.noise import poisson_gaussian, poisson_gaussian_exact
+from warpsense.ops.psf import PSF_METHODS, psf_conv
+from warpsense.ops.quantize import QUANTIZE_MODES, quantize_ste
+
+__all__ = [
+    "cfa_mosaic", "exposure", "exposure_gain", "poisson_gaussian", "poisson_gaussian_exact", "psf_conv",
+    "quantize_ste", "PSF_METHODS", "QUANTIZE_MODES",
+]

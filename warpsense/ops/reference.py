@@ -1,0 +1,89 @@
+"""Plain-torch reference implementations of the sensor ops.
+
+Independent of the Warp kernels (written from the equations, eager torch only): the tests compare the kernels with
+them, and the benchmarks use them as the baseline a user would write without warpsense.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def cfa_mosaic_reference(rgb: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+    """[B,3,H,W], [T,T,3] -> [B,1,H,W]: tile phi over the image and take the per-pixel dot product."""
+    tile = phi.shape[0]
+    height, width = rgb.shape[-2:]
+    reps_y, reps_x = -(-height // tile), -(-width // tile)
+    response = phi.permute(2, 0, 1).repeat(1, reps_y, reps_x)[:, :height, :width]
+    return (rgb * response.unsqueeze(0)).sum(dim=1, keepdim=True)
+
+
+def poisson_gaussian_reference(raw, shot, read, eps: torch.Tensor) -> torch.Tensor:
+    """R + sqrt(shot * max(R, 0) + read^2) * eps with a given standard-normal eps of raw's shape."""
+    return raw + torch.sqrt(shot * raw.clamp_min(0) + read * read) * eps
+
+
+class _RoundSTE(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        return torch.floor(x + 0.5)
+
+    @staticmethod
+    def backward(ctx, grad):
+        return grad
+
+
+def quantize_reference(raw: torch.Tensor, bits: int, white_level: float = 1.0, mode: str = "full_well"):
+    """Clipped-STE quantization in eager torch: clamp (gradient 0 outside [0, w]) then round with identity gradient."""
+    levels = (1 << bits) - 1
+    rows = raw.reshape(raw.shape[0], -1)
+    if mode == "max":
+        peak = rows.detach().amax(dim=1, keepdim=True)
+        white = torch.where(peak > 0, peak, torch.full_like(peak, white_level))
+    else:
+        white = torch.full((rows.shape[0], 1), white_level, dtype=raw.dtype, device=raw.device)
+    inside = (rows >= 0) & (rows <= white)
+    clipped = torch.where(inside, rows, rows.detach().clamp(min=0).minimum(white))
+    return (_RoundSTE.apply(clipped / white * levels) / levels * white).view(raw.shape)
+
+
+def bilinear_node_weights(height: int, width: int, grid_y: int, grid_x: int, dtype, device) -> torch.Tensor:
+    """[Gy, Gx, H, W] weights of each PSF-grid node at each pixel: bilinear in the node-centre coordinates
+    (node (i, j) at the centre of tile (i, j) of a Gy x Gx tiling), clamped beyond the outer centres."""
+
+    def axis(n_nodes, size):
+        position = (torch.arange(size, dtype=dtype, device=device) + 0.5) / size * n_nodes - 0.5
+        position = position.clamp(0, n_nodes - 1)
+        lower = position.floor().clamp(max=max(n_nodes - 2, 0))
+        frac = position - lower
+        weights = torch.zeros(n_nodes, size, dtype=dtype, device=device)
+        idx = torch.arange(size, device=device)
+        weights[lower.long(), idx] += 1 - frac
+        if n_nodes > 1:
+            weights[lower.long() + 1, idx] += frac
+        return weights
+
+    wy, wx = axis(grid_y, height), axis(grid_x, width)
+    return wy[:, None, :, None] * wx[None, :, None, :]
+
+
+def psf_conv_reference(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
+    """Exact spatially varying PSF convolution as a blend of node convolutions (eager torch, memory hungry).
+
+    out(p) = sum_d x(clamp(p - d)) * PSF_{clamp(p - d)}(d), PSF_q = sum_n w_n(q) PSF_n: each source pixel spreads its
+    light with the PSF interpolated at the source, so a point source at q renders as PSF_q centred at q.
+    """
+    batch, channels, height, width = image.shape
+    _, grid_y, grid_x, size, _ = psf.shape
+    radius = size // 2
+    padded = F.pad(image, (radius, radius, radius, radius), mode="replicate")
+    weights = bilinear_node_weights(height, width, grid_y, grid_x, image.dtype, image.device)
+    weights = F.pad(weights.reshape(1, grid_y * grid_x, height, width), (radius,) * 4, mode="replicate")
+    weights = weights.reshape(grid_y, grid_x, height + 2 * radius, width + 2 * radius)
+    out = image.new_zeros(batch, channels, height, width)
+    for gy in range(grid_y):
+        for gx in range(grid_x):
+            kernel = psf[:, gy, gx].flip(-1, -2).unsqueeze(1)  # conv2d correlates: flip for a true convolution
+            out = out + F.conv2d(padded * weights[gy, gx], kernel, groups=channels)
+    return out
