@@ -73,7 +73,7 @@ class OpticsConfig:
 @dataclass
 class ExposureConfig:
     enabled: bool = True
-    gain_logit: float = 0.0
+    gain_logit: float = -1.3863
     learnable: bool = True
 
 

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 import torch
 import warp as wp
 
-wp.config.quiet = True
+wp.config.log_level = 30  # warnings only: no banner or per-module compile lines
 wp.init()
 _KERNEL_DTYPES = (torch.float32, torch.float64)
 

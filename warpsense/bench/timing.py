@@ -1,0 +1,47 @@
+"""Timing helpers: median and IQR after warm-up, with the device synchronised around each repetition."""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import torch
+
+
+def _sync(device) -> None:
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _summary(samples_ms: list[float]) -> dict:
+    quartiles = statistics.quantiles(samples_ms, n=4) if len(samples_ms) > 1 else [samples_ms[0]] * 3
+    return {"median_ms": statistics.median(samples_ms), "iqr_ms": quartiles[2] - quartiles[0],
+            "repeats": len(samples_ms)}
+
+
+def time_function(function, device, repeats: int = 20, warmup: int = 3) -> dict:
+    """Wall time of ``function()`` per call (ms); warm-up calls (compilation, cudnn tuning) are excluded."""
+    for _ in range(warmup):
+        function()
+    _sync(device)
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        _sync(device)
+        samples.append((time.perf_counter() - start) * 1e3)
+    return _summary(samples)
+
+
+def time_cuda_graph(function, repeats: int = 50, warmup: int = 3) -> dict:
+    """Capture ``function()`` in a CUDA graph (after warm-up on a side stream) and time its replay."""
+    stream = torch.cuda.Stream()
+    stream.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(stream):
+        for _ in range(warmup):
+            function()
+    torch.cuda.current_stream().wait_stream(stream)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        function()
+    return time_function(graph.replay, "cuda", repeats, warmup=2)

@@ -1,0 +1,23 @@
+"""Exposure stage E (paper eq. 3)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from warpsense.ops.exposure import exposure, exposure_gain
+
+
+class Exposure(nn.Module):
+    """Global gain a(g) = 0.25 + 3.75 sigmoid(g) in [0.25, 4]; owns the logit g."""
+
+    def __init__(self, gain_logit: float = 0.0, learnable: bool = True):
+        super().__init__()
+        self.gain_logit = nn.Parameter(torch.tensor(float(gain_logit)), requires_grad=learnable)
+
+    def gain(self) -> torch.Tensor:
+        return exposure_gain(self.gain_logit)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        """[B, C, H, W] -> a(g) * image."""
+        return exposure(image, self.gain_logit)

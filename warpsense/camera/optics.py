@@ -1,0 +1,60 @@
+"""Optics stage O (paper eq. 2): a lens rendered to a PSF grid and applied by the PSF-convolution kernel."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from warpsense.ops.psf import psf_conv
+from warpsense.optics.lens import Lens
+from warpsense.optics.psf_support import collapse_grid, crop_to_energy
+
+
+class Optics(nn.Module):
+    """Spatially varying blur from a lens file.
+
+    A frozen lens renders its PSF grid once, cropped to the smallest odd support holding >= 1 - energy_eps of the
+    energy and collapsed to one PSF when the field variation is below ``field_tolerance``. A learnable lens
+    re-renders the full grid from its (bounded) Zernike coefficients while they train. ``normalize_mean`` > 0 rescales each output image to
+    that mean (paper section 4.4).
+    """
+
+    def __init__(self, lens: Lens, learnable: bool = False, normalize_mean: float = 0.5, method: str = "direct",
+                 energy_eps: float = 1e-3, field_tolerance: float = 1e-3):
+        super().__init__()
+        self.lens = lens
+        self.learnable = learnable
+        self.normalize_mean = normalize_mean
+        self.method = method
+        lens.offset.requires_grad_(learnable)
+        if not learnable:
+            with torch.no_grad():
+                psf = collapse_grid(crop_to_energy(lens.psf_grid(), energy_eps), field_tolerance)
+            self.register_buffer("frozen_psf", psf.float())
+
+        self._cached_psf = None
+        self._register_load_state_dict_pre_hook(lambda *args, **kwargs: self.invalidate_cache())
+
+    def invalidate_cache(self) -> None:
+        """Forget the cached PSF grid (call after changing the lens coefficients or their requires_grad)."""
+        self._cached_psf = None
+
+    def psf(self) -> torch.Tensor:
+        """[3, Gy, Gx, K, K] PSF grid in use. A learnable lens is re-rendered while its coefficients take gradients
+        (joint phase); while they are frozen or in eval mode the rendering is cached."""
+        if not self.learnable:
+            return self.frozen_psf
+        if self.lens.offset.requires_grad and self.training and torch.is_grad_enabled():
+            self._cached_psf = None
+            return self.lens.psf_grid().float()
+        if self._cached_psf is None:
+            with torch.no_grad():
+                self._cached_psf = self.lens.psf_grid().float()
+        return self._cached_psf
+
+    def forward(self, radiance: torch.Tensor) -> torch.Tensor:
+        image = psf_conv(radiance, self.psf().to(radiance.device), method=self.method)
+        if self.normalize_mean > 0:
+            mean = image.mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-6)
+            image = image * (self.normalize_mean / mean)
+        return image

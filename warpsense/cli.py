@@ -1,0 +1,137 @@
+"""The `warpsense` command line: thin argument parsing over importable functions."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from warpsense import __version__
+
+
+def _add_config_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", metavar="FILE_OR_PRESET",
+                        help="a TOML file or a preset name (configs/presets/); default: configs/default.toml")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override one config key (repeatable), e.g. --set train.epochs=5")
+
+
+def _train(args) -> int:
+    from warpsense.config import load_config
+    from warpsense.train.engine import train
+
+    config = load_config(args.config, args.overrides)
+    resume = args.resume_dir or args.resume
+    train(config, resume=resume, progress=not args.no_progress)
+    return 0
+
+
+def _eval(args) -> int:
+    from warpsense.train.evaluate import run_eval
+
+    height, width = (int(v) for v in args.latency_size.lower().split("x"))
+    run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
+             (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot)
+    return 0
+
+
+def _bench(args) -> int:
+    from warpsense.bench.runner import run_bench
+
+    run_bench(device=args.device, quick=args.quick, json_out=args.json, plot_out=args.plot)
+    return 0
+
+
+def _convert(args) -> int:
+    from warpsense.data.raw import convert_files
+
+    failures = convert_files(args.inputs, args.out, progress=not args.no_progress)
+    return 1 if failures else 0
+
+
+def _predict(args) -> int:
+    from warpsense.data.predict import predict_raw
+
+    predict_raw(args.checkpoint, args.input, args.out, device=args.device)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="warpsense", description=__doc__.splitlines()[0] + " Camera co-design "
+                                     "for driving perception with differentiable Warp sensor kernels.")
+    parser.add_argument("--version", action="version", version=f"warpsense {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    train = commands.add_parser("train", help="train camera + network (default: built-in scenes on the CPU)",
+                                description="Two-phase co-design training. With no arguments it trains on built-in "
+                                "generated street scenes. Multi-GPU: torchrun --nproc_per_node N -m warpsense train ...")
+    _add_config_options(train)
+    train.add_argument("--resume", action="store_true", help="continue the run <output_dir>/<name> from its last checkpoint")
+    train.add_argument("--resume-dir", metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint")
+    train.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    train.set_defaults(handler=_train)
+
+    evaluate = commands.add_parser("eval", help="evaluate a checkpoint (mIoU, per-class IoU, sweeps, latency)",
+                                   description="Evaluate a trained checkpoint on a dataset split.")
+    evaluate.add_argument("--checkpoint", required=True, help="checkpoint .safetensors (with its .json beside it)")
+    evaluate.add_argument("--data", default="scenes", choices=["camvid", "cityscapes", "kitti360", "scenes"],
+                          help="dataset kind")
+    evaluate.add_argument("--data-root", default="", help="dataset folder (not needed for scenes)")
+    evaluate.add_argument("--split", default="val", help="split name (e.g. val)")
+    evaluate.add_argument("--json", metavar="OUT", help="write metrics JSON (miou, per_class_iou, pixel_accuracy, num_images)")
+    evaluate.add_argument("--sweep", action="store_true", help="robustness sweeps: extra blur, noise scale, bit depth")
+    evaluate.add_argument("--plot", metavar="OUT.png", help="with --sweep: plot the sweeps")
+    evaluate.add_argument("--latency", action="store_true", help="time sensor simulation + network and network alone")
+    evaluate.add_argument("--latency-size", default="192x640", metavar="HxW", help="input size for --latency")
+    evaluate.add_argument("--latency-batch", type=int, default=1, help="batch size for --latency")
+    evaluate.add_argument("--batch-size", type=int, default=4, help="evaluation batch size")
+    evaluate.add_argument("--limit", type=int, default=0, help="evaluate only the first N images (0 = all)")
+    evaluate.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="device")
+    evaluate.set_defaults(handler=_eval)
+
+    bench = commands.add_parser("bench", help="kernel microbenchmarks: error against run time",
+                                description="Benchmark every Warp kernel against its plain-torch reference.")
+    bench.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device to benchmark")
+    bench.add_argument("--quick", action="store_true", help="small sizes and few repeats (< 2 min on 2 CPU cores)")
+    bench.add_argument("--json", metavar="OUT", help="write the records as JSON")
+    bench.add_argument("--plot", metavar="OUT.png", help="write the error-vs-time Pareto plot")
+    bench.set_defaults(handler=_bench)
+
+    convert = commands.add_parser("convert", help="convert raw captures (DNG, Bayer raws) to RAW tensors",
+                                  description="Convert raw files (files, folders or globs) into <stem>.safetensors "
+                                  "mosaics with metadata, through rawpy/LibRaw.")
+    convert.add_argument("inputs", nargs="+", help="raw files, folders or glob patterns")
+    convert.add_argument("--out", required=True, help="output folder")
+    convert.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    convert.set_defaults(handler=_convert)
+
+    predict = commands.add_parser("predict", help="segment a real raw capture with a fixed-Bayer checkpoint",
+                                  description="Run a checkpoint trained with a fixed Bayer CFA on a DNG and write a "
+                                  "colour-coded segmentation PNG.")
+    predict.add_argument("checkpoint", help="checkpoint .safetensors")
+    predict.add_argument("input", help="raw file (DNG)")
+    predict.add_argument("--out", required=True, help="output PNG")
+    predict.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="device")
+    predict.set_defaults(handler=_predict)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    from warpsense.config import ConfigError
+    from warpsense.data.datasets import DatasetError
+    from warpsense.optics.lens import LensFileError
+
+    try:
+        return args.handler(args)
+    except (ConfigError, DatasetError, LensFileError, FileNotFoundError, KeyError, ValueError) as error:
+        message = error.args[0] if isinstance(error, KeyError) and error.args else error
+        print(f"warpsense {args.command}: error: {message}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,122 @@
+"""Segmentation datasets on disk: CamVid, Cityscapes, KITTI-360 (official folder layouts).
+
+Each returns (image uint8 [3, H, W], label int64 [H, W]) with ignored pixels = 255; augmentation and the
+sRGB -> radiance conversion happen later (`warpsense.data.transforms`, `warpsense.data.color`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from skimage import io
+from torch.utils.data import Dataset
+
+from warpsense.data.labels import CAMVID_CLASSES, CITYSCAPES_CLASSES, IGNORE_INDEX, id_to_train_id_table
+
+
+class DatasetError(ValueError):
+    """A dataset folder is missing or malformed; the message names the path."""
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    image = io.imread(path)
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=2)
+    return np.ascontiguousarray(image[..., :3])
+
+
+class PairDataset(Dataset):
+    """(image, label) pairs from explicit paths, with a label lookup table."""
+
+    classes: tuple[str, ...] = ()
+
+    def __init__(self, pairs: list[tuple[Path, Path]], label_table: np.ndarray, limit: int = 0):
+        if not pairs:
+            raise DatasetError("no image/label pairs found")
+        self.pairs = pairs[:limit] if limit else pairs
+        self.label_table = label_table
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, index: int):
+        image_path, label_path = self.pairs[index]
+        image = torch.from_numpy(_read_rgb(image_path)).permute(2, 0, 1).contiguous()
+        label = io.imread(label_path)
+        if label.ndim == 3:
+            label = label[..., 0]
+        label = torch.from_numpy(self.label_table[label].astype(np.int64))
+        if label.shape != image.shape[1:]:
+            raise DatasetError(f"{label_path}: label size {tuple(label.shape)} != image size {tuple(image.shape[1:])}")
+        return image, label
+
+
+class CamVid(PairDataset):
+    """CamVid as distributed with the SegNet tutorial: ``<root>/<split>.txt`` lists "image label" paths relative
+    to root (SegNet's absolute "/SegNet/CamVid/..." prefixes are also accepted); 11 classes, 11 = ignore."""
+
+    classes = CAMVID_CLASSES
+
+    def __init__(self, root: str | Path, split: str = "train", limit: int = 0):
+        root = Path(root)
+        listing = root / f"{split}.txt"
+        if not listing.is_file():
+            raise DatasetError(f"{listing}: CamVid split list not found (expected <root>/{split}.txt)")
+        pairs = []
+        for line_number, line in enumerate(listing.read_text().splitlines(), 1):
+            if not line.strip():
+                continue
+            parts = line.split()
+            if len(parts) != 2:
+                raise DatasetError(f"{listing}:{line_number}: expected 'image label', got {line!r}")
+            paths = [root / Path(p.split("/CamVid/")[-1].lstrip("/")) for p in parts]
+            pairs.append((paths[0], paths[1]))
+        table = np.arange(256, dtype=np.uint8)
+        table[11:] = IGNORE_INDEX
+        super().__init__(pairs, table, limit)
+
+
+class Cityscapes(PairDataset):
+    """Cityscapes: ``leftImg8bit/<split>/<city>/*_leftImg8bit.png`` with
+    ``gtFine/<split>/<city>/*_gtFine_labelIds.png``; label ids mapped to the 19 train ids."""
+
+    classes = CITYSCAPES_CLASSES
+
+    def __init__(self, root: str | Path, split: str = "train", limit: int = 0):
+        root = Path(root)
+        image_dir = root / "leftImg8bit" / split
+        if not image_dir.is_dir():
+            raise DatasetError(f"{image_dir}: Cityscapes images not found")
+        pairs = []
+        for image in sorted(image_dir.glob("*/*_leftImg8bit.png")):
+            stem = image.name[: -len("_leftImg8bit.png")]
+            label = root / "gtFine" / split / image.parent.name / f"{stem}_gtFine_labelIds.png"
+            if not label.is_file():
+                raise DatasetError(f"{label}: label file missing for {image}")
+            pairs.append((image, label))
+        super().__init__(pairs, id_to_train_id_table(), limit)
+
+
+class KITTI360(PairDataset):
+    """KITTI-360 2D semantics: ``data_2d_semantics/train/2013_05_28_drive_<split>_frames.txt`` lists
+    "data_2d_raw/.../image_00/data_rect/N.png data_2d_semantics/train/.../image_00/semantic/N.png" pairs relative to
+    root; the semantic PNGs hold Cityscapes label ids, mapped to the 19 train ids."""
+
+    classes = CITYSCAPES_CLASSES
+
+    def __init__(self, root: str | Path, split: str = "train", limit: int = 0):
+        root = Path(root)
+        listing = root / "data_2d_semantics" / "train" / f"2013_05_28_drive_{split}_frames.txt"
+        if not listing.is_file():
+            raise DatasetError(f"{listing}: KITTI-360 split list not found")
+        pairs = []
+        for line_number, line in enumerate(listing.read_text().splitlines(), 1):
+            if not line.strip():
+                continue
+            parts = line.split()
+            if len(parts) != 2:
+                raise DatasetError(f"{listing}:{line_number}: expected 'image label', got {line!r}")
+            pairs.append((root / parts[0], root / parts[1]))
+        super().__init__(pairs, id_to_train_id_table(), limit)

@@ -1,0 +1,56 @@
+"""Training augmentation: random rescale, crop to a fixed size (fixed batch shapes keep cudnn fast), flip."""
+
+from __future__ import annotations
+
+import torch
+from torch.nn import functional as F
+from torch.utils.data import Dataset
+
+from warpsense.data.labels import IGNORE_INDEX
+
+
+def scale_crop_flip(image: torch.Tensor, label: torch.Tensor, crop: tuple[int, int], scale_range: tuple[float, float],
+                    hflip: bool, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """uint8 [3, H, W], int64 [H, W] -> a random (crop_h, crop_w) window after a random rescale and flip.
+
+    Images shorter than the crop are padded (image with 0, label with the ignore index)."""
+    low, high = scale_range
+    scale = low + (high - low) * float(torch.rand((), generator=generator))
+    if abs(scale - 1.0) > 1e-6:
+        size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[2] * scale)))
+        image = F.interpolate(image[None].float(), size=size, mode="bilinear", align_corners=False)[0]
+        image = image.round().clamp(0, 255).to(torch.uint8)
+        label = F.interpolate(label[None, None].float(), size=size, mode="nearest")[0, 0].long()
+    crop_h, crop_w = crop
+    pad_h, pad_w = max(0, crop_h - image.shape[1]), max(0, crop_w - image.shape[2])
+    if pad_h or pad_w:
+        image = F.pad(image, (0, pad_w, 0, pad_h))
+        label = F.pad(label, (0, pad_w, 0, pad_h), value=IGNORE_INDEX)
+    top = int(torch.randint(0, image.shape[1] - crop_h + 1, (), generator=generator))
+    left = int(torch.randint(0, image.shape[2] - crop_w + 1, (), generator=generator))
+    image = image[:, top : top + crop_h, left : left + crop_w]
+    label = label[top : top + crop_h, left : left + crop_w]
+    if hflip and bool(torch.rand((), generator=generator) < 0.5):
+        image, label = image.flip(-1), label.flip(-1)
+    return image.contiguous(), label.contiguous()
+
+
+class Augmented(Dataset):
+    """Wraps a dataset with `scale_crop_flip`; sample i of epoch e draws from a generator seeded by (seed, e, i),
+    so augmentation is the same whatever the worker count, and a resumed run repeats it exactly."""
+
+    def __init__(self, dataset, crop: tuple[int, int], scale_range=(1.0, 1.0), hflip: bool = True, seed: int = 0):
+        self.dataset, self.crop, self.scale_range, self.hflip, self.seed = dataset, crop, scale_range, hflip, seed
+        self.epoch = 0
+        self.classes = dataset.classes
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, index: int):
+        image, label = self.dataset[index]
+        generator = torch.Generator().manual_seed((self.seed * 1_000_003 + self.epoch) * 1_000_003 + index)
+        return scale_crop_flip(image, label, self.crop, self.scale_range, self.hflip, generator)

@@ -1,0 +1,100 @@
+"""Compact UNet with depthwise-separable convolutions and squeeze-and-excitation (paper section 3.6)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+class SqueezeExcitation(nn.Module):
+    """Channel attention (Hu et al. 2018): global pool -> bottleneck MLP -> sigmoid gate."""
+
+    def __init__(self, channels: int, reduction: int = 4):
+        super().__init__()
+        hidden = max(4, channels // reduction)
+        self.reduce = nn.Conv2d(channels, hidden, 1)
+        self.expand = nn.Conv2d(hidden, channels, 1)
+
+    def forward(self, x):
+        gate = torch.sigmoid(self.expand(F.relu(self.reduce(x.mean(dim=(2, 3), keepdim=True)))))
+        return x * gate
+
+
+class SeparableBlock(nn.Module):
+    """Depthwise 3x3 (optionally strided) -> pointwise 1x1, BN + ReLU after each, optional SE, residual when the
+    shape allows."""
+
+    def __init__(self, in_channels: int, out_channels: int, stride: int = 1, squeeze: bool = True):
+        super().__init__()
+        self.depthwise = nn.Conv2d(in_channels, in_channels, 3, stride, 1, groups=in_channels, bias=False)
+        self.norm1 = nn.BatchNorm2d(in_channels)
+        self.pointwise = nn.Conv2d(in_channels, out_channels, 1, bias=False)
+        self.norm2 = nn.BatchNorm2d(out_channels)
+        self.squeeze = SqueezeExcitation(out_channels) if squeeze else nn.Identity()
+        self.residual = stride == 1 and in_channels == out_channels
+
+    def forward(self, x):
+        y = F.relu(self.norm1(self.depthwise(x)))
+        y = self.squeeze(F.relu(self.norm2(self.pointwise(y))))
+        return x + y if self.residual else y
+
+
+class Stage(nn.Sequential):
+    def __init__(self, in_channels: int, out_channels: int, depth: int, stride: int):
+        blocks = [SeparableBlock(in_channels, out_channels, stride)]
+        blocks += [SeparableBlock(out_channels, out_channels) for _ in range(depth - 1)]
+        super().__init__(*blocks)
+
+
+class DSUNet(nn.Module):
+    """RAW mosaic [B, 1, H, W] (or RGB [B, 3, H, W] from a fixed ISP) -> logits [B, K, H, W].
+
+    The mosaic enters at full resolution through a dense 3x3 stem (which sees every CFA site of each
+    neighbourhood, so thin structures keep full-resolution detail) and, in parallel, as a T x T pixel-unshuffle
+    (the CFA tile's sites as channels) concatenated at half resolution. Encoder: 1, 1/2, 1/4, 1/8, 1/16 with widths
+    w, 2w, 4w, 6w, 8w; decoder: bilinear upsampling + skip concatenation + separable blocks; head at full
+    resolution. width=16 gives about 0.3M parameters.
+    """
+
+    def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 16, tile: int = 2):
+        super().__init__()
+        w = width
+        self.tile = tile if in_channels == 1 and tile > 1 else 0
+        self.stem = nn.Sequential(nn.Conv2d(in_channels, w, 3, 1, 1, bias=False), nn.BatchNorm2d(w), nn.ReLU(inplace=True))
+        self.enc1 = Stage(w, w, 1, 1)
+        shuffle_channels = in_channels * self.tile * self.tile if self.tile else 0
+        self.down2 = SeparableBlock(w, 2 * w, stride=2)
+        self.mix2 = nn.Conv2d(2 * w + shuffle_channels, 2 * w, 1) if shuffle_channels else nn.Identity()
+        self.enc2 = Stage(2 * w, 2 * w, 1, 1)
+        self.enc3 = Stage(2 * w, 4 * w, 2, 2)
+        self.enc4 = Stage(4 * w, 6 * w, 3, 2)
+        self.enc5 = Stage(6 * w, 8 * w, 3, 2)
+        self.dec4 = Stage(8 * w + 6 * w, 6 * w, 1, 1)
+        self.dec3 = Stage(6 * w + 4 * w, 4 * w, 1, 1)
+        self.dec2 = Stage(4 * w + 2 * w, 2 * w, 1, 1)
+        self.dec1 = Stage(2 * w + w, w, 1, 1)
+        self.head = nn.Conv2d(w, num_classes, 1)
+
+    @staticmethod
+    def _up(x, like):
+        return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
+
+    def forward(self, raw: torch.Tensor) -> torch.Tensor:
+        height, width = raw.shape[-2:]
+        pad_h, pad_w = (-height) % 16, (-width) % 16
+        if pad_h or pad_w:
+            raw = F.pad(raw, (0, pad_w, 0, pad_h), mode="replicate")
+        s1 = self.enc1(self.stem(raw))
+        s2 = self.down2(s1)
+        if self.tile == 2:
+            s2 = self.mix2(torch.cat([s2, F.pixel_unshuffle(raw, 2)], dim=1))
+        s2 = self.enc2(s2)
+        s3 = self.enc3(s2)
+        s4 = self.enc4(s3)
+        s5 = self.enc5(s4)
+        d4 = self.dec4(torch.cat([self._up(s5, s4), s4], dim=1))
+        d3 = self.dec3(torch.cat([self._up(d4, s3), s3], dim=1))
+        d2 = self.dec2(torch.cat([self._up(d3, s2), s2], dim=1))
+        d1 = self.dec1(torch.cat([self._up(d2, s1), s1], dim=1))
+        return self.head(d1)[..., :height, :width]

@@ -1,0 +1,246 @@
+"""Lens files (JSON) and the pupil-FFT PSF model (SPEC section 2).
+
+A lens file gives first-order data (focal length, f-number, field of view, pixel pitch), three wavelengths, the
+PSF kernel size and grid, and Zernike coefficients (waves, Noll index) each with a field dependence
+c_j(h) = constant + linear * h + quadratic * h^2 in the normalised field height h in [0, 1] (0 on axis, 1 at the
+image corner). Coefficients are given in the meridional frame of each field point (the pupil frame is rotated by
+the field azimuth), as for a rotationally symmetric lens: coma points radially, astigmatism is sagittal/tangential.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from warpsense.optics.zernike import zernike
+
+REQUIRED_KEYS = {
+    "name": str, "focal_length_mm": float, "f_number": float, "diagonal_fov_deg": float, "pixel_pitch_um": float,
+    "wavelengths_um": list, "psf_kernel_size": int, "psf_grid": list, "zernike_waves": dict,
+}
+OPTIONAL_KEYS = {
+    "description": (str, ""), "aspect_ratio": (float, 4.0 / 3.0), "oversampling": (int, 5),
+    "pupil_samples": (int, 64), "learnable_bound_waves": (float, 0.25),
+}
+FIELD_TERMS = ("constant", "linear", "quadratic")
+
+
+class LensFileError(ValueError):
+    """A lens file is malformed; the message names the file and the key."""
+
+
+@dataclass
+class LensSpec:
+    name: str
+    focal_length_mm: float
+    f_number: float
+    diagonal_fov_deg: float
+    pixel_pitch_um: float
+    wavelengths_um: tuple[float, float, float]
+    psf_kernel_size: int
+    psf_grid: tuple[int, int]
+    zernike_waves: dict[int, tuple[float, float, float]]
+    description: str = ""
+    aspect_ratio: float = 4.0 / 3.0
+    oversampling: int = 5
+    pupil_samples: int = 64
+    learnable_bound_waves: float = 0.25
+
+    @property
+    def sensor_diagonal_mm(self) -> float:
+        return 2 * self.focal_length_mm * math.tan(math.radians(self.diagonal_fov_deg) / 2)
+
+
+def _typed(value, expected, where):
+    if expected is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if not isinstance(value, expected) or isinstance(value, bool):
+        raise LensFileError(f"{where}: expected {expected.__name__}, got {value!r}")
+    return value
+
+
+def parse_lens(data: dict, source: str) -> LensSpec:
+    """Validate a decoded lens file; every error names ``source`` and the key."""
+    if not isinstance(data, dict):
+        raise LensFileError(f"{source}: top level must be a JSON object")
+    unknown = set(data) - set(REQUIRED_KEYS) - set(OPTIONAL_KEYS)
+    if unknown:
+        valid = ", ".join(sorted(set(REQUIRED_KEYS) | set(OPTIONAL_KEYS)))
+        raise LensFileError(f"{source}: unknown key {sorted(unknown)[0]!r}; valid keys: {valid}")
+    values = {}
+    for key, expected in REQUIRED_KEYS.items():
+        if key not in data:
+            raise LensFileError(f"{source}: missing required key {key!r}")
+        values[key] = _typed(data[key], expected, f"{source}: {key}")
+    for key, (expected, default) in OPTIONAL_KEYS.items():
+        values[key] = _typed(data.get(key, default), expected, f"{source}: {key}")
+    for key in ("focal_length_mm", "f_number", "pixel_pitch_um", "aspect_ratio"):
+        if not values[key] > 0:
+            raise LensFileError(f"{source}: {key} must be > 0, got {values[key]}")
+    if not 0 < values["diagonal_fov_deg"] < 180:
+        raise LensFileError(f"{source}: diagonal_fov_deg must be in (0, 180), got {values['diagonal_fov_deg']}")
+    wavelengths = values["wavelengths_um"]
+    if len(wavelengths) != 3 or not all(isinstance(w, (int, float)) and 0.2 < w < 2.0 for w in wavelengths):
+        raise LensFileError(f"{source}: wavelengths_um must be 3 wavelengths (R, G, B) in um, got {wavelengths}")
+    values["wavelengths_um"] = tuple(float(w) for w in wavelengths)
+    size = values["psf_kernel_size"]
+    if size < 1 or size % 2 == 0:
+        raise LensFileError(f"{source}: psf_kernel_size must be a positive odd int, got {size}")
+    grid = values["psf_grid"]
+    if len(grid) != 2 or not all(isinstance(g, int) and g >= 1 for g in grid):
+        raise LensFileError(f"{source}: psf_grid must be [Gy, Gx] with positive ints, got {grid}")
+    values["psf_grid"] = tuple(grid)
+    if values["oversampling"] < 1 or values["oversampling"] % 2 == 0:
+        raise LensFileError(f"{source}: oversampling must be a positive odd int, got {values['oversampling']}")
+    if values["pupil_samples"] < 8:
+        raise LensFileError(f"{source}: pupil_samples must be >= 8, got {values['pupil_samples']}")
+    terms = {}
+    for index, entry in values["zernike_waves"].items():
+        where = f"{source}: zernike_waves.{index}"
+        if not index.isdigit() or not 1 <= int(index) <= 36:
+            raise LensFileError(f"{where}: keys must be Noll indices 1..36")
+        if not isinstance(entry, dict) or set(entry) - set(FIELD_TERMS):
+            raise LensFileError(f"{where}: must be an object with keys among {', '.join(FIELD_TERMS)}")
+        terms[int(index)] = tuple(float(_typed(entry.get(t, 0.0), float, f"{where}.{t}")) for t in FIELD_TERMS)
+    values["zernike_waves"] = dict(sorted(terms.items()))
+    return LensSpec(**values)
+
+
+def lens_path(name_or_path: str | Path) -> Path:
+    """A lens name from configs/lenses/ or a path to a JSON file."""
+    from warpsense.config import CONFIG_DIR
+
+    path = Path(name_or_path)
+    if path.suffix == ".json" or path.exists():
+        return path
+    packaged = CONFIG_DIR / "lenses" / f"{name_or_path}.json"
+    if packaged.is_file():
+        return Path(str(packaged))
+    names = sorted(p.name[:-5] for p in (CONFIG_DIR / "lenses").iterdir() if p.name.endswith(".json"))
+    raise LensFileError(f"lens {str(name_or_path)!r}: no such file or packaged lens; packaged: {', '.join(names)}")
+
+
+def pupil_psf(
+    coefficients: torch.Tensor, noll: list[int], azimuth: torch.Tensor, pupil_samples: int, zero_padding: float
+) -> torch.Tensor:
+    """|FFT{P exp(i 2 pi W)}|^2 on an M x M grid, M = round(D * Q), centred at M // 2, each summing to 1.
+
+    Args:
+        coefficients: [N, J] Zernike coefficients (waves) for N field points.
+        noll: the J Noll indices.
+        azimuth: [N] field azimuth (radians); the pupil frame is rotated to it.
+        pupil_samples: D, samples across the pupil diameter.
+        zero_padding: Q = M / D; image-plane samples are lambda * F# / Q apart.
+    """
+    size = int(round(pupil_samples * zero_padding))
+    dtype = coefficients.dtype
+    axis = (torch.arange(size, dtype=dtype, device=coefficients.device) - size // 2) / (pupil_samples / 2)
+    y, x = torch.meshgrid(axis, axis, indexing="ij")
+    rho = torch.sqrt(x * x + y * y)
+    aperture = (rho <= 1.0).to(dtype)
+    theta = torch.atan2(y, x)[None] - azimuth[:, None, None]
+    rho_clamped = rho.clamp(max=1.0)[None]
+    wavefront = torch.zeros(coefficients.shape[0], size, size, dtype=dtype, device=coefficients.device)
+    for column, j in enumerate(noll):
+        wavefront = wavefront + coefficients[:, column, None, None] * zernike(j, rho_clamped, theta)
+    field = aperture * torch.exp(1j * 2 * math.pi * wavefront)
+    spectrum = torch.fft.fftshift(torch.fft.fft2(torch.fft.ifftshift(field, dim=(-2, -1))), dim=(-2, -1))
+    intensity = spectrum.real**2 + spectrum.imag**2
+    return intensity / intensity.sum(dim=(-2, -1), keepdim=True)
+
+
+class Lens(nn.Module):
+    """A lens from a JSON file; `psf_grid()` renders its PSFs at the sensor pixel pitch, differentiably.
+
+    Learnable Zernike coefficients are bounded: c = c_file + bound * tanh(p), p initialised at 0.
+    """
+
+    def __init__(self, spec: LensSpec, learnable: bool = False):
+        super().__init__()
+        self.spec = spec
+        self.noll = list(spec.zernike_waves)
+        table = torch.tensor([spec.zernike_waves[j] for j in self.noll], dtype=torch.float64).reshape(-1, 3)
+        self.register_buffer("base_coefficients", table)
+        self.offset = nn.Parameter(torch.zeros_like(table), requires_grad=learnable)
+
+    @classmethod
+    def from_json(cls, path: str | Path, learnable: bool = False) -> "Lens":
+        path = lens_path(path)
+        try:
+            data = json.loads(Path(path).read_text())
+        except OSError as error:
+            raise LensFileError(f"{path}: cannot read: {error.strerror}") from None
+        except json.JSONDecodeError as error:
+            raise LensFileError(f"{path}: invalid JSON: {error}") from None
+        return cls(parse_lens(data, str(path)), learnable=learnable)
+
+    def coefficients(self) -> torch.Tensor:
+        """[J, 3] (constant, linear, quadratic) field-dependence coefficients in waves."""
+        return self.base_coefficients + self.spec.learnable_bound_waves * torch.tanh(self.offset)
+
+    def field_points(self, grid: tuple[int, int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Normalised field height h [Gy*Gx] and azimuth [Gy*Gx] of the grid nodes (tile centres)."""
+        grid_y, grid_x = grid or self.spec.psf_grid
+        aspect = self.spec.aspect_ratio
+        half_w, half_h = aspect / 2, 0.5
+        ys = ((torch.arange(grid_y, dtype=torch.float64) + 0.5) / grid_y - 0.5) * 2 * half_h
+        xs = ((torch.arange(grid_x, dtype=torch.float64) + 0.5) / grid_x - 0.5) * 2 * half_w
+        y, x = torch.meshgrid(ys, xs, indexing="ij")
+        height = torch.sqrt(x * x + y * y) / math.hypot(half_w, half_h)
+        return height.reshape(-1), torch.atan2(y, x).reshape(-1)
+
+    def field_coefficients(self, field_height: torch.Tensor) -> torch.Tensor:
+        """[N, J] Zernike coefficients at normalised field heights [N]."""
+        powers = torch.stack([torch.ones_like(field_height), field_height, field_height**2], dim=1)
+        return powers.to(self.coefficients().dtype) @ self.coefficients().T
+
+    def psf_at(
+        self, field_height: torch.Tensor, azimuth: torch.Tensor, sample_pitch_um: float | None = None,
+        kernel_size: int | None = None, oversampling: int | None = None,
+    ) -> torch.Tensor:
+        """[3, N, K, K] PSFs at N field points, integrated over pixels of ``sample_pitch_um`` (default: the
+        sensor pitch) from an ``oversampling``-times finer diffraction sampling, each summing to 1."""
+        spec = self.spec
+        pitch = sample_pitch_um or spec.pixel_pitch_um
+        size = kernel_size or spec.psf_kernel_size
+        factor = oversampling or spec.oversampling
+        coefficients = self.field_coefficients(field_height)
+        per_wavelength = []
+        for wavelength in spec.wavelengths_um:
+            # sample spacing lambda F# / Q = pitch / factor  ->  Q = lambda F# factor / pitch
+            padding = wavelength * spec.f_number * factor / pitch
+            padding = max(padding, (size * factor + 2) / spec.pupil_samples)
+            fine = pupil_psf(coefficients, self.noll, azimuth, spec.pupil_samples, padding)
+            per_wavelength.append(integrate_pixels(fine, size, factor))
+        psf = torch.stack(per_wavelength)
+        return psf / psf.sum(dim=(-2, -1), keepdim=True)
+
+    def psf_grid(self, grid: tuple[int, int] | None = None) -> torch.Tensor:
+        """[3, Gy, Gx, K, K] PSFs at the centres of a Gy x Gx tiling of the image, each summing to 1 (float64)."""
+        grid_y, grid_x = grid or self.spec.psf_grid
+        height, azimuth = self.field_points((grid_y, grid_x))
+        psf = self.psf_at(height, azimuth)
+        size = psf.shape[-1]
+        return psf.reshape(3, grid_y, grid_x, size, size)
+
+
+def integrate_pixels(fine: torch.Tensor, size: int, factor: int) -> torch.Tensor:
+    """Sum ``factor`` x ``factor`` blocks of a centred fine PSF [N, M, M] into a K x K pixel PSF [N, K, K].
+
+    The fine grid's centre sample (M // 2) lands on the centre of the middle pixel. Where the pixel window
+    reaches beyond the fine grid it is zero-padded (the caller sizes M so that this does not happen)."""
+    span = size * factor
+    centre = fine.shape[-1] // 2
+    start = centre - span // 2
+    pad = max(0, -start, start + span - fine.shape[-1])
+    if pad:
+        fine = F.pad(fine, (pad, pad, pad, pad))
+        start += pad
+    window = fine[:, start : start + span, start : start + span]
+    return window.reshape(-1, size, factor, size, factor).sum(dim=(2, 4))

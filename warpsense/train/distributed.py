@@ -1,0 +1,56 @@
+"""torch.distributed set-up for `torchrun` launches (DDP); a no-op context for single-process runs."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import torch
+import torch.distributed as dist
+
+
+@dataclass
+class DistributedContext:
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+    device: torch.device = torch.device("cpu")
+
+    @property
+    def enabled(self) -> bool:
+        return self.world_size > 1
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    @classmethod
+    def from_environment(cls, device_choice: str = "auto") -> "DistributedContext":
+        """Read torchrun's RANK / WORLD_SIZE / LOCAL_RANK; initialise the process group (NCCL on CUDA, gloo on
+        CPU) and pick this rank's device (cuda:LOCAL_RANK)."""
+        world_size = int(os.environ.get("WORLD_SIZE", "1"))
+        rank = int(os.environ.get("RANK", "0"))
+        local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+        use_cuda = device_choice == "cuda" or (device_choice == "auto" and torch.cuda.is_available())
+        if device_choice == "cuda" and not torch.cuda.is_available():
+            raise RuntimeError("run.device = cuda but no CUDA device is available")
+        device = torch.device("cuda", local_rank if world_size > 1 else torch.cuda.current_device()) if use_cuda \
+            else torch.device("cpu")
+        if use_cuda:
+            torch.cuda.set_device(device)
+        if world_size > 1 and not dist.is_initialized():
+            dist.init_process_group("nccl" if use_cuda else "gloo", rank=rank, world_size=world_size)
+        return cls(rank, world_size, local_rank, device)
+
+    def all_reduce_sum(self, tensor: torch.Tensor) -> torch.Tensor:
+        if self.enabled:
+            dist.all_reduce(tensor, op=dist.ReduceOp.SUM)
+        return tensor
+
+    def barrier(self) -> None:
+        if self.enabled:
+            dist.barrier()
+
+    def close(self) -> None:
+        if self.enabled and dist.is_initialized():
+            dist.destroy_process_group()

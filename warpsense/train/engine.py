@@ -1,0 +1,209 @@
+"""Two-phase co-design training (paper Alg. 1): warm-up with a frozen camera, then joint training with throttled
+camera gradients, CFA temperature annealing, AdamW + cosine schedule, checkpoints, resume, metrics and plots."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import torch
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader, DistributedSampler
+from tqdm import tqdm
+
+from warpsense.data import build_dataset
+from warpsense.models import count_parameters
+from warpsense.train.checkpoint import read_checkpoint, restore, save_checkpoint
+from warpsense.train.distributed import DistributedContext
+from warpsense.train.evaluate import evaluate
+from warpsense.train.losses import segmentation_loss
+from warpsense.train.system import build_system, camera_parameters, mark_learnable, set_camera_trainable
+
+LAST = "checkpoint_last.safetensors"
+BEST = "checkpoint_best.safetensors"
+
+
+def temperature_at(epoch: int, config) -> float:
+    """CFA softmax temperature: temperature_start through warm-up, then geometric annealing to temperature_end at the
+    last epoch."""
+    start, end = config.cfa.temperature_start, config.cfa.temperature_end
+    joint_epochs = config.train.epochs - config.train.warmup_epochs
+    if epoch < config.train.warmup_epochs or joint_epochs <= 1:
+        return start if epoch < config.train.warmup_epochs else end
+    progress = (epoch - config.train.warmup_epochs) / (joint_epochs - 1)
+    return start * (end / start) ** progress
+
+
+def camera_summary(model) -> dict:
+    camera = model.camera
+    summary = {}
+    if camera.exposure is not None:
+        summary["exposure_gain"] = float(camera.exposure.gain().detach())
+    if camera.cfa is not None:
+        summary["cfa_layout"] = "".join("".join(row) for row in camera.cfa.hard_letters())
+        summary["cfa_phi"] = camera.cfa.phi().detach().cpu().tolist()
+    if camera.noise is not None:
+        shot, read = camera.noise.levels()
+        summary["noise_shot"], summary["noise_read"] = float(shot), float(read)
+    if camera.optics is not None and camera.optics.learnable:
+        summary["zernike_waves"] = camera.optics.lens.coefficients().detach().cpu().tolist()
+    return summary
+
+
+def _fresh_run_dir(base: Path) -> Path:
+    if not (base / LAST).exists():
+        return base
+    suffix = 2
+    while (base.parent / f"{base.name}-{suffix}" / LAST).exists():
+        suffix += 1
+    return base.parent / f"{base.name}-{suffix}"
+
+
+def _read_metrics(path: Path, up_to_epoch: int) -> list[dict]:
+    if not path.exists():
+        return []
+    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return [r for r in records if r["epoch"] <= up_to_epoch]
+
+
+def train(config, resume: str | Path | bool = False, progress: bool = True) -> Path:
+    """Train ``config`` and return the run directory.
+
+    Args:
+        config: a resolved `warpsense.config.Config`.
+        resume: False for a new run (a fresh directory <output_dir>/<name>[-N]); True to continue
+            <output_dir>/<name>; or a run directory path. Resuming restores weights, optimizer, RNG and epoch from
+            the last checkpoint (written atomically at every epoch end), so at most the interrupted epoch is redone.
+        progress: show tqdm progress bars (rank 0 only).
+    """
+    context = DistributedContext.from_environment(config.run.device)
+    device = context.device
+    torch.manual_seed(config.run.seed)
+    train_set = build_dataset(config.data, config.data.train_split, train=True, seed=config.run.seed)
+    val_set = build_dataset(config.data, config.data.val_split, train=False, seed=config.run.seed)
+    num_classes = config.model.num_classes or len(train_set.classes)
+    model = build_system(config, num_classes).to(device)
+    mark_learnable(model)
+    if context.enabled and device.type == "cuda":
+        model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
+    camera_params = camera_parameters(model)
+    camera_ids = {id(p) for p in camera_params}
+    network_params = [p for p in model.parameters() if id(p) not in camera_ids and p.requires_grad]
+    optimizer = torch.optim.AdamW([
+        {"params": network_params, "lr": config.train.lr, "weight_decay": config.train.weight_decay},
+        {"params": camera_params, "lr": config.train.lr * config.train.camera_lr_scale, "weight_decay": 0.0},
+    ])
+    base_lrs = [group["lr"] for group in optimizer.param_groups]
+    if config.data.batch_size % context.world_size:
+        raise ValueError(f"data.batch_size={config.data.batch_size} must be divisible by {context.world_size} ranks")
+    sampler = DistributedSampler(train_set, num_replicas=context.world_size, rank=context.rank, shuffle=True,
+                                 seed=config.run.seed, drop_last=True)
+    loader = DataLoader(train_set, batch_size=config.data.batch_size // context.world_size, sampler=sampler,
+                        num_workers=config.data.num_workers, drop_last=True, pin_memory=device.type == "cuda",
+                        persistent_workers=config.data.num_workers > 0)
+    steps_per_epoch = len(loader)
+    if config.train.max_steps_per_epoch:
+        steps_per_epoch = min(steps_per_epoch, config.train.max_steps_per_epoch)
+    if steps_per_epoch == 0:
+        raise ValueError(f"training set of {len(train_set)} images gives no batch of {config.data.batch_size}")
+    total_steps = config.train.epochs * steps_per_epoch
+    amp = config.train.amp and device.type == "cuda"
+
+    if resume:
+        run_dir = Path(resume) if not isinstance(resume, bool) else Path(config.run.output_dir) / config.run.name
+        tensors, meta = read_checkpoint(run_dir / LAST)
+        restore(tensors, model, optimizer)
+        state = meta["state"]
+        start_epoch, step, best_miou = state["epoch"] + 1, state["step"], state["best_miou"]
+        torch.set_rng_state(tensors["rng"])
+        history = _read_metrics(run_dir / "metrics.jsonl", state["epoch"])
+    else:
+        run_dir = _fresh_run_dir(Path(config.run.output_dir) / config.run.name)
+        start_epoch, step, best_miou, history = 0, 0, -1.0, []
+        # each rank draws its own noise seeds from here on (parameters stay identical: DDP syncs gradients)
+        torch.manual_seed(config.run.seed * 1000 + context.rank + 1)
+    if context.is_main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        config.save(run_dir / "config.json")
+        (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in history))
+        print(f"run directory: {run_dir}")
+        print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
+              f"{sum(p.numel() for p in camera_params):,}; device: {device}; ranks: {context.world_size}")
+
+    for epoch in range(start_epoch, config.train.epochs):
+        joint = epoch >= config.train.warmup_epochs
+        set_camera_trainable(model, joint)
+        if model.camera.cfa is not None:
+            model.camera.cfa.set_temperature(temperature_at(epoch, config))
+        wrapped = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
+                                          broadcast_buffers=False) if context.enabled else model
+        sampler.set_epoch(epoch)
+        train_set.set_epoch(epoch)
+        model.train()
+        sums = torch.zeros(5, device=device, dtype=torch.float64)  # loss, ohem, lovasz, smooth, steps
+        started = time.perf_counter()
+        bar = tqdm(total=steps_per_epoch, desc=f"epoch {epoch + 1}/{config.train.epochs} ({'joint' if joint else 'warm-up'})",
+                   disable=not (progress and context.is_main), leave=False)
+        for batch_index, (images, labels) in enumerate(loader):
+            if batch_index >= steps_per_epoch:
+                break
+            images = images.to(device, non_blocking=True)
+            labels = labels.to(device, non_blocking=True)
+            logits, sensed = wrapped(images, amp)
+            loss, parts = segmentation_loss(logits, labels, sensed, config.loss)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if joint and config.train.camera_grad_clip > 0:
+                trainable = [p for p in camera_params if p.grad is not None]
+                if trainable:
+                    torch.nn.utils.clip_grad_norm_(trainable, config.train.camera_grad_clip)
+            scale = 0.5 * (1 + math.cos(math.pi * step / total_steps))
+            for group, base_lr in zip(optimizer.param_groups, base_lrs):
+                group["lr"] = base_lr * scale
+            optimizer.step()
+            step += 1
+            sums += torch.stack([loss.detach().double(), *(parts.get(k, loss.new_zeros(())).double()
+                                 for k in ("ohem", "lovasz", "smooth")), loss.new_ones((), dtype=torch.float64)])
+            bar.update(1)
+        bar.close()
+        context.all_reduce_sum(sums)
+        elapsed = time.perf_counter() - started
+        record = {
+            "epoch": epoch, "step": step, "phase": "joint" if joint else "warmup",
+            "lr": optimizer.param_groups[0]["lr"], "train_loss": float(sums[0] / sums[4]),
+            "train_ohem": float(sums[1] / sums[4]), "train_lovasz": float(sums[2] / sums[4]),
+            "train_smooth": float(sums[3] / sums[4]),
+            "images_per_s": steps_per_epoch * config.data.batch_size / elapsed, "epoch_time_s": elapsed,
+        }
+        if model.camera.cfa is not None:
+            record["temperature"] = float(model.camera.cfa.temperature)
+        last_epoch = epoch == config.train.epochs - 1
+        if (epoch + 1) % config.train.eval_every == 0 or last_epoch:
+            metrics = evaluate(model, val_set, device, batch_size=max(1, config.data.batch_size // 2),
+                               context=context, class_names=train_set.classes, amp=amp)
+            record.update({"val_miou": metrics["miou"], "val_pixel_accuracy": metrics["pixel_accuracy"],
+                           "val_per_class_iou": metrics["per_class_iou"]})
+        record.update(camera_summary(model))
+        is_best = record.get("val_miou", -1.0) > best_miou
+        best_miou = max(best_miou, record.get("val_miou", -1.0))
+        if context.is_main:
+            with open(run_dir / "metrics.jsonl", "a") as log:
+                log.write(json.dumps(record) + "\n")
+            state = {"epoch": epoch, "step": step, "best_miou": best_miou, "num_classes": num_classes,
+                     "class_names": list(train_set.classes), "record": record}
+            if is_best:
+                save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
+            save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state())
+            miou = f"{record['val_miou']:.4f}" if "val_miou" in record else "-"
+            print(f"epoch {epoch + 1}/{config.train.epochs} {record['phase']}: loss {record['train_loss']:.4f} "
+                  f"val mIoU {miou} ({record['images_per_s']:.1f} img/s)", flush=True)
+        context.barrier()
+    if context.is_main and config.train.plots:
+        from warpsense.train.plots import write_run_plots
+
+        write_run_plots(run_dir, model, val_set, device)
+    context.barrier()
+    context.close()
+    return run_dir

@@ -1,0 +1,93 @@
+"""Segmentation losses of paper eq. 7-10: OHEM cross-entropy, Lovasz-softmax, edge-aware smoothness."""
+
+from __future__ import annotations
+
+import torch
+from torch.nn import functional as F
+
+IGNORE_INDEX = 255
+
+
+def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: float = 0.25,
+                       ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
+    """Mean cross-entropy over the hardest ``fraction`` of the valid pixels (paper eq. 7).
+
+    Args:
+        logits: [B, K, H, W]; target: [B, H, W] class indices, ``ignore_index`` excluded.
+        fraction: share of valid pixels kept (at least one); 1.0 is plain cross-entropy.
+    """
+    losses = F.cross_entropy(logits.float(), target, ignore_index=ignore_index, reduction="none").flatten()
+    valid = losses[(target.flatten() != ignore_index)]
+    if valid.numel() == 0:
+        return logits.sum() * 0.0
+    keep = max(1, int(round(fraction * valid.numel())))
+    if keep >= valid.numel():
+        return valid.mean()
+    return torch.topk(valid, keep, sorted=False).values.mean()
+
+
+def lovasz_grad(sorted_errors_labels: torch.Tensor) -> torch.Tensor:
+    """Gradient of the Lovasz extension of the Jaccard loss w.r.t. sorted errors (Berman et al. 2018, alg. 1).
+
+    Args:
+        sorted_errors_labels: [P] ground-truth indicator (0/1) of pixels sorted by decreasing error.
+    """
+    gts = sorted_errors_labels.sum()
+    intersection = gts - sorted_errors_labels.cumsum(0)
+    union = gts + (1 - sorted_errors_labels).cumsum(0)
+    jaccard = 1.0 - intersection / union
+    if jaccard.numel() > 1:
+        jaccard = torch.cat([jaccard[:1], jaccard[1:] - jaccard[:-1]])
+    return jaccard
+
+
+def lovasz_softmax(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
+    """Lovasz-softmax loss (Berman, Rannen Triki, Blaschko, CVPR 2018), averaged over the classes present in the
+    batch's labels; ignored pixels are dropped. Returns 0 (with a graph) when no pixel is valid."""
+    probabilities = torch.softmax(logits.float(), dim=1)
+    num_classes = probabilities.shape[1]
+    probabilities = probabilities.permute(0, 2, 3, 1).reshape(-1, num_classes)
+    labels = target.reshape(-1)
+    valid = labels != ignore_index
+    probabilities, labels = probabilities[valid], labels[valid]
+    if labels.numel() == 0:
+        return logits.sum() * 0.0
+    losses = []
+    for c in torch.unique(labels):
+        foreground = (labels == c).float()
+        errors = (foreground - probabilities[:, c]).abs()
+        errors_sorted, order = torch.sort(errors, descending=True)
+        losses.append(torch.dot(errors_sorted, lovasz_grad(foreground[order])))
+    return torch.stack(losses).mean()
+
+
+def edge_aware_smoothness(logits: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1) -> torch.Tensor:
+    """Mean over 4-neighbour pairs of w_pq |P(p) - P(q)|_1 (paper eq. 9), w_pq = exp(-|I_p - I_q| / sigma) from the
+    guide image [B, C, H, W] (the sensor output), so predictions stay smooth except across image edges."""
+    probabilities = torch.softmax(logits.float(), dim=1)
+    guide = guide.float().mean(dim=1, keepdim=True)
+    if guide.shape[-2:] != probabilities.shape[-2:]:
+        guide = F.interpolate(guide, size=probabilities.shape[-2:], mode="bilinear", align_corners=False)
+    dx_p = (probabilities[..., :, 1:] - probabilities[..., :, :-1]).abs().sum(dim=1, keepdim=True)
+    dy_p = (probabilities[..., 1:, :] - probabilities[..., :-1, :]).abs().sum(dim=1, keepdim=True)
+    wx = torch.exp(-(guide[..., :, 1:] - guide[..., :, :-1]).abs() / sigma)
+    wy = torch.exp(-(guide[..., 1:, :] - guide[..., :-1, :]).abs() / sigma)
+    return 0.5 * ((wx * dx_p).mean() + (wy * dy_p).mean())
+
+
+def segmentation_loss(logits, target, guide, loss_config) -> tuple[torch.Tensor, dict[str, float]]:
+    """Total loss 0.6 OHEM + 0.4 Lovasz + lambda smoothness (paper eq. 10; weights from the config).
+
+    Returns the loss and a dict of its detached parts (tensors: no host sync per step)."""
+    parts = {}
+    total = logits.new_zeros((), dtype=torch.float32)
+    if loss_config.ohem_weight > 0:
+        parts["ohem"] = ohem_cross_entropy(logits, target, loss_config.ohem_fraction)
+        total = total + loss_config.ohem_weight * parts["ohem"]
+    if loss_config.lovasz_weight > 0:
+        parts["lovasz"] = lovasz_softmax(logits, target)
+        total = total + loss_config.lovasz_weight * parts["lovasz"]
+    if loss_config.smooth_weight > 0:
+        parts["smooth"] = edge_aware_smoothness(logits, guide)
+        total = total + loss_config.smooth_weight * parts["smooth"]
+    return total, {k: v.detach() for k, v in parts.items()}

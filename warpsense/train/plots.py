@@ -1,0 +1,113 @@
+"""PNG plots of a run: loss / mIoU curves, learned CFA, PSFs, a grid of predictions, robustness sweeps."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from warpsense.data.labels import CAMVID_COLORS, CITYSCAPES_COLORS  # noqa: E402
+
+
+def colorize(label: np.ndarray, num_classes: int) -> np.ndarray:
+    """[H, W] class indices -> [H, W, 3] uint8 colours (CamVid palette for 11 classes, Cityscapes for 19)."""
+    palette = np.array(CAMVID_COLORS if num_classes <= len(CAMVID_COLORS) else CITYSCAPES_COLORS, dtype=np.uint8)
+    out = np.zeros((*label.shape, 3), dtype=np.uint8)
+    valid = label < len(palette)
+    out[valid] = palette[label[valid]]
+    return out
+
+
+def plot_curves(records: list[dict], path: Path) -> None:
+    epochs = [r["epoch"] + 1 for r in records]
+    figure, (left, right) = plt.subplots(1, 2, figsize=(10, 3.5))
+    left.plot(epochs, [r["train_loss"] for r in records], label="total")
+    for key in ("train_ohem", "train_lovasz"):
+        left.plot(epochs, [r[key] for r in records], label=key[6:], alpha=0.7)
+    left.set_xlabel("epoch"), left.set_ylabel("training loss"), left.legend()
+    evaluated = [r for r in records if "val_miou" in r]
+    right.plot([r["epoch"] + 1 for r in evaluated], [r["val_miou"] for r in evaluated], marker="o")
+    right.set_xlabel("epoch"), right.set_ylabel("validation mIoU")
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
+def plot_camera(model, path: Path) -> None:
+    camera = model.camera
+    panels = (camera.cfa is not None) + (camera.optics is not None)
+    if panels == 0:
+        return
+    figure, axes = plt.subplots(1, panels, figsize=(4 * panels, 4), squeeze=False)
+    axes = list(axes[0])
+    if camera.cfa is not None:
+        phi = camera.cfa.phi().detach().cpu().numpy()
+        axes[0].imshow(np.clip(phi / max(phi.max(), 1e-6), 0, 1), interpolation="nearest")
+        letters = camera.cfa.hard_letters()
+        for y, row in enumerate(letters):
+            for x, letter in enumerate(row):
+                axes[0].text(x, y, letter, ha="center", va="center", color="white", fontsize=14)
+        axes[0].set_title("learned CFA (phi, export letters)")
+        axes[0].axis("off")
+        axes = axes[1:]
+    if camera.optics is not None:
+        psf = camera.optics.psf().detach().cpu().numpy()[1]  # green channel [Gy, Gx, K, K]
+        grid_y, grid_x, size, _ = psf.shape
+        mosaic = np.zeros((grid_y * (size + 1), grid_x * (size + 1)))
+        for i in range(grid_y):
+            for j in range(grid_x):
+                mosaic[i * (size + 1) : i * (size + 1) + size, j * (size + 1) : j * (size + 1) + size] = \
+                    psf[i, j] / psf[i, j].max()
+        axes[0].imshow(mosaic ** 0.5, cmap="magma")
+        axes[0].set_title("PSF grid (green, sqrt, per-PSF max)")
+        axes[0].axis("off")
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
+@torch.no_grad()
+def plot_predictions(model, dataset, device, path: Path, count: int = 4) -> None:
+    model.eval()
+    count = min(count, len(dataset))
+    figure, axes = plt.subplots(count, 4, figsize=(12, 2.6 * count), squeeze=False)
+    num_classes = model.network.head.out_channels
+    for row in range(count):
+        image, label = dataset[row]
+        logits, sensed = model(image[None].to(device))
+        prediction = logits.argmax(dim=1)[0].cpu().numpy()
+        panels = [image.permute(1, 2, 0).numpy(), sensed[0].float().cpu().clamp(0, 1).permute(1, 2, 0).numpy().squeeze(),
+                  colorize(prediction, num_classes), colorize(label.numpy(), num_classes)]
+        for axis, panel, title in zip(axes[row], panels, ("input (sRGB)", "sensor output", "prediction", "label")):
+            axis.imshow(panel, cmap="gray" if panel.ndim == 2 else None)
+            axis.set_title(title, fontsize=9)
+            axis.axis("off")
+    figure.tight_layout()
+    figure.savefig(path, dpi=90)
+    plt.close(figure)
+
+
+def plot_sweep(rows: list[dict], path: str | Path) -> None:
+    factors = sorted({r["factor"] for r in rows})
+    figure, axes = plt.subplots(1, len(factors), figsize=(4 * len(factors), 3.2), squeeze=False)
+    for axis, factor in zip(axes[0], factors):
+        subset = [r for r in rows if r["factor"] == factor]
+        axis.plot([r["value"] for r in subset], [r["miou"] for r in subset], marker="o")
+        axis.set_xlabel(factor), axis.set_ylabel("mIoU")
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
+def write_run_plots(run_dir: Path, model, val_set, device) -> None:
+    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
+    if records:
+        plot_curves(records, run_dir / "curves.png")
+    plot_camera(model, run_dir / "camera.png")
+    plot_predictions(model, val_set, device, run_dir / "predictions.png")
