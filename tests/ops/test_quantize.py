@@ -78,7 +78,7 @@ def test_gradcheck():
     torch.testing.assert_close(mine, theirs)
     # 24-bit quantization is (numerically) the identity on [0, 1]: gradcheck sees its clipped-identity gradient
     inside = (torch.rand(2, 6, dtype=torch.float64) * 0.8 + 0.1).requires_grad_()
-    assert torch.autograd.gradcheck(lambda x: quantize_ste(x, 24), (inside,), atol=1e-6)
+    assert torch.autograd.gradcheck(lambda x: quantize_ste(x, 24), (inside,), eps=1e-3, atol=1e-4)
 
 
 def test_inputs_not_mutated_and_autocast():

@@ -221,6 +221,10 @@ class Lens(nn.Module):
         psf = torch.stack(per_wavelength)
         return psf / psf.sum(dim=(-2, -1), keepdim=True)
 
+    def forward(self, field_height: torch.Tensor, azimuth: torch.Tensor, **options) -> torch.Tensor:
+        """Same as `psf_at` (so `torch.func.functional_call` can swap the coefficients)."""
+        return self.psf_at(field_height, azimuth, **options)
+
     def psf_grid(self, grid: tuple[int, int] | None = None) -> torch.Tensor:
         """[3, Gy, Gx, K, K] PSFs at the centres of a Gy x Gx tiling of the image, each summing to 1 (float64)."""
         grid_y, grid_x = grid or self.spec.psf_grid

@@ -1,0 +1,118 @@
+import pytest
+import torch
+
+from warpsense.camera import CFA, Camera, Exposure, Optics, Quantizer, SensorNoise
+from warpsense.camera.isp import FixedISP
+from warpsense.config import load_config
+from warpsense.ops import cfa_mosaic, exposure, poisson_gaussian, psf_conv, quantize_ste
+from warpsense.optics import Lens
+
+
+def test_exposure_module_equals_functional_and_bounds():
+    module = Exposure(0.3)
+    image = torch.rand(2, 3, 4, 5)
+    torch.testing.assert_close(module(image), exposure(image, module.gain_logit))
+    for logit, gain in ((-50.0, 0.25), (50.0, 4.0), (0.0, 2.125)):
+        assert Exposure(logit).gain().item() == pytest.approx(gain)
+
+
+@pytest.mark.parametrize("mode", ["softmax", "free", "fixed"])
+def test_cfa_module_equals_functional(mode):
+    module = CFA("RGGB", 2, mode)
+    image = torch.rand(2, 3, 6, 6)
+    torch.testing.assert_close(module(image), cfa_mosaic(image, module.phi()))
+    assert module.hard_letters() == [["R", "G"], ["G", "B"]]
+
+
+def test_cfa_softmax_anneals_to_one_hot_and_learns():
+    module = CFA("RCCC", 2, "softmax", init_logit=2.0)
+    module.set_temperature(1.0)
+    soft = module.phi().detach().clone()
+    module.set_temperature(0.01)
+    torch.testing.assert_close(module.phi(), module.hard_phi(), atol=1e-6, rtol=0)
+    assert not torch.allclose(soft, module.hard_phi())
+    module.set_temperature(1.0)
+    module(torch.rand(1, 3, 4, 4)).sum().backward()
+    assert module.logits.grad is not None and module.logits.grad.abs().sum() > 0
+
+
+def test_cfa_layouts_tiles_and_errors():
+    assert CFA("BGGR", 4, "fixed").phi().shape == (4, 4, 3)
+    assert CFA("GRBG", 1, "fixed").hard_letters() == [["G"]]
+    with pytest.raises(KeyError, match="valid layouts: RGGB"):
+        CFA("XYZW")
+    with pytest.raises(KeyError, match="valid modes"):
+        CFA("RGGB", mode="learned")
+    assert not any(p.requires_grad for p in CFA("RGGB", 2, "fixed").parameters())
+
+
+def test_noise_module_equals_functional_and_seeds():
+    module = SensorNoise(0.015, 0.002, eval_seed=42).eval()
+    raw = torch.rand(2, 1, 5, 5)
+    torch.testing.assert_close(module(raw), poisson_gaussian(raw, 0.015, 0.002, 42))
+    assert torch.equal(module(raw), module(raw))  # eval: fixed seed
+    module.train()
+    assert not torch.equal(module(raw), module(raw))  # training: a new seed per call
+
+
+def test_noise_learnable_levels_bounded():
+    module = SensorNoise(0.01, 0.002, learnable=True)
+    with torch.no_grad():
+        module.shot_logit.fill_(50.0)
+        module.read_logit.fill_(-50.0)
+    shot, read = module.levels()
+    assert shot.item() == pytest.approx(0.02) and read.item() == pytest.approx(0.0, abs=1e-12)
+    assert module.shot_logit.requires_grad
+
+
+def test_quantizer_module_equals_functional():
+    module = Quantizer(8, 1.0, "max")
+    raw = torch.rand(2, 1, 4, 4)
+    torch.testing.assert_close(module(raw), quantize_ste(raw, 8, 1.0, "max"))
+
+
+def test_optics_module_equals_functional_and_normalises():
+    optics = Optics(Lens.from_json("phone_68deg"), normalize_mean=0.0)
+    image = torch.rand(1, 3, 20, 24)
+    torch.testing.assert_close(optics(image), psf_conv(image, optics.psf()))
+    normalised = Optics(Lens.from_json("phone_68deg"), normalize_mean=0.5)(image)
+    assert normalised.mean().item() == pytest.approx(0.5, rel=1e-5)
+
+
+def test_learnable_optics_gets_gradient_and_caches_when_frozen():
+    optics = Optics(Lens.from_json("phone_68deg", learnable=True), learnable=True, normalize_mean=0.5).train()
+    optics.lens.spec.pupil_samples = 24
+    optics(torch.rand(1, 3, 16, 16)).square().sum().backward()
+    assert optics.lens.offset.grad.abs().sum() > 0
+    optics.lens.offset.requires_grad_(False)
+    first = optics.psf()
+    assert optics.psf() is first  # frozen: rendered once
+
+
+def test_camera_constructs_only_enabled_stages():
+    config = load_config(None, ["noise.enabled=false", "quantize.enabled=false", "exposure.enabled=false"])
+    camera = Camera.from_config(config)
+    assert camera.optics is None and camera.noise is None and camera.quantizer is None and camera.exposure is None
+    radiance = torch.rand(1, 3, 6, 6)
+    torch.testing.assert_close(camera(radiance), cfa_mosaic(radiance, camera.cfa.phi()))
+
+
+def test_camera_chain_equals_functional_composition():
+    config = load_config(None, ["optics.enabled=true", "optics.normalize_mean=0.0"])
+    camera = Camera.from_config(config).eval()
+    radiance = torch.rand(2, 3, 16, 20)
+    image = psf_conv(radiance, camera.optics.psf())
+    raw = cfa_mosaic(image, camera.cfa.phi() * camera.exposure.gain())
+    raw = poisson_gaussian(raw, *camera.noise.levels(), camera.noise.eval_seed)
+    expected = quantize_ste(raw, 10)
+    torch.testing.assert_close(camera(radiance), expected)
+
+
+def test_fixed_isp_reconstructs_smooth_colour():
+    letters = [["R", "G"], ["G", "B"]]
+    isp = FixedISP(letters, gamma=1.0)
+    colour = torch.tensor([0.2, 0.5, 0.8]).view(1, 3, 1, 1).expand(1, 3, 8, 8)
+    raw = cfa_mosaic(colour.contiguous(), CFA("RGGB", 2, "fixed").phi())
+    torch.testing.assert_close(isp(raw), colour, atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="R/G/B layout"):
+        FixedISP([["R", "C"], ["C", "C"]])

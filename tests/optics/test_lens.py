@@ -1,0 +1,159 @@
+import json
+import math
+
+import pytest
+import torch
+
+from warpsense.optics import Lens, LensFileError, collapse_grid, crop_to_energy, noll_to_nm, pupil_psf, zernike
+
+FINE_PUPIL, FINE_PADDING = 128, 16  # image-plane samples lambda N / 16 apart: fine sampling for the physics
+
+
+def test_noll_table():
+    expected = [(0, 0), (1, 1), (1, -1), (2, 0), (2, -2), (2, 2), (3, -1), (3, 1), (3, -3), (3, 3), (4, 0), (4, 2),
+                (4, -2), (4, 4), (4, -4)]
+    assert [noll_to_nm(j) for j in range(1, 16)] == expected
+
+
+def test_zernike_unit_rms_and_orthogonal():
+    samples = 400
+    axis = (torch.arange(samples, dtype=torch.float64) + 0.5) / samples * 2 - 1
+    y, x = torch.meshgrid(axis, axis, indexing="ij")
+    rho, theta = torch.sqrt(x**2 + y**2), torch.atan2(y, x)
+    inside = rho <= 1
+    values = torch.stack([zernike(j, rho, theta)[inside] for j in range(1, 16)])
+    gram = values @ values.T / inside.sum()
+    torch.testing.assert_close(gram, torch.eye(15, dtype=torch.float64), atol=0.02, rtol=0)
+
+
+def _fine_psf(coefficients, noll, padding=FINE_PADDING):
+    coefficients = torch.tensor([coefficients], dtype=torch.float64)
+    return pupil_psf(coefficients, noll, torch.zeros(1, dtype=torch.float64), FINE_PUPIL, padding)[0]
+
+
+def test_airy_first_dark_ring_at_1_22_lambda_n():
+    psf = _fine_psf([0.0], [4])
+    size = psf.shape[-1]
+    centre = size // 2
+    spacing = FINE_PUPIL / size  # image-plane sample spacing in units of lambda * N
+    profile = psf[centre, centre : centre + int(1.6 * FINE_PADDING)]  # out to 1.6 lambda N: the first ring only
+    i = int(profile[1:].argmin()) + 1
+    a, b, c = profile[i - 1 : i + 2].tolist()
+    minimum = (i + 0.5 * (a - c) / (a - 2 * b + c)) * spacing
+    assert minimum == pytest.approx(1.22, rel=0.01)
+
+
+@pytest.mark.parametrize("noll", [4, 6, 11])
+@pytest.mark.parametrize("rms", [0.02, 0.05, 0.07])
+def test_strehl_matches_marechal(noll, rms):
+    perfect = _fine_psf([0.0], [noll], padding=4).max()  # the peak needs no fine sampling
+    strehl = (_fine_psf([rms], [noll], padding=4).max() / perfect).item()
+    assert strehl == pytest.approx(math.exp(-((2 * math.pi * rms) ** 2)), rel=0.01)
+
+
+def _is_radially_symmetric(psf, tolerance):
+    centre, radius = psf.shape[-1] // 2, 12
+    psf = psf[centre - radius : centre + radius + 1, centre - radius : centre + radius + 1]  # odd, centred
+    return (psf - psf.flip(-1)).abs().max() < tolerance and (psf - psf.transpose(-1, -2)).abs().max() < tolerance
+
+
+def test_defocus_radially_symmetric_coma_not():
+    defocus = _fine_psf([0.3], [4], padding=4)
+    coma = _fine_psf([0.3], [8], padding=4)
+    scale = defocus.max()
+    assert _is_radially_symmetric(defocus, 1e-3 * scale)
+    assert not _is_radially_symmetric(coma, 1e-2 * coma.max())
+
+
+@pytest.mark.parametrize("name", ["phone_68deg", "phone_80deg"])
+def test_packaged_lenses_energy_and_shape(name):
+    lens = Lens.from_json(name)
+    grid = lens.psf_grid()
+    spec = lens.spec
+    assert grid.shape == (3, *spec.psf_grid, spec.psf_kernel_size, spec.psf_kernel_size)
+    torch.testing.assert_close(grid.sum(dim=(-2, -1)), torch.ones(grid.shape[:3], dtype=torch.float64))
+    assert (grid >= 0).all()
+    # the corner blurs more than the centre (field-dependent aberrations), and the PSF grid is not invariant
+    centre, corner = grid[1, spec.psf_grid[0] // 2, spec.psf_grid[1] // 2], grid[1, 0, 0]
+    assert corner.max() < 0.8 * centre.max()
+    assert 2000 < spec.sensor_diagonal_mm * 1000 / spec.pixel_pitch_um < 8000  # a phone sensor's diagonal in pixels
+
+
+def test_pixel_pitch_sampling_energy_in_kernel():
+    lens = Lens.from_json("phone_68deg")
+    psf = lens.psf_at(torch.zeros(1, dtype=torch.float64), torch.zeros(1, dtype=torch.float64))
+    # the central pixel of a 1.4 um pitch sensor collects most of an f/1.9 diffraction-limited core
+    assert psf[1, 0].argmax() == (psf.shape[-1] ** 2) // 2
+    assert 0.4 < psf[1, 0].max() < 0.95
+
+
+def test_psf_gradient_wrt_zernike_gradcheck():
+    lens = Lens.from_json("phone_68deg", learnable=True)
+    lens.spec.pupil_samples = 16
+    height = torch.tensor([0.0, 0.8], dtype=torch.float64)
+    azimuth = torch.tensor([0.0, 0.7], dtype=torch.float64)
+    offset = (torch.rand_like(lens.offset) * 0.4 - 0.2).requires_grad_()
+
+    def render(parameters):
+        options = {"kernel_size": 3, "oversampling": 3}
+        return torch.func.functional_call(lens, {"offset": parameters}, (height, azimuth), options)
+
+    assert torch.autograd.gradcheck(render, (offset,), atol=1e-6)
+
+
+def test_learnable_coefficients_bounded():
+    lens = Lens.from_json("phone_68deg", learnable=True)
+    with torch.no_grad():
+        lens.offset.fill_(100.0)
+    delta = lens.coefficients() - lens.base_coefficients
+    assert torch.allclose(delta, torch.full_like(delta, lens.spec.learnable_bound_waves))
+
+
+def test_crop_to_energy_and_collapse():
+    grid = Lens.from_json("phone_68deg").psf_grid()
+    cropped = crop_to_energy(grid, 0.05)
+    assert cropped.shape[-1] < grid.shape[-1] and cropped.shape[-1] % 2 == 1
+    torch.testing.assert_close(cropped.sum(dim=(-2, -1)), torch.ones(cropped.shape[:3], dtype=torch.float64))
+    assert crop_to_energy(grid, 0.0).shape == grid.shape
+    assert collapse_grid(grid, 1e-3).shape == grid.shape  # field-varying lens keeps its grid
+    invariant = grid[:, 2:3, 2:3].expand(-1, 5, 5, -1, -1) + 1e-6 * torch.rand_like(grid)
+    assert collapse_grid(invariant, 1e-3).shape[1:3] == (1, 1)
+
+
+LENS = {
+    "name": "t", "focal_length_mm": 4.0, "f_number": 2.0, "diagonal_fov_deg": 70, "pixel_pitch_um": 1.4,
+    "wavelengths_um": [0.6, 0.55, 0.45], "psf_kernel_size": 7, "psf_grid": [2, 2], "zernike_waves": {"4": {"constant": 0.1}},
+}
+
+
+@pytest.mark.parametrize("change,message", [
+    ({"focal_length_mm": None}, "missing required key 'focal_length_mm'"),
+    ({"bogus": 1}, "unknown key 'bogus'"),
+    ({"f_number": "fast"}, "f_number: expected float"),
+    ({"psf_kernel_size": 8}, "psf_kernel_size must be a positive odd"),
+    ({"psf_grid": [2]}, "psf_grid must be"),
+    ({"wavelengths_um": [0.5]}, "wavelengths_um must be 3"),
+    ({"zernike_waves": {"4": {"cubic": 1.0}}}, "zernike_waves.4"),
+    ({"zernike_waves": {"x": {"constant": 1.0}}}, "Noll indices"),
+])
+def test_malformed_lens_file_errors_name_file_and_key(tmp_path, change, message):
+    data = dict(LENS)
+    for key, value in change.items():
+        if value is None:
+            data.pop(key)
+        else:
+            data[key] = value
+    path = tmp_path / "bad_lens.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(LensFileError, match=message) as error:
+        Lens.from_json(path)
+    assert "bad_lens.json" in str(error.value)
+
+
+def test_invalid_json_and_unknown_name(tmp_path):
+    path = tmp_path / "broken.json"
+    path.write_text("{not json")
+    with pytest.raises(LensFileError, match="broken.json: invalid JSON"):
+        Lens.from_json(path)
+    with pytest.raises(LensFileError, match="packaged: phone_68deg, phone_80deg"):
+        Lens.from_json("no_such_lens")

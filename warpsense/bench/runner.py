@@ -1,0 +1,239 @@
+"""`warpsense bench`: every Warp kernel against its plain-torch reference (and alternative methods), forward and
+backward, with error against a float64 reference: the error-against-run-time table of the design card.
+
+Timing: median and IQR over repetitions after warm-up (compilation and cudnn tuning excluded), the device
+synchronised around each repetition. "bwd" times the backward pass alone (the graph is built outside the timed
+region). Errors: max abs and max relative (to the reference's max magnitude) against the same computation in float64.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import statistics
+import subprocess
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from warpsense import __version__
+from warpsense.bench.timing import _summary, _sync, time_cuda_graph, time_function
+from warpsense.ops import cfa_mosaic, poisson_gaussian, psf_conv, quantize_ste
+from warpsense.ops.psf import psf_conv_fft, psf_conv_patch
+from warpsense.ops.reference import cfa_mosaic_reference, poisson_gaussian_reference, psf_conv_reference, quantize_reference
+
+
+def time_backward(forward, inputs, device, repeats: int, warmup: int = 2) -> dict:
+    """Backward pass alone: ``forward()`` builds the graph untimed, then autograd.grad is timed."""
+    samples = []
+    for index in range(warmup + repeats):
+        out = forward()
+        grad = torch.ones_like(out)
+        _sync(device)
+        start = time.perf_counter()
+        torch.autograd.grad(out, inputs, grad)
+        _sync(device)
+        if index >= warmup:
+            samples.append((time.perf_counter() - start) * 1e3)
+    return _summary(samples)
+
+
+def _errors(output: torch.Tensor, reference: torch.Tensor) -> dict:
+    difference = (output.double() - reference.double()).abs().max().item()
+    return {"max_abs_err": difference, "max_rel_err": difference / max(reference.abs().max().item(), 1e-30)}
+
+
+def _metadata(device: str) -> dict:
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                                cwd=Path(__file__).parent).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = ""
+    import warp
+
+    name = torch.cuda.get_device_name() if device == "cuda" else (platform.processor() or platform.machine())
+    return {"warpsense": __version__, "torch": torch.__version__, "warp": warp.config.version, "python":
+            platform.python_version(), "device_name": name, "git_commit": commit, "cpu_count": torch.get_num_threads()}
+
+
+class Bench:
+    def __init__(self, device: str, repeats: int):
+        self.device, self.repeats, self.records = device, repeats, []
+
+    def record(self, kernel, method, dtype, shape, pass_name, timing, errors=None, bytes_moved=None, **extra):
+        row = {"kernel": kernel, "method": method, "device": self.device, "dtype": dtype, "shape": list(shape),
+               "pass": pass_name, "median_ms": timing["median_ms"], "iqr_ms": timing["iqr_ms"],
+               "max_abs_err": (errors or {}).get("max_abs_err"), "max_rel_err": (errors or {}).get("max_rel_err")}
+        if bytes_moved is not None:
+            row["bandwidth_gb_s"] = bytes_moved / (timing["median_ms"] * 1e-3) / 1e9
+        row.update(extra)
+        self.records.append(row)
+        ratio = ""
+        print(f"{kernel:>16s} {method:>12s} {dtype:>9s} {str(tuple(shape)):>22s} {pass_name:>4s} "
+              f"{timing['median_ms']:9.3f} ms  err {row['max_rel_err'] if row['max_rel_err'] is not None else '-':<10.3g}"
+              if row["max_rel_err"] is not None else
+              f"{kernel:>16s} {method:>12s} {dtype:>9s} {str(tuple(shape)):>22s} {pass_name:>4s} "
+              f"{timing['median_ms']:9.3f} ms{ratio}", flush=True)
+
+    def case(self, kernel, method, shape, function, inputs64, bytes_fwd=None, bytes_bwd=None, precisions=("float32",)):
+        """Time ``function(*inputs)`` fwd and bwd in float32, errors vs float64, and bf16-input error."""
+        reference = function(*inputs64).detach()
+        for precision in precisions:
+            if precision == "float32":
+                inputs = [x.detach().float().requires_grad_(x.requires_grad) for x in inputs64]
+            else:  # bf16 autocast: inputs rounded to bf16, the op computes in float32
+                inputs = [x.detach().bfloat16().requires_grad_(x.requires_grad) for x in inputs64]
+            with torch.autocast(self.device, dtype=torch.bfloat16, enabled=precision == "bf16_autocast"):
+                with torch.no_grad():
+                    errors = _errors(function(*inputs), reference)
+                    timing = time_function(lambda: function(*inputs), self.device, self.repeats)
+                self.record(kernel, method, precision, shape, "fwd", timing, errors, bytes_fwd)
+                grads = [x for x in inputs if x.requires_grad]
+                if grads and precision == "float32":
+                    timing = time_backward(lambda: function(*inputs), grads, self.device, self.repeats)
+                    self.record(kernel, method, precision, shape, "bwd", timing, None, bytes_bwd)
+
+
+def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = None, plot_out: str | None = None) -> list[dict]:
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device available")
+    torch.manual_seed(0)
+    bench = Bench(device, repeats=5 if quick else 30)
+    if quick:
+        sizes = [(1, 96, 128)]
+    elif device == "cuda":
+        sizes = [(1, 192, 640), (16, 192, 640), (1, 360, 480), (16, 360, 480), (1, 1024, 2048)]
+    else:
+        sizes = [(1, 192, 640), (16, 192, 640), (1, 360, 480), (16, 360, 480)]
+    precisions = ("float32", "bf16_autocast")
+    for batch, height, width in sizes:
+        pixels = batch * height * width
+        rgb = torch.rand(batch, 3, height, width, dtype=torch.float64, device=device, requires_grad=True)
+        phi = torch.rand(2, 2, 3, dtype=torch.float64, device=device, requires_grad=True)
+        shape = (batch, 3, height, width)
+        bench.case("cfa_mosaic", "warp", shape, cfa_mosaic, [rgb, phi], 16 * pixels, 28 * pixels, precisions)
+        bench.case("cfa_mosaic", "torch_eager", shape, cfa_mosaic_reference, [rgb, phi], 16 * pixels, 28 * pixels)
+        raw = torch.rand(batch, 1, height, width, dtype=torch.float64, device=device, requires_grad=True)
+        raw_shape = (batch, 1, height, width)
+        bench.case("poisson_gaussian", "warp", raw_shape, lambda r: poisson_gaussian(r, 0.015, 0.002, 3), [raw],
+                   8 * pixels, 12 * pixels, precisions)
+        bench.case("poisson_gaussian", "torch_eager", raw_shape,
+                   lambda r: poisson_gaussian_reference(r, 0.015, 0.002, torch.randn_like(r)), [raw], 8 * pixels,
+                   12 * pixels)
+        bench.records[-2]["max_abs_err"] = bench.records[-2]["max_rel_err"] = None  # different random draws
+        bench.case("quantize_ste", "warp", raw_shape, lambda r: quantize_ste(r, 10), [raw], 8 * pixels, 12 * pixels,
+                   precisions)
+        bench.case("quantize_ste", "torch_eager", raw_shape, lambda r: quantize_reference(r, 10), [raw], 8 * pixels,
+                   12 * pixels)
+    # PSF convolution: invariant and 5x5-varying, K = 15 (quick: K = 7 on a small image)
+    psf_sizes = [(1, 64, 96)] if quick else ([(16, 192, 640), (1, 360, 480)] if device == "cuda" else [(1, 192, 640)])
+    size = 7 if quick else 15
+    from warpsense.optics import Lens
+
+    lens_grid = Lens.from_json("phone_80deg").psf_grid().to(device)
+    start = (lens_grid.shape[-1] - size) // 2
+    varying = lens_grid[..., start : start + size, start : start + size]
+    varying = (varying / varying.sum(dim=(-2, -1), keepdim=True)).requires_grad_()
+    invariant = varying[:, 2:3, 2:3].detach().clone().requires_grad_()
+    for batch, height, width in psf_sizes:
+        image = torch.rand(batch, 3, height, width, dtype=torch.float64, device=device, requires_grad=True)
+        shape = (batch, 3, height, width)
+        bench.case("psf_conv_invariant", "warp", shape, psf_conv, [image, invariant])
+        bench.case("psf_conv_invariant", "cudnn_conv2d" if device == "cuda" else "torch_conv2d", shape,
+                   lambda x, p: F.conv2d(F.pad(x, (size // 2,) * 4, mode="replicate"),
+                                         p[:, 0, 0].flip(-1, -2).unsqueeze(1), groups=3), [image, invariant])
+        bench.case("psf_conv_invariant", "torch_fft", shape, lambda x, p: psf_conv_fft(x, p[:, 0, 0]), [image, invariant])
+        bench.case("psf_conv_varying", "warp", shape, psf_conv, [image, varying])
+        bench.case("psf_conv_varying", "torch_patch", shape, psf_conv_patch, [image, varying])
+        bench.case("psf_conv_varying", "torch_blend", shape, psf_conv_reference, [image, varying])
+        # the approximations' error is against the exact varying result, not their own float64 run
+        exact = psf_conv_reference(image.detach(), varying.detach())
+        for row in bench.records[-6:]:
+            if row["kernel"] == "psf_conv_varying" and row["pass"] == "fwd" and row["method"] == "torch_patch":
+                row.update(_errors(psf_conv_patch(image.detach().float(), varying.detach().float()), exact))
+    _psf_quality(bench, device, quick)
+    if not quick:
+        _end_to_end(bench, device)
+    payload = {"metadata": _metadata(device), "records": bench.records}
+    if json_out:
+        Path(json_out).write_text(json.dumps(payload, indent=2))
+    if plot_out:
+        plot_pareto(bench.records, plot_out)
+    return bench.records
+
+
+def _psf_quality(bench: Bench, device: str, quick: bool) -> None:
+    """PSF generation time, and the error of a coarser PSF grid or smaller kernel against a dense rendering of the
+    lens (9x9 grid, K = 21), with the run time of psf_conv at that setting."""
+    from warpsense.optics import Lens
+
+    lens = Lens.from_json("phone_80deg")
+    timing = time_function(lambda: lens.psf_grid(), "cpu", 3 if quick else 10, warmup=1)
+    bench.record("psf_generation", "torch_fft", "float64", (3, 5, 5, 15, 15), "fwd", timing)
+    batch, height, width = (1, 48, 64) if quick else (1, 192, 640)
+    image = torch.rand(batch, 3, height, width, dtype=torch.float64, device=device)
+    dense_lens = Lens.from_json("phone_80deg")
+    dense_lens.spec.psf_kernel_size = 21
+    reference = psf_conv(image, dense_lens.psf_grid((9, 9)).to(device))
+    settings = [((g, g), 15) for g in (1, 3, 5, 7)] + [((5, 5), k) for k in (5, 9)]
+    for grid, size in settings:
+        lens.spec.psf_kernel_size = size
+        psf = lens.psf_grid(grid).to(device).float()
+        image32 = image.float()
+        timing = time_function(lambda: psf_conv(image32, psf), device, 3 if quick else 20, warmup=1)
+        bench.record("psf_quality", f"grid{grid[0]}x{grid[1]}_K{size}", "float32", (batch, 3, height, width), "fwd",
+                     timing, _errors(psf_conv(image32, psf), reference))
+
+
+def _end_to_end(bench: Bench, device: str) -> None:
+    """Sensor simulation + the 0.18M DSUNet at 192x640 batch 1: warpsense ops vs the same pipeline written with the
+    plain-torch reference ops; eager, and replayed as a CUDA graph on CUDA."""
+    from warpsense.camera import Camera
+    from warpsense.config import load_config
+    from warpsense.models import build_model
+
+    config = load_config(None, ["exposure.learnable=false", "cfa.mode=fixed"])
+    camera = Camera.from_config(config).to(device).eval()
+    network = build_model("dsunet", in_channels=1, num_classes=19, width=16).to(device).eval()
+    radiance = torch.rand(1, 3, 192, 640, device=device)
+    phi = camera.cfa.phi() * camera.exposure.gain()
+
+    def baseline():
+        raw = cfa_mosaic_reference(radiance, phi)
+        raw = poisson_gaussian_reference(raw, 0.015, 0.002, torch.randn_like(raw))
+        return network(quantize_reference(raw, 10))
+
+    def ours():
+        return network(camera(radiance))
+
+    with torch.no_grad(), torch.autocast(device, dtype=torch.bfloat16, enabled=device == "cuda"):
+        for name, function in (("torch_eager_sensor", baseline), ("warp_sensor", ours)):
+            bench.record("sensor_plus_network", name, "bf16" if device == "cuda" else "float32", (1, 3, 192, 640),
+                         "fwd", time_function(function, device, 50))
+            if device == "cuda":
+                bench.record("sensor_plus_network", name + "_graph", "bf16", (1, 3, 192, 640), "fwd",
+                             time_cuda_graph(function, 100))
+        sensed = camera(radiance)
+        bench.record("network_only", "dsunet", "bf16" if device == "cuda" else "float32", (1, 1, 192, 640), "fwd",
+                     time_function(lambda: network(sensed), device, 50))
+
+
+def plot_pareto(records: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in records if r["kernel"].startswith("psf") and r["pass"] == "fwd" and r["max_rel_err"]
+            and r["dtype"] == "float32"]
+    figure, axis = plt.subplots(figsize=(7, 4.5))
+    for row in rows:
+        axis.scatter(row["median_ms"], max(row["max_rel_err"], 1e-9), label=f"{row['kernel']}:{row['method']}")
+    axis.set_xscale("log"), axis.set_yscale("log")
+    axis.set_xlabel("median forward time (ms)"), axis.set_ylabel("max relative error")
+    axis.legend(fontsize=6, loc="best")
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
