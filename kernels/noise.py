@@ -14,8 +14,12 @@ wp.set_module_options({"enable_backward": False})
 
 @wp.func
 def standard_normal(seed: wp.int32, index: wp.int32):
+    """Box-Muller on two uniforms drawn in a fixed order (C++ leaves the operand order of wp.randn's one-line
+    formula to the compiler, so CPU and CUDA builds could disagree)."""
     state = wp.rand_init(seed, index)
-    return wp.randn(state)
+    first = wp.randf(state)
+    second = wp.randf(state)
+    return wp.sqrt(-2.0 * wp.log(first + 5.96e-8)) * wp.cos(2.0 * wp.pi * second)
 
 
 @wp.kernel

@@ -108,18 +108,28 @@ def psf_backward_image(
         x_first = -radius
     if x == width - 1:
         x_last = width - 1 + radius
-    for i in range(size):
-        for j in range(size):
-            tap = interpolated_tap(psf, c, iy, ix, fy, fx, grid_y, grid_x, i, j)
-            reached = grad_out.dtype(0.0)
-            for vy in range(y_first, y_last + 1):
-                py = vy + i - radius
-                if py >= 0 and py < height:
-                    for vx in range(x_first, x_last + 1):
-                        px = vx + j - radius
-                        if px >= 0 and px < width:
-                            reached += grad_out[bc, py, px]
-            acc += tap * reached
+    if y_first == y_last and x_first == x_last:
+        # interior pixel: one virtual position, a plain correlation with its own PSF
+        for i in range(size):
+            py = y + i - radius
+            if py >= 0 and py < height:
+                for j in range(size):
+                    px = x + j - radius
+                    if px >= 0 and px < width:
+                        acc += interpolated_tap(psf, c, iy, ix, fy, fx, grid_y, grid_x, i, j) * grad_out[bc, py, px]
+    else:
+        for i in range(size):
+            for j in range(size):
+                tap = interpolated_tap(psf, c, iy, ix, fy, fx, grid_y, grid_x, i, j)
+                reached = grad_out.dtype(0.0)
+                for vy in range(y_first, y_last + 1):
+                    py = vy + i - radius
+                    if py >= 0 and py < height:
+                        for vx in range(x_first, x_last + 1):
+                            px = vx + j - radius
+                            if px >= 0 and px < width:
+                                reached += grad_out[bc, py, px]
+                acc += tap * reached
     grad_image[bc, y, x] = acc
 
 

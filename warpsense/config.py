@@ -136,6 +136,7 @@ class TrainConfig:
     camera_grad_clip: float = 0.1
     amp: bool = True
     max_steps_per_epoch: int = 0
+    time_budget_minutes: float = 0.0
     eval_every: int = 1
     plots: bool = True
 

@@ -79,6 +79,12 @@ def test_inputs_not_mutated_and_autocast_runs_in_float32():
 
 
 @pytest.mark.cuda
-def test_cuda_matches_cpu():
-    rgb, phi = torch.rand(2, 3, 16, 20), torch.rand(2, 2, 3)
-    torch.testing.assert_close(cfa_mosaic(rgb.cuda(), phi.cuda()).cpu(), cfa_mosaic(rgb, phi))
+def test_cuda_matches_reference_forward_and_backward():
+    rgb = torch.rand(2, 3, 16, 20, dtype=torch.float64, device="cuda", requires_grad=True)
+    phi = torch.rand(3, 3, 3, dtype=torch.float64, device="cuda", requires_grad=True)
+    grad = torch.rand(2, 1, 16, 20, dtype=torch.float64, device="cuda")
+    torch.testing.assert_close(cfa_mosaic(rgb, phi), cfa_mosaic_reference(rgb, phi))
+    mine = torch.autograd.grad(cfa_mosaic(rgb, phi), (rgb, phi), grad)
+    theirs = torch.autograd.grad(cfa_mosaic_reference(rgb, phi), (rgb, phi), grad)
+    for a, b in zip(mine, theirs):
+        torch.testing.assert_close(a, b)

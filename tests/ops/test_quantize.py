@@ -91,7 +91,11 @@ def test_inputs_not_mutated_and_autocast():
 
 
 @pytest.mark.cuda
-def test_cuda_matches_cpu():
-    raw = torch.rand(3, 1, 16, 16) * 1.2 - 0.1
+def test_cuda_matches_reference():
+    raw = (torch.rand(3, 1, 16, 16, dtype=torch.float64, device="cuda") * 1.2 - 0.1).requires_grad_()
+    grad = torch.rand_like(raw)
     for mode in ("full_well", "max"):
-        torch.testing.assert_close(quantize_ste(raw.cuda(), 10, mode=mode).cpu(), quantize_ste(raw, 10, mode=mode))
+        torch.testing.assert_close(quantize_ste(raw, 10, mode=mode), quantize_reference(raw, 10, mode=mode))
+        mine = torch.autograd.grad(quantize_ste(raw, 10, mode=mode), raw, grad)[0]
+        theirs = torch.autograd.grad(quantize_reference(raw, 10, mode=mode), raw, grad)[0]
+        torch.testing.assert_close(mine, theirs)

@@ -6,6 +6,7 @@ them, and the benchmarks use them as the baseline a user would write without war
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -17,6 +18,27 @@ def cfa_mosaic_reference(rgb: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
     reps_y, reps_x = -(-height // tile), -(-width // tile)
     response = phi.permute(2, 0, 1).repeat(1, reps_y, reps_x)[:, :height, :width]
     return (rgb * response.unsqueeze(0)).sum(dim=1, keepdim=True)
+
+
+def _pcg_hash(state: np.ndarray) -> np.ndarray:
+    """PCG hash of Jarzynski & Olano (JCGT 2020), the counter-based generator behind Warp's rand_init/randf."""
+    b = (state * np.uint32(747796405) + np.uint32(2891336453)).astype(np.uint32)
+    c = (((b >> ((b >> np.uint32(28)) + np.uint32(4))) ^ b) * np.uint32(277803737)).astype(np.uint32)
+    return (c >> np.uint32(22)) ^ c
+
+
+def standard_normal_reference(seed: int, count: int) -> np.ndarray:
+    """eps[i] for i < count exactly as the noise kernel draws it: state = pcg(seed + pcg(i)), two uniforms
+    u = (pcg(state) >> 8) / 2^24 in order, then Box-Muller sqrt(-2 log(u1 + 5.96e-8)) cos(2 pi u2), in float32."""
+    with np.errstate(over="ignore"):
+        index = np.arange(count, dtype=np.uint32)
+        state = _pcg_hash((np.uint32(seed & 0xFFFFFFFF) + _pcg_hash(index)).astype(np.uint32))
+        state = _pcg_hash(state)
+        first = (state >> np.uint32(8)).astype(np.float32) * np.float32(1.0 / 16777216.0)
+        state = _pcg_hash(state)
+        second = (state >> np.uint32(8)).astype(np.float32) * np.float32(1.0 / 16777216.0)
+    radius = np.sqrt(np.float32(-2.0) * np.log(first + np.float32(5.96e-8)))
+    return (radius * np.cos(np.float32(2.0 * np.pi) * second)).astype(np.float32)
 
 
 def poisson_gaussian_reference(raw, shot, read, eps: torch.Tensor) -> torch.Tensor:

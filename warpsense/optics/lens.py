@@ -189,8 +189,9 @@ class Lens(nn.Module):
         grid_y, grid_x = grid or self.spec.psf_grid
         aspect = self.spec.aspect_ratio
         half_w, half_h = aspect / 2, 0.5
-        ys = ((torch.arange(grid_y, dtype=torch.float64) + 0.5) / grid_y - 0.5) * 2 * half_h
-        xs = ((torch.arange(grid_x, dtype=torch.float64) + 0.5) / grid_x - 0.5) * 2 * half_w
+        device = self.base_coefficients.device
+        ys = ((torch.arange(grid_y, dtype=torch.float64, device=device) + 0.5) / grid_y - 0.5) * 2 * half_h
+        xs = ((torch.arange(grid_x, dtype=torch.float64, device=device) + 0.5) / grid_x - 0.5) * 2 * half_w
         y, x = torch.meshgrid(ys, xs, indexing="ij")
         height = torch.sqrt(x * x + y * y) / math.hypot(half_w, half_h)
         return height.reshape(-1), torch.atan2(y, x).reshape(-1)

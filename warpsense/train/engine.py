@@ -3,6 +3,7 @@ camera gradients, CFA temperature annealing, AdamW + cosine schedule, checkpoint
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import time
@@ -66,6 +67,23 @@ def _read_metrics(path: Path, up_to_epoch: int) -> list[dict]:
         return []
     records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     return [r for r in records if r["epoch"] <= up_to_epoch]
+
+
+def _fit_time_budget(config, epoch_seconds: float, context) -> None:
+    """Shrink epochs (and warm-up in proportion) so the run fits train.time_budget_minutes, judged from the first
+    epoch (evaluation included by a 10% margin). All ranks take rank 0's decision."""
+    budget = config.train.time_budget_minutes * 60
+    fitted = torch.tensor([max(2, min(config.train.epochs, int(budget / (epoch_seconds * 1.1))))],
+                          dtype=torch.float64, device=context.device)
+    if context.enabled:
+        torch.distributed.broadcast(fitted, src=0)
+    epochs = int(fitted.item())
+    if epochs < config.train.epochs:
+        config.train.warmup_epochs = max(1, round(config.train.warmup_epochs * epochs / config.train.epochs))
+        if context.is_main:
+            print(f"time budget {config.train.time_budget_minutes} min: {config.train.epochs} -> {epochs} epochs "
+                  f"(warm-up {config.train.warmup_epochs})", flush=True)
+        config.train.epochs = epochs
 
 
 def train(config, resume: str | Path | bool = False, progress: bool = True) -> Path:
@@ -132,7 +150,9 @@ def train(config, resume: str | Path | bool = False, progress: bool = True) -> P
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
               f"{sum(p.numel() for p in camera_params):,}; device: {device}; ranks: {context.world_size}")
 
-    for epoch in range(start_epoch, config.train.epochs):
+    for epoch in itertools.count(start_epoch):
+        if epoch >= config.train.epochs:  # re-read each epoch: the time budget may shorten the run
+            break
         joint = epoch >= config.train.warmup_epochs
         set_camera_trainable(model, joint)
         if model.camera.cfa is not None:
@@ -170,6 +190,11 @@ def train(config, resume: str | Path | bool = False, progress: bool = True) -> P
         bar.close()
         context.all_reduce_sum(sums)
         elapsed = time.perf_counter() - started
+        if epoch == 0 and config.train.time_budget_minutes > 0:
+            _fit_time_budget(config, elapsed, context)
+            total_steps = config.train.epochs * steps_per_epoch
+            if context.is_main:
+                config.save(run_dir / "config.json")
         record = {
             "epoch": epoch, "step": step, "phase": "joint" if joint else "warmup",
             "lr": optimizer.param_groups[0]["lr"], "train_loss": float(sums[0] / sums[4]),
