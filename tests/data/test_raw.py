@@ -1,0 +1,124 @@
+"""Raw conversion validated against rawpy/LibRaw on the real captures in ../shared/data/dng."""
+
+import numpy as np
+import pytest
+import torch
+
+from warpsense.camera.cfa import letters_to_phi
+from warpsense.cli import main
+from warpsense.ops import cfa_mosaic
+
+rawpy = pytest.importorskip("rawpy")
+from warpsense.data.raw import RawFileError, read_raw_file, write_dng  # noqa: E402
+
+GOOD = {"canon_eos_kiss_x4_colorchart_rggb14.dng": "RGGB", "pidng_indoor_gbrg10.dng": "GBRG",
+        "rpi_imx296_checkerboard_bggr10.dng": "BGGR"}
+REMOSAIC_TOLERANCE = 1e-4  # of the white level: LibRaw's 16-bit output quantizes to ~1.5e-5 steps
+
+
+def rawpy_letters(path):
+    with rawpy.imread(str(path)) as raw:
+        colors = raw.raw_colors_visible
+        description = raw.color_desc.decode()
+        return "".join(description[colors[y, x]] for y in range(2) for x in range(2))
+
+
+@pytest.mark.parametrize("name", list(GOOD))
+def test_cfa_letters_equal_rawpy_view(shared_data, name):
+    path = shared_data / "dng" / name
+    _, metadata = read_raw_file(path)
+    assert metadata["cfa_pattern"] == rawpy_letters(path) == GOOD[name]
+
+
+@pytest.mark.parametrize("name", list(GOOD))
+def test_warpsense_remosaics_librarys_linear_demosaic(shared_data, name):
+    """cfa_mosaic with the file's layout as one-hot phi, applied to LibRaw's linear demosaic (raw colour space, no
+    white balance, linear gamma, no auto-brightness, 16 bits), reproduces the normalised mosaic at every site up to
+    one global scale, within REMOSAIC_TOLERANCE (pixels between 1% and 95% of white, away from clipping)."""
+    path = shared_data / "dng" / name
+    mosaic, metadata = read_raw_file(path)
+    with rawpy.imread(str(path)) as raw:
+        rgb = raw.postprocess(output_color=rawpy.ColorSpace.raw, gamma=(1, 1), no_auto_bright=True,
+                              use_camera_wb=False, use_auto_wb=False, user_wb=[1, 1, 1, 1], output_bps=16,
+                              demosaic_algorithm=rawpy.DemosaicAlgorithm.LINEAR, user_flip=0)
+    pattern = metadata["cfa_pattern"]
+    phi = letters_to_phi([list(pattern[:2]), list(pattern[2:])])
+    remosaic = cfa_mosaic(torch.from_numpy(rgb.astype(np.float32)).permute(2, 0, 1)[None], phi)[0, 0].numpy()
+    assert remosaic.shape == mosaic.shape
+    valid = (mosaic > 0.01) & (mosaic < 0.95)
+    scale = (remosaic[valid] * mosaic[valid]).sum() / (remosaic[valid] ** 2).sum()
+    assert np.abs(scale * remosaic - mosaic)[valid].max() < REMOSAIC_TOLERANCE
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "BGGR", "GRBG", "GBRG"])
+def test_simulated_raw_round_trip_through_dng(tmp_path, pattern):
+    from warpsense.camera import CFA
+    from warpsense.ops import quantize_ste
+
+    radiance = torch.rand(1, 3, 48, 64)
+    raw = quantize_ste(CFA(pattern, 2, "fixed")(radiance), 10)[0, 0].numpy()
+    write_dng(tmp_path / "sim.dng", raw, pattern, black_level=64, white_level=1023)
+    assert rawpy_letters(tmp_path / "sim.dng") == pattern
+    mosaic, metadata = read_raw_file(tmp_path / "sim.dng")
+    assert metadata["cfa_pattern"] == pattern and metadata["white_level"] == 1023
+    expected = (np.round(64 + raw * (1023 - 64)) - 64) / (1023 - 64)
+    np.testing.assert_allclose(mosaic, expected, atol=1e-6)
+
+
+def test_convert_cli_writes_readable_files_and_skips_bad_ones(shared_data, tmp_path, capsys):
+    code = main(["convert", str(shared_data / "dng"), "--out", str(tmp_path), "--no-progress"])
+    assert code == 1  # the folder holds bad/ files, which fail
+    err = capsys.readouterr().err
+    assert "linear_raw_not_cfa.dng: not a colour-filter mosaic" in err
+    assert "truncated_leica_m10.dng: LibRaw cannot read it" in err
+    outputs = sorted(p.name for p in tmp_path.iterdir())
+    assert outputs == sorted(n.replace(".dng", ".safetensors") for n in GOOD)  # no partial files
+    from warpsense.data import load_raw
+
+    tensor, metadata = load_raw(tmp_path / "pidng_indoor_gbrg10.safetensors")
+    assert tensor.shape == (1, 480, 640) and tensor.dtype == torch.float32
+    assert metadata["cfa_pattern"] == "GBRG" and metadata["bit_depth"] == 10 and len(metadata["source_sha256"]) == 64
+
+
+def test_good_files_convert_with_exit_zero(shared_data, tmp_path):
+    assert main(["convert", str(shared_data / "dng" / "*.dng"), "--out", str(tmp_path), "--no-progress"]) == 0
+    assert len(list(tmp_path.glob("*.safetensors"))) == 3
+
+
+@pytest.mark.parametrize("name,reason", [("linear_raw_not_cfa.dng", "not a colour-filter mosaic"),
+                                         ("truncated_leica_m10.dng", "LibRaw cannot read it")])
+def test_bad_files_clear_errors(shared_data, name, reason):
+    with pytest.raises(RawFileError, match=reason):
+        read_raw_file(shared_data / "dng" / "bad" / name)
+
+
+def test_phase_offset_and_binning():
+    from warpsense.data.predict import bin_mosaic, phase_offset
+
+    assert phase_offset("RGGB", "RGGB") == (0, 0)
+    assert phase_offset("GBRG", "RGGB") == (1, 0)
+    assert phase_offset("GRBG", "RGGB") == (0, 1)
+    assert phase_offset("BGGR", "RGGB") == (1, 1)
+    mosaic = torch.tensor([[1.0, 2.0], [3.0, 4.0]]).repeat(4, 4)
+    torch.testing.assert_close(bin_mosaic(mosaic, 2), torch.tensor([[1.0, 2.0], [3.0, 4.0]]).repeat(2, 2))
+
+
+def test_predict_on_real_capture_and_refuses_non_bayer(shared_data, tmp_path):
+    from warpsense.config import load_config
+    from warpsense.train.engine import train
+
+    config = load_config(None, ["cfa.mode=fixed", "train.epochs=1", "train.warmup_epochs=0", "data.scenes_train=8",
+                                "data.scenes_val=2", "data.batch_size=4", "data.scene_height=32", "data.scene_width=48",
+                                "data.crop_height=32", "data.crop_width=48", f"run.output_dir={tmp_path}", "train.plots=false"])
+    run = train(config, progress=False)
+    out = tmp_path / "pred.png"
+    main(["predict", str(run / "checkpoint_last.safetensors"), str(shared_data / "dng" / "pidng_indoor_gbrg10.dng"),
+          "--out", str(out), "--device", "cpu"])
+    from skimage import io
+
+    assert io.imread(out).shape[2] == 3
+    config.cfa.pattern, config.cfa.mode, config.run.name = "RCCC", "fixed", "rccc"
+    run = train(config, progress=False)
+    code = main(["predict", str(run / "checkpoint_last.safetensors"), str(shared_data / "dng" / "pidng_indoor_gbrg10.dng"),
+                 "--out", str(tmp_path / "no.png")])
+    assert code == 2 and not (tmp_path / "no.png").exists()

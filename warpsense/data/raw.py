@@ -1,0 +1,193 @@
+"""Raw captures (DNG first; any Bayer raw LibRaw reads) <-> normalised RAW mosaics, through rawpy/LibRaw.
+
+`warpsense convert` writes ``<stem>.safetensors`` with tensor ``mosaic`` [1, H, W] float32: the visible area,
+black-subtracted per channel and divided by (white - black), and a JSON metadata entry ``warpsense`` (CFA letters,
+tile, black levels, white level, bit depth, as-shot white balance, colour matrix, make/model, source sha256).
+"""
+
+from __future__ import annotations
+
+import glob
+import hashlib
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+from tqdm import tqdm
+
+RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw"}
+BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+
+
+class RawFileError(ValueError):
+    """A raw file cannot be converted; the message names the file and the reason."""
+
+
+def _camera_names(path: Path) -> tuple[str, str]:
+    """Make and Model from the TIFF/DNG tags when present (LibRaw's Python binding does not expose them)."""
+    try:
+        import tifffile
+
+        with tifffile.TiffFile(path) as tif:
+            tags = tif.pages[0].tags
+            return (str(tags["Make"].value).strip("\0 ") if "Make" in tags else "",
+                    str(tags["Model"].value).strip("\0 ") if "Model" in tags else "")
+    except Exception:  # not a TIFF-based raw, or unreadable tags: names are optional
+        return "", ""
+
+
+def read_raw_file(path: str | Path) -> tuple[np.ndarray, dict]:
+    """(normalised mosaic float32 [H, W], metadata) of a raw file; RawFileError for what cannot be converted."""
+    import rawpy  # imported lazily: only raw-file paths need LibRaw
+
+    path = Path(path)
+    try:
+        raw = rawpy.imread(str(path))
+    except (rawpy.LibRawError, OSError) as error:
+        raise RawFileError(f"{path}: LibRaw cannot read it ({type(error).__name__}: {error})") from None
+    with raw:
+        if raw.raw_type != rawpy.RawType.Flat or raw.num_colors < 3 or raw.raw_pattern is None:
+            raise RawFileError(f"{path}: not a colour-filter mosaic (LinearRaw / stacked data): refusing")
+        try:
+            visible = raw.raw_image_visible.astype(np.float32)
+            colors = raw.raw_colors_visible
+        except rawpy.LibRawError as error:
+            raise RawFileError(f"{path}: LibRaw cannot unpack it ({error})") from None
+        description = raw.color_desc.decode()
+        tile = raw.raw_pattern.shape[0]
+        letters = ["".join(description[colors[y, x]] for x in range(tile)) for y in range(tile)]
+        pattern = "".join(letters)
+        if pattern not in BAYER_PATTERNS:
+            raise RawFileError(f"{path}: CFA pattern {pattern!r} (tile {tile}) is not supported; supported: "
+                               f"{', '.join(BAYER_PATTERNS)}")
+        black = np.asarray(raw.black_level_per_channel, dtype=np.float32)
+        white = float(raw.white_level)
+        black_map = black[colors]
+        mosaic = (visible - black_map) / (white - black_map)
+        make, model = _camera_names(path)
+        metadata = {
+            "cfa_pattern": pattern, "tile": tile, "color_desc": description,
+            "black_levels": black.tolist(), "white_level": white, "bit_depth": int(math.ceil(math.log2(white + 1))),
+            "as_shot_white_balance": [float(v) for v in raw.camera_whitebalance],
+            "color_matrix": np.asarray(raw.color_matrix, dtype=float).tolist(),
+            "rgb_xyz_matrix": np.asarray(raw.rgb_xyz_matrix, dtype=float).tolist(),
+            "make": make, "model": model, "height": int(mosaic.shape[0]), "width": int(mosaic.shape[1]),
+            "source": path.name, "source_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+        }
+    return mosaic.astype(np.float32), metadata
+
+
+def convert_file(path: str | Path, out_dir: str | Path) -> Path:
+    """Convert one raw file to ``out_dir/<stem>.safetensors`` (temp file + rename: never a partial output)."""
+    mosaic, metadata = read_raw_file(path)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    target = out_dir / f"{Path(path).stem}.safetensors"
+    tmp = target.with_name(target.name + ".tmp")
+    try:
+        save_file({"mosaic": torch.from_numpy(mosaic)[None].contiguous()}, str(tmp), metadata={"warpsense": json.dumps(metadata)})
+        os.replace(tmp, target)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return target
+
+
+def load_raw(path: str | Path) -> tuple[torch.Tensor, dict]:
+    """Read a converted file: (mosaic float32 [1, H, W], metadata dict with ``cfa_pattern`` etc.)."""
+    from safetensors import safe_open
+
+    path = Path(path)
+    with safe_open(str(path), framework="pt") as handle:
+        metadata = json.loads(handle.metadata()["warpsense"])
+    return load_file(str(path))["mosaic"], metadata
+
+
+def expand_inputs(inputs: list[str]) -> list[Path]:
+    """Files, folders (raw files inside, recursively) and glob patterns -> sorted unique paths."""
+    found = []
+    for item in inputs:
+        path = Path(item)
+        if path.is_dir():
+            found += [p for p in sorted(path.rglob("*")) if p.suffix.lower() in RAW_SUFFIXES and p.is_file()]
+        elif any(ch in item for ch in "*?["):
+            found += [Path(p) for p in sorted(glob.glob(item, recursive=True)) if Path(p).is_file()]
+        else:
+            found.append(path)
+    unique = []
+    for path in found:
+        if path not in unique:
+            unique.append(path)
+    return unique
+
+
+def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True) -> list[tuple[Path, str]]:
+    """Convert every input; a failing file is reported on stderr with a one-line reason and skipped.
+
+    Returns the failures [(path, reason)]; the CLI exits non-zero when there are any."""
+    paths = expand_inputs(inputs)
+    failures = []
+    if not paths:
+        failures.append((Path(" ".join(inputs)), "no input files found"))
+    for path in tqdm(paths, desc="convert", unit="file", disable=not progress):
+        try:
+            if not path.is_file():
+                raise RawFileError(f"{path}: no such file")
+            convert_file(path, out_dir)
+        except RawFileError as error:
+            failures.append((path, str(error)))
+            tqdm.write(f"warpsense convert: skipped {error}", file=sys.stderr)
+    converted = len(paths) - len([f for f in failures if f[0] in paths])
+    print(f"converted {converted} of {len(paths)} file(s) into {out_dir}" + (f"; {len(failures)} failed" if failures else ""))
+    if not paths:
+        print(f"warpsense convert: error: no input files found in {' '.join(inputs)}", file=sys.stderr)
+    return failures
+
+
+_CFA_CODES = {"R": 0, "G": 1, "B": 2}
+
+
+def write_dng(path: str | Path, mosaic: np.ndarray, pattern: str, black_level: int = 0, white_level: int = 1023,
+              make: str = "warpsense", model: str = "simulated") -> None:
+    """Write a single-channel Bayer mosaic as a minimal DNG (1.4) that LibRaw reads.
+
+    Args:
+        mosaic: [H, W] values in [0, 1] (normalised, as produced by the sensor simulation) or integer codes.
+        pattern: one of RGGB, BGGR, GRBG, GBRG (CFARepeatPatternDim 2x2, CFAPattern).
+        black_level, white_level: stored as BlackLevel / WhiteLevel; float input is mapped to
+            black + value * (white - black) and rounded.
+    """
+    import tifffile
+
+    if pattern not in BAYER_PATTERNS:
+        raise ValueError(f"write_dng: pattern must be one of {BAYER_PATTERNS}, got {pattern!r}")
+    mosaic = np.asarray(mosaic)
+    if mosaic.ndim != 2:
+        raise ValueError(f"write_dng: mosaic must be [H, W], got {mosaic.shape}")
+    if np.issubdtype(mosaic.dtype, np.floating):
+        mosaic = np.round(black_level + np.clip(mosaic, 0, 1) * (white_level - black_level))
+    data = mosaic.astype(np.uint16)
+    extratags = [
+        (33421, "H", 2, (2, 2), True),  # CFARepeatPatternDim
+        (33422, "B", 4, tuple(_CFA_CODES[c] for c in pattern), True),  # CFAPattern
+        (50706, "B", 4, (1, 4, 0, 0), True),  # DNGVersion
+        (50707, "B", 4, (1, 1, 0, 0), True),  # DNGBackwardVersion
+        (50708, "s", 0, f"{make} {model}", True),  # UniqueCameraModel
+        (50710, "B", 3, (0, 1, 2), True),  # CFAPlaneColor
+        (50711, "H", 1, 1, True),  # CFALayout: rectangular
+        (50714, "I", 1, int(black_level), True),  # BlackLevel
+        (50717, "I", 1, int(white_level), True),  # WhiteLevel
+        (50721, "2i", 9, (10000, 1, 0, 1, 0, 1, 0, 1, 10000, 1, 0, 1, 0, 1, 0, 1, 10000, 1), True),  # ColorMatrix1
+        (50728, "2I", 3, (1, 1, 1, 1, 1, 1), True),  # AsShotNeutral
+        (50778, "H", 1, 21, True),  # CalibrationIlluminant1: D65
+        (271, "s", 0, make, True),  # Make
+        (272, "s", 0, model, True),  # Model
+    ]
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tifffile.imwrite(tmp, data, photometric=32803, subfiletype=0, extratags=extratags, metadata=None)
+    os.replace(tmp, path)
