@@ -1,0 +1,77 @@
+import numpy as np
+import pytest
+import torch
+from skimage import io
+
+from warpsense.config import load_config
+from warpsense.data import KITTI360, CamVid, Cityscapes, DatasetError, StreetScenes, build_dataset
+from warpsense.data.color import linear_to_srgb, srgb_to_linear
+
+
+def _write_pair(image_path, label_path, label_ids, size=(8, 12)):
+    image_path.parent.mkdir(parents=True, exist_ok=True)
+    label_path.parent.mkdir(parents=True, exist_ok=True)
+    io.imsave(image_path, np.random.default_rng(0).integers(0, 255, (*size, 3), dtype=np.uint8), check_contrast=False)
+    io.imsave(label_path, np.asarray(label_ids, dtype=np.uint8).reshape(size), check_contrast=False)
+
+
+LABEL_IDS = [7, 8, 11, 26, 24, 0, 33, 3] * 12  # road, sidewalk, building, car, person, unlabeled, bicycle, out of roi
+TRAIN_IDS = [0, 1, 2, 13, 11, 255, 18, 255] * 12
+
+
+def test_cityscapes_fixture_official_layout(tmp_path):
+    stem = "aachen_000000_000019"
+    _write_pair(tmp_path / "leftImg8bit/train/aachen" / f"{stem}_leftImg8bit.png",
+                tmp_path / "gtFine/train/aachen" / f"{stem}_gtFine_labelIds.png", LABEL_IDS)
+    image, label = Cityscapes(tmp_path, "train")[0]
+    assert image.shape == (3, 8, 12) and image.dtype == torch.uint8
+    assert label.flatten().tolist() == TRAIN_IDS
+    with pytest.raises(DatasetError, match="leftImg8bit/val"):
+        Cityscapes(tmp_path, "val")
+
+
+def test_kitti360_fixture_official_layout(tmp_path):
+    image = "data_2d_raw/2013_05_28_drive_0000_sync/image_00/data_rect/0000000250.png"
+    label = "data_2d_semantics/train/2013_05_28_drive_0000_sync/image_00/semantic/0000000250.png"
+    _write_pair(tmp_path / image, tmp_path / label, LABEL_IDS)
+    listing = tmp_path / "data_2d_semantics/train/2013_05_28_drive_train_frames.txt"
+    listing.write_text(f"{image} {label}\n")
+    _, labels = KITTI360(tmp_path, "train")[0]
+    assert labels.flatten().tolist() == TRAIN_IDS
+    listing.write_text("only_one_column\n")
+    with pytest.raises(DatasetError, match="frames.txt:1: expected 'image label'"):
+        KITTI360(tmp_path, "train")
+
+
+def test_camvid_real_data(shared_data):
+    train = CamVid(shared_data / "camvid", "train")
+    val = CamVid(shared_data / "camvid", "val")
+    assert len(train) == 367 and len(val) == 101
+    image, label = val[0]
+    assert image.shape == (3, 360, 480) and label.shape == (360, 480)
+    assert set(torch.unique(label).tolist()) <= set(range(11)) | {255}
+    with pytest.raises(DatasetError, match="test.txt"):
+        CamVid(shared_data / "camvid", "test")
+
+
+def test_augmented_crops_fixed_size_deterministic():
+    config = load_config(None, ["data.scale_min=0.5", "data.scale_max=1.5", "data.crop_height=40", "data.crop_width=56"])
+    dataset = build_dataset(config.data, "train", train=True)
+    first = dataset[3]
+    assert first[0].shape == (3, 40, 56) and first[1].shape == (40, 56)
+    assert torch.equal(dataset[3][0], first[0])  # same (seed, epoch, index) -> same sample
+    dataset.set_epoch(1)
+    assert not torch.equal(dataset[3][0], first[0])
+
+
+def test_scenes_have_all_classes_and_are_reproducible():
+    scenes = StreetScenes(16, 96, 128, seed=0)
+    labels = torch.stack([scenes[i][1] for i in range(16)])
+    assert set(torch.unique(labels).tolist()) == set(range(11))
+    assert torch.equal(scenes[5][0], StreetScenes(16, 96, 128, seed=0)[5][0])
+
+
+def test_srgb_round_trip_and_known_values():
+    values = torch.linspace(0, 1, 11)
+    torch.testing.assert_close(linear_to_srgb(srgb_to_linear(values)), values, atol=1e-6, rtol=0)
+    assert srgb_to_linear(torch.tensor([0.5])).item() == pytest.approx(0.2140, abs=1e-4)

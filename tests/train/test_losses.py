@@ -1,0 +1,42 @@
+import pytest
+import torch
+import torch.nn.functional as F
+
+from warpsense.train.losses import edge_aware_smoothness, lovasz_softmax, ohem_cross_entropy
+
+
+def test_ohem_keeps_hardest_fraction():
+    logits = torch.zeros(1, 2, 1, 4)
+    logits[0, 0, 0] = torch.tensor([4.0, 2.0, 0.0, -2.0])  # class-0 confidence falls along the row
+    target = torch.zeros(1, 1, 4, dtype=torch.long)
+    per_pixel = F.cross_entropy(logits, target, reduction="none").flatten()
+    assert ohem_cross_entropy(logits, target, 0.5).item() == pytest.approx(per_pixel.sort().values[-2:].mean().item())
+    assert ohem_cross_entropy(logits, target, 1.0).item() == pytest.approx(per_pixel.mean().item())
+    target[0, 0, 3] = 255  # ignored pixels never count
+    assert ohem_cross_entropy(logits, target, 0.34).item() == pytest.approx(per_pixel[2].item())
+
+
+def test_lovasz_two_class_toy_by_hand():
+    # 2 pixels, both class 1. p1 = (0.3, 0.6): errors for class 1: (0.7, 0.4) -> sorted (0.7, 0.4);
+    # Jaccard gradient for gt = (1, 1): [1 - (2-1)/2, (1 - 0/2) - (1 - 1/2)] = [0.5, 0.5] -> 0.55.
+    # class 0 is absent from the labels: not averaged in.
+    probabilities = torch.tensor([[0.7, 0.3], [0.4, 0.6]])
+    logits = probabilities.log().T.reshape(1, 2, 1, 2)
+    target = torch.ones(1, 1, 2, dtype=torch.long)
+    assert lovasz_softmax(logits, target).item() == pytest.approx(0.55, abs=1e-6)
+
+
+def test_lovasz_perfect_prediction_zero_and_ignore():
+    target = torch.tensor([[[0, 1, 1, 255]]])
+    logits = F.one_hot(target.clamp(max=1), 2).permute(0, 3, 1, 2).float() * 50
+    assert lovasz_softmax(logits, target).item() == pytest.approx(0.0, abs=1e-6)
+    assert lovasz_softmax(logits, torch.full_like(target, 255)).item() == 0.0
+
+
+def test_smoothness_lower_across_image_edges():
+    logits = torch.zeros(1, 2, 4, 4)
+    logits[0, 0, :, :2] = 5.0  # prediction changes between columns 1 and 2
+    flat_guide = torch.zeros(1, 1, 4, 4)
+    edge_guide = flat_guide.clone()
+    edge_guide[..., 2:] = 1.0  # an image edge at the same place
+    assert edge_aware_smoothness(logits, edge_guide) < 0.01 * edge_aware_smoothness(logits, flat_guide)

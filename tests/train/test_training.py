@@ -1,0 +1,114 @@
+import json
+
+import pytest
+import torch
+
+from warpsense.cli import main
+from warpsense.config import load_config
+from warpsense.data import build_dataset
+from warpsense.models import count_parameters
+from warpsense.train.checkpoint import read_checkpoint, restore, save_checkpoint
+from warpsense.train.engine import train
+from warpsense.train.losses import segmentation_loss
+from warpsense.train.system import build_system
+
+TINY = ["data.scenes_train=16", "data.scenes_val=4", "data.batch_size=4", "data.scene_height=32",
+        "data.scene_width=48", "data.crop_height=32", "data.crop_width=48", "train.plots=false"]
+
+
+def test_model_parameter_budget():
+    config = load_config()
+    model = build_system(config, 11)
+    assert count_parameters(model.network) <= 500_000
+    assert model(torch.randint(0, 255, (1, 3, 30, 44), dtype=torch.uint8))[0].shape == (1, 11, 30, 44)
+
+
+def test_overfits_a_fixed_batch():
+    config = load_config(None, ["noise.enabled=false"])
+    model = build_system(config, 11)
+    dataset = build_dataset(config.data, "train", train=False)
+    images = torch.stack([dataset[i][0][:, :32, :48] for i in range(4)])
+    labels = torch.stack([dataset[i][1][:32, :48] for i in range(4)])
+    optimizer = torch.optim.AdamW(model.parameters(), lr=5e-3)
+    losses = []
+    for _ in range(40):
+        logits, sensed = model(images)
+        loss, _ = segmentation_loss(logits, labels, sensed, config.loss)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.5 * losses[0]
+
+
+def test_train_then_eval_cli_on_scenes(tmp_path):
+    config = load_config(None, TINY + ["train.epochs=2", "train.warmup_epochs=1", f"run.output_dir={tmp_path}"])
+    run = train(config, progress=False)
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["phase"] for r in records] == ["warmup", "joint"] and "val_miou" in records[-1]
+    assert json.loads((run / "config.json").read_text())["train"]["epochs"] == 2
+    out = tmp_path / "eval.json"
+    assert main(["eval", "--checkpoint", str(run / "checkpoint_best.safetensors"), "--data", "scenes", "--split",
+                 "val", "--limit", "4", "--json", str(out), "--device", "cpu", "--sweep"]) == 0
+    result = json.loads(out.read_text())
+    assert {"miou", "per_class_iou", "pixel_accuracy", "num_images"} <= set(result) and result["num_images"] == 4
+    assert {row["factor"] for row in result["sweep"]} == {"blur_sigma_px", "noise_scale", "bits"}
+
+
+def test_train_on_real_camvid_crops(shared_data, tmp_path):
+    config = load_config("camvid_codesign", TINY + [f"data.root={shared_data / 'camvid'}", "data.max_train_images=8",
+                         "data.max_val_images=2", "train.epochs=1", "train.warmup_epochs=0", "optics.learnable=false",
+                         f"run.output_dir={tmp_path}", "data.scale_min=0.25", "data.scale_max=0.3"])
+    run = train(config, progress=False)
+    record = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
+    assert 0.0 <= record["val_miou"] <= 1.0 and record["train_loss"] > 0
+
+
+def test_resume_continues_interrupted_run(tmp_path):
+    base = TINY + ["train.epochs=3", "train.warmup_epochs=1", f"run.output_dir={tmp_path}"]
+    full = train(load_config(None, base + ["run.name=full"]), progress=False)
+    expected = [json.loads(line) for line in (full / "metrics.jsonl").read_text().splitlines()]
+
+    class Interrupt(Exception):
+        pass
+
+    import warpsense.train.engine as engine
+
+    original = engine.save_checkpoint
+    calls = {"n": 0}
+
+    def save_then_die(path, *args, **kwargs):
+        original(path, *args, **kwargs)
+        if str(path).endswith("checkpoint_last.safetensors"):
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise Interrupt
+
+    engine.save_checkpoint = save_then_die
+    try:
+        with pytest.raises(Interrupt):
+            train(load_config(None, base + ["run.name=cut"]), progress=False)
+    finally:
+        engine.save_checkpoint = original
+    resumed = train(load_config(None, base + ["run.name=cut"]), resume=True, progress=False)
+    got = [json.loads(line) for line in (resumed / "metrics.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in got] == [0, 1, 2]
+    for a, b in zip(got, expected):
+        assert a["train_loss"] == pytest.approx(b["train_loss"], rel=1e-5)
+        assert a["val_miou"] == pytest.approx(b["val_miou"], abs=1e-6)
+
+
+def test_checkpoint_round_trip(tmp_path):
+    config = load_config(None, ["optics.enabled=true", "optics.learnable=true"])
+    model = build_system(config, 11)
+    with torch.no_grad():
+        for parameter in model.parameters():
+            parameter.add_(torch.randn_like(parameter) * 0.01)
+    save_checkpoint(tmp_path / "c.safetensors", model, config.to_dict(), {"epoch": 0})
+    tensors, meta = read_checkpoint(tmp_path / "c.safetensors")
+    clone = build_system(config, 11)
+    restore(tensors, clone)
+    for (name, a), (_, b) in zip(model.state_dict().items(), clone.state_dict().items()):
+        assert torch.equal(a, b), name
+    assert meta["config"]["optics"]["learnable"] is True
+    assert not list(tmp_path.glob("*.tmp"))
