@@ -2,6 +2,8 @@
 
     Q(R) = floor(clip(R, 0, w) / w * L + 1/2) / L * w,   L = 2^b - 1 steps,   dQ/dR = 1 on [0, w], else 0.
 
+NaN inputs stay NaN (gradient 0 there); +-Inf clip to w / 0 like any out-of-range value.
+
 Layouts: values [B, N] (one row per image), white [B] (per-image white level w > 0).
 """
 
@@ -19,8 +21,12 @@ def quantize_forward(
     b, i = wp.tid()
     w = white[b]
     levels = values.dtype(steps)
-    clipped = wp.clamp(values[b, i], values.dtype(0.0), w)
-    out[b, i] = wp.floor(clipped / w * levels + values.dtype(0.5)) / levels * w
+    value = values[b, i]
+    if wp.isnan(value):
+        out[b, i] = value  # NaN propagates (clamp would silently turn it into a valid code)
+    else:
+        clipped = wp.clamp(value, values.dtype(0.0), w)
+        out[b, i] = wp.floor(clipped / w * levels + values.dtype(0.5)) / levels * w
 
 
 @wp.kernel

@@ -86,7 +86,7 @@ def _fit_time_budget(config, epoch_seconds: float, context) -> None:
         config.train.epochs = epochs
 
 
-def train(config, resume: str | Path | bool = False, progress: bool = True) -> Path:
+def train(config, resume: str | Path | bool = False, progress: bool = True, return_model: bool = False):
     """Train ``config`` and return the run directory.
 
     Args:
@@ -95,6 +95,7 @@ def train(config, resume: str | Path | bool = False, progress: bool = True) -> P
             <output_dir>/<name>; or a run directory path. Resuming restores weights, optimizer, RNG and epoch from
             the last checkpoint (written atomically at every epoch end), so at most the interrupted epoch is redone.
         progress: show tqdm progress bars (rank 0 only).
+        return_model: also return the trained SensingModel (this rank's copy): (run_dir, model).
     """
     context = DistributedContext.from_environment(config.run.device)
     device = context.device
@@ -231,4 +232,4 @@ def train(config, resume: str | Path | bool = False, progress: bool = True) -> P
         write_run_plots(run_dir, model, val_set, device)
     context.barrier()
     context.close()
-    return run_dir
+    return (run_dir, model) if return_model else run_dir
