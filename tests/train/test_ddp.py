@@ -15,8 +15,9 @@ OVERRIDES = ["data.scenes_train=16", "data.scenes_val=4", "data.batch_size=4", "
              "train.epochs=2", "train.warmup_epochs=1"]
 # Parameters after 8 steps may differ between 2 ranks x 2 images and 1 process x 4 images only through what is not
 # decomposable over the batch: BatchNorm statistics (per rank on CPU: SyncBatchNorm needs CUDA), the OHEM top-k and
-# the Lovasz sort. Measured max abs difference ~1e-3 on weights of scale ~0.1-1.
-TOLERANCE = 2e-2
+# the Lovasz sort. Measured worst element 1.7e-2 (2026-11-22, CPU) after 8 AdamW steps of lr 2e-3, i.e. about the
+# size of one step's update at most; 5e-2 leaves room for BLAS differences between machines.
+TOLERANCE = 5e-2
 
 
 def _free_port() -> int:
@@ -50,6 +51,7 @@ def test_two_rank_gloo_matches_single_process(tmp_path):
     reference = single.state_dict()
     worst = max((rank0[n] - reference[n]).abs().max().item() for n in rank0
                 if "running_" not in n and rank0[n].is_floating_point())
+    print(f"max abs parameter difference DDP vs single process: {worst:.2e}")
     assert worst < TOLERANCE
     moved = [n for n in camera if not torch.equal(rank0[n], load_initial(n))]
     assert moved, "the camera trained in the joint epoch"
