@@ -27,6 +27,20 @@ def _read_rgb(path: Path) -> np.ndarray:
     return np.ascontiguousarray(image[..., :3])
 
 
+def read_pair_list(listing: Path, resolve) -> list[tuple[Path, Path]]:
+    """Parse a split list of "image label" lines (blank lines skipped); ``resolve`` maps each listed path to a
+    file path. Malformed lines raise DatasetError naming the file and line."""
+    pairs = []
+    for line_number, line in enumerate(listing.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        parts = line.split()
+        if len(parts) != 2:
+            raise DatasetError(f"{listing}:{line_number}: expected 'image label', got {line!r}")
+        pairs.append((Path(resolve(parts[0])), Path(resolve(parts[1]))))
+    return pairs
+
+
 class PairDataset(Dataset):
     """(image, label) pairs from explicit paths, with a label lookup table."""
 
@@ -64,15 +78,7 @@ class CamVid(PairDataset):
         listing = root / f"{split}.txt"
         if not listing.is_file():
             raise DatasetError(f"{listing}: CamVid split list not found (expected <root>/{split}.txt)")
-        pairs = []
-        for line_number, line in enumerate(listing.read_text().splitlines(), 1):
-            if not line.strip():
-                continue
-            parts = line.split()
-            if len(parts) != 2:
-                raise DatasetError(f"{listing}:{line_number}: expected 'image label', got {line!r}")
-            paths = [root / Path(p.split("/CamVid/")[-1].lstrip("/")) for p in parts]
-            pairs.append((paths[0], paths[1]))
+        pairs = read_pair_list(listing, lambda p: root / p.split("/CamVid/")[-1].lstrip("/"))
         table = np.arange(256, dtype=np.uint8)
         table[11:] = IGNORE_INDEX
         super().__init__(pairs, table, limit)
@@ -111,12 +117,5 @@ class KITTI360(PairDataset):
         listing = root / "data_2d_semantics" / "train" / f"2013_05_28_drive_{split}_frames.txt"
         if not listing.is_file():
             raise DatasetError(f"{listing}: KITTI-360 split list not found")
-        pairs = []
-        for line_number, line in enumerate(listing.read_text().splitlines(), 1):
-            if not line.strip():
-                continue
-            parts = line.split()
-            if len(parts) != 2:
-                raise DatasetError(f"{listing}:{line_number}: expected 'image label', got {line!r}")
-            pairs.append((root / parts[0], root / parts[1]))
+        pairs = read_pair_list(listing, lambda p: root / p)
         super().__init__(pairs, id_to_train_id_table(), limit)

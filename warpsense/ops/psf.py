@@ -124,7 +124,6 @@ def psf_conv_patch(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
     _, grid_y, grid_x, size, _ = psf.shape
     radius = size // 2
     padded = F.pad(image, (radius,) * 4, mode="replicate")
-    out = torch.empty_like(image)
     row_edges = [round(k * height / grid_y) for k in range(grid_y + 1)]
     col_edges = [round(k * width / grid_x) for k in range(grid_x + 1)]
     pieces = []
@@ -136,5 +135,4 @@ def psf_conv_patch(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
             kernel = psf[:, gy, gx].flip(-1, -2).unsqueeze(1).to(image.dtype)
             row.append(F.conv2d(window, kernel, groups=channels))
         pieces.append(torch.cat(row, dim=-1))
-    out = torch.cat(pieces, dim=-2)
-    return out
+    return torch.cat(pieces, dim=-2)
