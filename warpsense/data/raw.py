@@ -130,9 +130,10 @@ def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True)
 
     Returns the failures [(path, reason)]; the CLI exits non-zero when there are any."""
     paths = expand_inputs(inputs)
-    failures = []
     if not paths:
-        failures.append((Path(" ".join(inputs)), "no input files found"))
+        print(f"warpsense convert: error: no input files found in {' '.join(inputs)}", file=sys.stderr)
+        return [(Path(" ".join(inputs)), "no input files found")]
+    failures = []
     for path in tqdm(paths, desc="convert", unit="file", disable=not progress):
         try:
             if not path.is_file():
@@ -141,10 +142,8 @@ def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True)
         except RawFileError as error:
             failures.append((path, str(error)))
             tqdm.write(f"warpsense convert: skipped {error}", file=sys.stderr)
-    converted = len(paths) - len([f for f in failures if f[0] in paths])
-    print(f"converted {converted} of {len(paths)} file(s) into {out_dir}" + (f"; {len(failures)} failed" if failures else ""))
-    if not paths:
-        print(f"warpsense convert: error: no input files found in {' '.join(inputs)}", file=sys.stderr)
+    failed = f"; {len(failures)} failed" if failures else ""
+    print(f"converted {len(paths) - len(failures)} of {len(paths)} file(s) into {out_dir}{failed}")
     return failures
 
 

@@ -27,7 +27,7 @@ class QuantizeSTE(torch.autograd.Function):
         return grad_rows, None, None
 
 
-def white_levels(rows: torch.Tensor, bits: int, white_level: float, mode: str) -> torch.Tensor:
+def white_levels(rows: torch.Tensor, white_level: float, mode: str) -> torch.Tensor:
     """Per-image white level w [B]: ``white_level`` (full_well) or the image max (max mode; a frame whose max is
     <= 0 or not finite falls back to ``white_level``, so a black frame quantizes to 0 instead of dividing by 0)."""
     if mode == "full_well":
@@ -61,5 +61,5 @@ def quantize_ste(raw: torch.Tensor, bits: int, white_level: float = 1.0, mode: s
         raise ValueError(f"quantize_ste: raw must be a non-empty [B, ...] tensor, got {tuple(raw.shape)}")
     (raw_c,) = prepare(raw)
     rows = raw_c.reshape(raw.shape[0], -1)
-    white = white_levels(rows, bits, white_level, mode)
+    white = white_levels(rows, white_level, mode)
     return QuantizeSTE.apply(rows, white, (1 << bits) - 1).view(raw.shape)
