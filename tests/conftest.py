@@ -36,3 +36,16 @@ def shared_data() -> Path:
 def _seed():
     torch.manual_seed(0)
     yield
+
+
+def assert_matches_reference(operation, reference, inputs, grad_output, check_forward=True):
+    """The op's output and its gradients w.r.t. every input that requires grad (for ``grad_output``) equal the
+    reference implementation's."""
+    wanted = [x for x in inputs if x.requires_grad]
+    mine_out, theirs_out = operation(*inputs), reference(*inputs)
+    if check_forward:
+        torch.testing.assert_close(mine_out, theirs_out)
+    mine = torch.autograd.grad(mine_out, wanted, grad_output)
+    theirs = torch.autograd.grad(theirs_out, wanted, grad_output)
+    for a, b in zip(mine, theirs):
+        torch.testing.assert_close(a.reshape(b.shape), b)

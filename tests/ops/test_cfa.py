@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from tests.conftest import device_params
+from tests.conftest import assert_matches_reference, device_params
 from warpsense.camera.cfa import LAYOUTS, layout_letters, letters_to_phi
 from warpsense.ops import cfa_mosaic
 from warpsense.ops.reference import cfa_mosaic_reference
@@ -60,10 +60,7 @@ def test_gradients_match_reference_noncontiguous_grad(device):
     rgb = torch.rand(2, 3, 7, 9, dtype=torch.float64, device=device, requires_grad=True)
     phi = torch.rand(2, 2, 3, dtype=torch.float64, device=device, requires_grad=True)
     grad = torch.rand(2, 1, 9, 7, dtype=torch.float64, device=device).transpose(-1, -2)  # non-contiguous
-    grad_kernel = torch.autograd.grad(cfa_mosaic(rgb, phi), (rgb, phi), grad)
-    grad_reference = torch.autograd.grad(cfa_mosaic_reference(rgb, phi), (rgb, phi), grad)
-    for a, b in zip(grad_kernel, grad_reference):
-        torch.testing.assert_close(a, b)
+    assert_matches_reference(cfa_mosaic, cfa_mosaic_reference, (rgb, phi), grad)
 
 
 def test_inputs_not_mutated_and_autocast_runs_in_float32():
@@ -83,8 +80,4 @@ def test_cuda_matches_reference_forward_and_backward():
     rgb = torch.rand(2, 3, 16, 20, dtype=torch.float64, device="cuda", requires_grad=True)
     phi = torch.rand(3, 3, 3, dtype=torch.float64, device="cuda", requires_grad=True)
     grad = torch.rand(2, 1, 16, 20, dtype=torch.float64, device="cuda")
-    torch.testing.assert_close(cfa_mosaic(rgb, phi), cfa_mosaic_reference(rgb, phi))
-    mine = torch.autograd.grad(cfa_mosaic(rgb, phi), (rgb, phi), grad)
-    theirs = torch.autograd.grad(cfa_mosaic_reference(rgb, phi), (rgb, phi), grad)
-    for a, b in zip(mine, theirs):
-        torch.testing.assert_close(a, b)
+    assert_matches_reference(cfa_mosaic, cfa_mosaic_reference, (rgb, phi), grad)

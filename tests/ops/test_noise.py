@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from tests.conftest import device_params
+from tests.conftest import assert_matches_reference, device_params
 from warpsense.ops import poisson_gaussian, poisson_gaussian_exact
 from warpsense.ops.reference import poisson_gaussian_reference, standard_normal_reference
 
@@ -71,10 +71,8 @@ def test_gradients_match_reference():
     read = torch.tensor(0.01, dtype=torch.float64, requires_grad=True)
     eps = standard_normal(raw.shape, 2)
     grad = torch.rand(5, 2, dtype=torch.float64).T
-    mine = torch.autograd.grad(poisson_gaussian(raw, shot, read, 2), (raw, shot, read), grad)
-    theirs = torch.autograd.grad(poisson_gaussian_reference(raw, shot, read, eps), (raw, shot, read), grad)
-    for a, b in zip(mine, theirs):
-        torch.testing.assert_close(a.reshape(b.shape), b)
+    assert_matches_reference(lambda r, s, q: poisson_gaussian(r, s, q, 2),
+                             lambda r, s, q: poisson_gaussian_reference(r, s, q, eps), (raw, shot, read), grad)
 
 
 def test_zero_noise_is_identity_with_unit_gradient():
@@ -120,8 +118,6 @@ def test_cuda_gradients_match_reference():
     shot = torch.tensor(0.02, dtype=torch.float64, device="cuda", requires_grad=True)
     read = torch.tensor(0.01, dtype=torch.float64, device="cuda", requires_grad=True)
     eps = standard_normal(raw.shape, 5, "cuda")
-    grad = torch.rand_like(raw)
-    mine = torch.autograd.grad(poisson_gaussian(raw, shot, read, 5), (raw, shot, read), grad)
-    theirs = torch.autograd.grad(poisson_gaussian_reference(raw, shot, read, eps), (raw, shot, read), grad)
-    for a, b in zip(mine, theirs):
-        torch.testing.assert_close(a.reshape(b.shape), b)
+    assert_matches_reference(lambda r, s, q: poisson_gaussian(r, s, q, 5),
+                             lambda r, s, q: poisson_gaussian_reference(r, s, q, eps), (raw, shot, read),
+                             torch.rand_like(raw))

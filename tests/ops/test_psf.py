@@ -2,7 +2,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from tests.conftest import device_params
+from tests.conftest import assert_matches_reference, device_params
 from warpsense.ops import psf_conv
 from warpsense.ops.psf import psf_conv_fft
 from warpsense.ops.reference import bilinear_node_weights, psf_conv_reference
@@ -91,10 +91,7 @@ def test_gradients_match_reference(device):
     image = torch.rand(2, 3, 12, 10, dtype=torch.float64, device=device, requires_grad=True)
     psf = random_psf(3, 3, 2, 5, device=device).requires_grad_()
     grad = torch.rand(2, 3, 10, 12, dtype=torch.float64, device=device).transpose(-1, -2)
-    mine = torch.autograd.grad(psf_conv(image, psf), (image, psf), grad)
-    theirs = torch.autograd.grad(psf_conv_reference(image, psf), (image, psf), grad)
-    for a, b in zip(mine, theirs):
-        torch.testing.assert_close(a, b)
+    assert_matches_reference(psf_conv, psf_conv_reference, (image, psf), grad)
 
 
 def test_fft_method_exact_for_invariant_psf():
@@ -134,8 +131,4 @@ def test_cuda_matches_reference_forward_and_backward(grid, size):
     image = torch.rand(2, 3, 40, 52, dtype=torch.float64, device="cuda", requires_grad=True)
     psf = random_psf(3, *grid, size, device="cuda").requires_grad_()
     grad = torch.rand(2, 3, 40, 52, dtype=torch.float64, device="cuda")
-    torch.testing.assert_close(psf_conv(image, psf), psf_conv_reference(image, psf))
-    mine = torch.autograd.grad(psf_conv(image, psf), (image, psf), grad)
-    theirs = torch.autograd.grad(psf_conv_reference(image, psf), (image, psf), grad)
-    for a, b in zip(mine, theirs):
-        torch.testing.assert_close(a, b)
+    assert_matches_reference(psf_conv, psf_conv_reference, (image, psf), grad)

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from tests.conftest import device_params
+from tests.conftest import assert_matches_reference, device_params
 from warpsense.ops import quantize_ste
 from warpsense.ops.reference import quantize_reference
 
@@ -72,10 +72,8 @@ def test_gradcheck():
     # the STE is not the derivative of the staircase: check the op's own backward is what the references says,
     # and gradcheck the op composed with a smooth function where the STE is the identity map on [0, w]
     raw = (torch.rand(2, 6, dtype=torch.float64) * 1.2 - 0.1).requires_grad_()
-    grad_out = torch.rand(2, 6, dtype=torch.float64)
-    mine = torch.autograd.grad(quantize_ste(raw, 5), raw, grad_out)[0]
-    theirs = torch.autograd.grad(quantize_reference(raw, 5), raw, grad_out)[0]
-    torch.testing.assert_close(mine, theirs)
+    assert_matches_reference(lambda x: quantize_ste(x, 5), lambda x: quantize_reference(x, 5), (raw,),
+                             torch.rand(2, 6, dtype=torch.float64))
     # 24-bit quantization is (numerically) the identity on [0, 1]: gradcheck sees its clipped-identity gradient
     inside = (torch.rand(2, 6, dtype=torch.float64) * 0.8 + 0.1).requires_grad_()
     assert torch.autograd.gradcheck(lambda x: quantize_ste(x, 24), (inside,), eps=1e-3, atol=1e-4)
@@ -95,7 +93,5 @@ def test_cuda_matches_reference():
     raw = (torch.rand(3, 1, 16, 16, dtype=torch.float64, device="cuda") * 1.2 - 0.1).requires_grad_()
     grad = torch.rand_like(raw)
     for mode in ("full_well", "max"):
-        torch.testing.assert_close(quantize_ste(raw, 10, mode=mode), quantize_reference(raw, 10, mode=mode))
-        mine = torch.autograd.grad(quantize_ste(raw, 10, mode=mode), raw, grad)[0]
-        theirs = torch.autograd.grad(quantize_reference(raw, 10, mode=mode), raw, grad)[0]
-        torch.testing.assert_close(mine, theirs)
+        assert_matches_reference(lambda x: quantize_ste(x, 10, mode=mode), lambda x: quantize_reference(x, 10, mode=mode),
+                                 (raw,), grad)
