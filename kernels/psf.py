@@ -2,12 +2,21 @@
 
     out(p) = sum_d x(clamp(p - d)) * PSF_{clamp(p - d)}(d),   PSF_q = sum_n w_n(q) PSF_n
 
-Each source pixel q spreads its light with the PSF interpolated at q (bilinear over a grid of node PSFs whose nodes
-sit at the centres of a Gy x Gx tiling, clamped beyond the outer centres), so a point source renders as its PSF
-centred on it, unflipped, and energy is conserved away from the borders. Borders are clamp-to-edge.
+Each source pixel q spreads its light with the PSF interpolated at q, bilinear between the four nodes of the grid
+cell that holds q, so a point source renders as its PSF centred on it, unflipped, and energy is conserved away from
+the borders. Borders are clamp-to-edge.
 
-Layouts: image/out [B*C, H, W]; psf [C, Gy*Gx, K, K] (node (iy, ix) at iy*Gx + ix; Warp arrays have at most 4
-dimensions) with K odd, tap (i, j) at offset d = (i - K//2, j - K//2).
+Where the nodes sit is not decided here: per-axis tables give each pixel's cell and its fraction towards the upper
+node (``row_cell``/``row_frac``, ``col_cell``/``col_frac``), and ``row_bounds``/``col_bounds`` give the first pixel of
+each cell (the last entry is the image size). The op layer builds them (`warpsense.ops.psf`).
+
+Layouts (Warp arrays have at most 4 dimensions):
+    image, out: [B*C, H, W]
+    cells: [C, cells_y * cells_x, K, K] of 4-vectors (PSF of the cell's nodes (0,0), (0,1), (1,0), (1,1)), so a tap
+        reads its four node values in one vector load; cell (cy, cx) at index cy * cells_x + cx.
+    tap (i, j) sits at offset d = (i - K//2, j - K//2), K odd.
+
+Every kernel is a gather with one writer per output element: no atomics, deterministic.
 """
 
 from typing import Any
@@ -18,84 +27,68 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
-def node_lower(pixel: int, size: int, nodes: int):
-    """Index of the lower of the two grid nodes bracketing pixel ``pixel`` along an axis."""
-    if nodes == 1:
-        return 0
-    position = (float(pixel) + 0.5) / float(size) * float(nodes) - 0.5
-    position = wp.clamp(position, 0.0, float(nodes - 1))
-    return wp.min(int(wp.floor(position)), nodes - 2)
-
-
-@wp.func
-def node_fraction(pixel: int, size: int, nodes: int, lower: int, like: Any):
-    """Weight of the upper node (1 - weight of the lower), in the float type of ``like``."""
-    if nodes == 1:
-        return type(like)(0.0)
-    position = (type(like)(pixel) + type(like)(0.5)) / type(like)(size) * type(like)(nodes) - type(like)(0.5)
-    position = wp.clamp(position, type(like)(0.0), type(like)(nodes - 1))
-    return position - type(like)(lower)
-
-
-@wp.func
-def interpolated_tap(
-    psf: wp.array4d(dtype=Any), c: int, iy: int, ix: int, fy: Any, fx: Any, grid_y: int, grid_x: int, i: int, j: int
-):
-    one = type(fy)(1.0)
-    node = iy * grid_x + ix
-    value = (one - fy) * (one - fx) * psf[c, node, i, j]
-    if grid_x > 1:
-        value += (one - fy) * fx * psf[c, node + 1, i, j]
-    if grid_y > 1:
-        value += fy * (one - fx) * psf[c, node + grid_x, i, j]
-        if grid_x > 1:
-            value += fy * fx * psf[c, node + grid_x + 1, i, j]
-    return value
+def bilinear(corners: Any, fy: Any, fx: Any):
+    """Value at fractions (fy, fx) inside a cell from its corner values (00, 01, 10, 11)."""
+    top = corners[0] + fx * (corners[1] - corners[0])
+    bottom = corners[2] + fx * (corners[3] - corners[2])
+    return top + fy * (bottom - top)
 
 
 @wp.kernel
 def psf_forward(
-    image: wp.array3d(dtype=Any), psf: wp.array4d(dtype=Any), grid_x: int, out: wp.array3d(dtype=Any)
+    image: wp.array3d(dtype=Any),
+    cells: wp.array4d(dtype=Any),
+    cells_x: int,
+    row_cell: wp.array(dtype=wp.int32),
+    row_frac: wp.array(dtype=Any),
+    col_cell: wp.array(dtype=wp.int32),
+    col_frac: wp.array(dtype=Any),
+    out: wp.array3d(dtype=Any),
 ):
+    """One thread per output pixel: sum over taps of the source pixel times its interpolated PSF tap."""
     bc, y, x = wp.tid()
-    channels = psf.shape[0]
-    grid_y = psf.shape[1] / grid_x
-    size = psf.shape[2]
+    channels = cells.shape[0]
+    size = cells.shape[2]
     radius = size / 2
     height = image.shape[1]
     width = image.shape[2]
     c = bc % channels
     acc = image.dtype(0.0)
     for i in range(size):
-        qy = wp.clamp(y - (i - radius), 0, height - 1)
-        iy = node_lower(qy, height, grid_y)
-        fy = node_fraction(qy, height, grid_y, iy, acc)
+        qy = wp.clamp(y - i + radius, 0, height - 1)
+        fy = row_frac[qy]
+        row_base = row_cell[qy] * cells_x
         for j in range(size):
-            qx = wp.clamp(x - (j - radius), 0, width - 1)
-            ix = node_lower(qx, width, grid_x)
-            fx = node_fraction(qx, width, grid_x, ix, acc)
-            acc += image[bc, qy, qx] * interpolated_tap(psf, c, iy, ix, fy, fx, grid_y, grid_x, i, j)
+            qx = wp.clamp(x - j + radius, 0, width - 1)
+            tap = bilinear(cells[c, row_base + col_cell[qx], i, j], fy, col_frac[qx])
+            acc += image[bc, qy, qx] * tap
     out[bc, y, x] = acc
 
 
 @wp.kernel
 def psf_backward_image(
-    grad_out: wp.array3d(dtype=Any), psf: wp.array4d(dtype=Any), grid_x: int, grad_image: wp.array3d(dtype=Any)
+    grad_out: wp.array3d(dtype=Any),
+    cells: wp.array4d(dtype=Any),
+    cells_x: int,
+    row_cell: wp.array(dtype=wp.int32),
+    row_frac: wp.array(dtype=Any),
+    col_cell: wp.array(dtype=wp.int32),
+    col_frac: wp.array(dtype=Any),
+    grad_image: wp.array3d(dtype=Any),
 ):
-    """Gather per source pixel q: the outputs it reached through every virtual position that clamps to q."""
+    """One thread per source pixel q: the outputs it reached, each through q's own PSF. A border pixel also
+    collects what the virtual positions beyond the border (which clamp to it) reached."""
     bc, y, x = wp.tid()
-    channels = psf.shape[0]
-    grid_y = psf.shape[1] / grid_x
-    size = psf.shape[2]
+    channels = cells.shape[0]
+    size = cells.shape[2]
     radius = size / 2
     height = grad_out.shape[1]
     width = grad_out.shape[2]
     c = bc % channels
+    cell = row_cell[y] * cells_x + col_cell[x]
+    fy = row_frac[y]
+    fx = col_frac[x]
     acc = grad_out.dtype(0.0)
-    iy = node_lower(y, height, grid_y)
-    fy = node_fraction(y, height, grid_y, iy, acc)
-    ix = node_lower(x, width, grid_x)
-    fx = node_fraction(x, width, grid_x, ix, acc)
     y_first = y
     y_last = y
     x_first = x
@@ -109,18 +102,16 @@ def psf_backward_image(
     if x == width - 1:
         x_last = width - 1 + radius
     if y_first == y_last and x_first == x_last:
-        # interior pixel: one virtual position, a plain correlation with its own PSF
         for i in range(size):
             py = y + i - radius
             if py >= 0 and py < height:
                 for j in range(size):
                     px = x + j - radius
                     if px >= 0 and px < width:
-                        acc += interpolated_tap(psf, c, iy, ix, fy, fx, grid_y, grid_x, i, j) * grad_out[bc, py, px]
+                        acc += bilinear(cells[c, cell, i, j], fy, fx) * grad_out[bc, py, px]
     else:
         for i in range(size):
             for j in range(size):
-                tap = interpolated_tap(psf, c, iy, ix, fy, fx, grid_y, grid_x, i, j)
                 reached = grad_out.dtype(0.0)
                 for vy in range(y_first, y_last + 1):
                     py = vy + i - radius
@@ -129,28 +120,44 @@ def psf_backward_image(
                             px = vx + j - radius
                             if px >= 0 and px < width:
                                 reached += grad_out[bc, py, px]
-                acc += tap * reached
+                acc += bilinear(cells[c, cell, i, j], fy, fx) * reached
     grad_image[bc, y, x] = acc
 
 
+@wp.func
+def reached_range(bounds: wp.array(dtype=wp.int32), cell: int, cells: int, offset: int, size: int):
+    """Output coordinates [first, last) whose clamped source (coordinate - offset) lies in ``cell``."""
+    first = bounds[cell] + offset
+    last = bounds[cell + 1] + offset
+    if cell == 0:
+        first = 0
+    if cell == cells - 1:
+        last = size
+    return wp.max(first, 0), wp.min(last, size)
+
+
 @wp.kernel
-def psf_backward_psf(
+def psf_backward_cells(
     image: wp.array3d(dtype=Any),
     grad_out: wp.array3d(dtype=Any),
-    rows: wp.array2d(dtype=wp.int32),
-    cols: wp.array2d(dtype=wp.int32),
-    grid_y: int,
-    grid_x: int,
+    row_bounds: wp.array(dtype=wp.int32),
+    row_frac: wp.array(dtype=Any),
+    col_bounds: wp.array(dtype=wp.int32),
+    col_frac: wp.array(dtype=Any),
     size: int,
     channels: int,
-    row_chunk: int,
-    partials: wp.array2d(dtype=Any),
+    cells_y: int,
+    cells_x: int,
+    row_chunks: int,
+    partials: wp.array4d(dtype=Any),
 ):
-    """dL/dPSF_n(d) = sum_{b, p} g(b, p) x(b, q) w_n(q), q = clamp(p - d), reduced without atomics.
+    """dL/dcell_n(d) for the four corners of each cell: sum over outputs p whose source q = clamp(p - d) lies in the
+    cell of g(p) x(q) times q's bilinear corner weights.
 
-    Thread (tap, lane): tap enumerates (c, node, i, j); lane enumerates (b, chunk of output rows). Only output
-    pixels whose source lies in node n's support (rows[n_y], cols[n_x], conservative) are visited. Each thread
-    writes its partial sum to partials[tap, lane]; the caller sums over lanes.
+    Thread (tap, lane): tap enumerates (c, i, j); lane enumerates (b, cell, chunk of the cell's reached rows). The
+    weights are separable, so each row keeps two sums (sum v and sum fx * v, v = g x) and folds them into the four
+    corners with its fy. Each thread writes its own partials[lane, c, ., tap] (summed over batch and chunks by the
+    caller): no atomics.
     """
     tap, lane = wp.tid()
     height = image.shape[1]
@@ -158,63 +165,53 @@ def psf_backward_psf(
     radius = size / 2
     j = tap % size
     i = (tap / size) % size
-    node_x = (tap / (size * size)) % grid_x
-    node_y = (tap / (size * size * grid_x)) % grid_y
-    c = tap / (size * size * grid_x * grid_y)
-    chunks = (height + row_chunk - 1) / row_chunk
-    b = lane / chunks
-    chunk = lane % chunks
-    bc = b * channels + c
+    c = tap / (size * size)
+    chunk = lane % row_chunks
+    cell = (lane / row_chunks) % (cells_y * cells_x)
+    b = lane / (row_chunks * cells_y * cells_x)
+    cy = cell / cells_x
+    cx = cell % cells_x
     dy = i - radius
     dx = j - radius
-    # output rows/cols whose clamped source can fall in the node's support
-    y_first = rows[node_y, 0] + dy
-    y_last = rows[node_y, 1] + dy
-    if rows[node_y, 0] == 0:
-        y_first = 0
-    if rows[node_y, 1] == height - 1:
-        y_last = height - 1
-    x_first = cols[node_x, 0] + dx
-    x_last = cols[node_x, 1] + dx
-    if cols[node_x, 0] == 0:
-        x_first = 0
-    if cols[node_x, 1] == width - 1:
-        x_last = width - 1
-    y_first = wp.max(wp.max(y_first, 0), chunk * row_chunk)
-    y_last = wp.min(wp.min(y_last, height - 1), chunk * row_chunk + row_chunk - 1)
-    x_first = wp.max(x_first, 0)
-    x_last = wp.min(x_last, width - 1)
-    acc = image.dtype(0.0)
+    bc = b * channels + c
+    y_first, y_end = reached_range(row_bounds, cy, cells_y, dy, height)
+    x_first, x_end = reached_range(col_bounds, cx, cells_x, dx, width)
+    rows = wp.max(y_end - y_first, 0)
+    per_chunk = (rows + row_chunks - 1) / row_chunks
+    y_start = y_first + chunk * per_chunk
+    y_stop = wp.min(y_start + per_chunk, y_end)
+    zero = image.dtype(0.0)
     one = image.dtype(1.0)
-    for py in range(y_first, y_last + 1):
+    s00 = zero
+    s01 = zero
+    s10 = zero
+    s11 = zero
+    for py in range(y_start, y_stop):
         qy = wp.clamp(py - dy, 0, height - 1)
-        iy = node_lower(qy, height, grid_y)
-        fy = node_fraction(qy, height, grid_y, iy, acc)
-        weight_y = image.dtype(0.0)
-        if node_y == iy:
-            weight_y = one - fy
-        elif node_y == iy + 1:
-            weight_y = fy
-        if weight_y != image.dtype(0.0):
-            row_acc = image.dtype(0.0)
-            for px in range(x_first, x_last + 1):
-                qx = wp.clamp(px - dx, 0, width - 1)
-                ix = node_lower(qx, width, grid_x)
-                fx = node_fraction(qx, width, grid_x, ix, acc)
-                weight_x = image.dtype(0.0)
-                if node_x == ix:
-                    weight_x = one - fx
-                elif node_x == ix + 1:
-                    weight_x = fx
-                row_acc += weight_x * image[bc, qy, qx] * grad_out[bc, py, px]
-            acc += weight_y * row_acc
-    partials[tap, lane] = acc
+        fy = row_frac[qy]
+        total = zero
+        upper = zero
+        for px in range(x_first, x_end):
+            qx = wp.clamp(px - dx, 0, width - 1)
+            v = grad_out[bc, py, px] * image[bc, qy, qx]
+            total += v
+            upper += col_frac[qx] * v
+        lower = total - upper
+        s00 += (one - fy) * lower
+        s01 += (one - fy) * upper
+        s10 += fy * lower
+        s11 += fy * upper
+    partials[lane / (cells_y * cells_x * row_chunks) * row_chunks + chunk, c, cell, tap % (size * size)] = wp.vector(
+        s00, s01, s10, s11
+    )
 
 
-for _float in (wp.float32, wp.float64):
+for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
     _planes = wp.array3d(dtype=_float)
-    _grid = wp.array4d(dtype=_float)
-    wp.overload(psf_forward, [_planes, _grid, int, _planes])
-    wp.overload(psf_backward_image, [_planes, _grid, int, _planes])
-    _bounds = wp.array2d(dtype=wp.int32)
-    wp.overload(psf_backward_psf, [_planes, _planes, _bounds, _bounds, int, int, int, int, int, wp.array2d(dtype=_float)])
+    _cells = wp.array4d(dtype=_vec4)
+    _table = wp.array(dtype=_float)
+    _index = wp.array(dtype=wp.int32)
+    wp.overload(psf_forward, [_planes, _cells, int, _index, _table, _index, _table, _planes])
+    wp.overload(psf_backward_image, [_planes, _cells, int, _index, _table, _index, _table, _planes])
+    wp.overload(psf_backward_cells, [_planes, _planes, _index, _table, _index, _table, int, int, int, int, int,
+                                     wp.array4d(dtype=_vec4)])

@@ -40,8 +40,25 @@ def prepare(*tensors: torch.Tensor) -> list[torch.Tensor]:
     return [t.to(dtype).contiguous() for t in tensors]
 
 
-def to_warp(tensor: torch.Tensor) -> wp.array:
-    """A Warp view of a contiguous torch tensor, without gradient storage."""
+class Vectors:
+    """A contiguous torch tensor [..., N] passed to a kernel as an array of N-vectors over its leading dimensions
+    (one vector load per element in the kernel)."""
+
+    _TYPES = {(torch.float32, 4): wp.vec4f, (torch.float64, 4): wp.vec4d}
+
+    def __init__(self, tensor: torch.Tensor):
+        self.tensor = tensor
+        self.warp_dtype = self._TYPES[(tensor.dtype, tensor.shape[-1])]
+
+    @property
+    def signature(self):
+        return ("vectors", self.tensor.dtype, self.tensor.dim())
+
+
+def to_warp(tensor) -> wp.array:
+    """A Warp view of a contiguous torch tensor (or `Vectors`), without gradient storage."""
+    if isinstance(tensor, Vectors):
+        return wp.from_torch(tensor.tensor.detach(), dtype=tensor.warp_dtype, requires_grad=False)
     return wp.from_torch(tensor.detach(), requires_grad=False)
 
 
@@ -73,11 +90,17 @@ def _warp_stream(device: torch.device):
 _ARRAY_STRUCT = type(wp.zeros(1, dtype=wp.float32, device="cpu").__ctype__())
 
 
-def _array_ctype(tensor: torch.Tensor):
-    """The kernel-side array struct of a torch tensor, built from its pointer, shape and strides (bytes)."""
+def _array_ctype(tensor):
+    """The kernel-side array struct of a torch tensor (or `Vectors`), built from its pointer, shape and strides
+    (bytes)."""
+    if isinstance(tensor, Vectors):
+        tensor = tensor.tensor
+        item = tensor.element_size()
+        return _ARRAY_STRUCT(data=tensor.data_ptr(), grad=0, ndim=tensor.dim() - 1, shape=tuple(tensor.shape[:-1]),
+                             strides=tuple(stride * item for stride in tensor.stride()[:-1]))
     item = tensor.element_size()
     return _ARRAY_STRUCT(data=tensor.data_ptr(), grad=0, ndim=tensor.dim(), shape=tuple(tensor.shape),
-                            strides=tuple(stride * item for stride in tensor.stride()))
+                         strides=tuple(stride * item for stride in tensor.stride()))
 
 
 def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.device) -> None:
@@ -92,11 +115,12 @@ def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.dev
     dim = tuple(dim)
     if any(d == 0 for d in dim):
         return
-    signature = tuple((x.dtype, x.dim()) if isinstance(x, torch.Tensor) else type(x) for x in inputs)
+    signature = tuple((x.dtype, x.dim()) if isinstance(x, torch.Tensor) else
+                      x.signature if isinstance(x, Vectors) else type(x) for x in inputs)
     key = (kernel, device, dim, signature)
     command = _LAUNCH_CACHE.get(key)
     if command is None:
-        arguments = [to_warp(x) if isinstance(x, torch.Tensor) else x for x in inputs]
+        arguments = [to_warp(x) if isinstance(x, (torch.Tensor, Vectors)) else x for x in inputs]
         command = wp.launch(kernel, dim=dim, inputs=arguments, device=wp.device_from_torch(device), record_cmd=True)
         command.fwd_args = None  # drop the first call's arrays: a cached launch must not keep tensors alive
         _LAUNCH_CACHE[key] = command
@@ -105,7 +129,7 @@ def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.dev
     else:
         _LAUNCH_CACHE.move_to_end(key)
     for index, value in enumerate(inputs):
-        if isinstance(value, torch.Tensor):
+        if isinstance(value, (torch.Tensor, Vectors)):
             command.set_param_at_index_from_ctype(index, _array_ctype(value))
         else:
             command.set_param_at_index(index, value)

@@ -1,136 +1,241 @@
-"""Spatially varying PSF convolution op (Warp kernels in torch autograd) and its alternative methods."""
+"""Spatially varying PSF convolution op (Warp kernels in torch autograd) and its alternative methods.
+
+PSF grid convention (one place: `node_axis`): the Gy x Gx nodes cover the whole field, corners included. Along an
+axis of ``size`` pixels, node n sits at the normalised position n / (G - 1) of the field (0 and 1 are the image
+edges), pixel q's centre at (q + 0.5) / size; between nodes the PSF is bilinear. G = 1 is the invariant case.
+"""
 
 from __future__ import annotations
 
-import math
+import functools
+import time
 
 import torch
 import torch.nn.functional as F
 
 from warpsense.kernels import psf as kernels
-from warpsense.ops._warp import launch, prepare, reduction_lanes
+from warpsense.ops._warp import Vectors, launch, prepare
 
-PSF_METHODS = ("direct", "fft", "patch")
+PSF_METHODS = ("auto", "direct", "conv2d", "fft", "patch")
+INVARIANT_METHODS = ("direct", "conv2d", "fft")
+_THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill an H100; serial CPU)
 
 
-def _support_bounds(size: int, nodes: int, device) -> torch.Tensor:
-    """[nodes, 2] first/last pixel (inclusive, conservative) whose bilinear weight for each node can be nonzero."""
-    bounds = []
-    for node in range(nodes):
-        if nodes == 1:
-            bounds.append((0, size - 1))
-            continue
-        first = 0 if node == 0 else max(0, math.floor((node - 1 + 0.5) * size / nodes - 0.5) - 1)
-        last = size - 1 if node == nodes - 1 else min(size - 1, math.ceil((node + 1 + 0.5) * size / nodes - 0.5) + 1)
-        bounds.append((first, last))
-    return torch.tensor(bounds, dtype=torch.int32, device=device)
+@functools.lru_cache(maxsize=64)
+def _node_axis_cached(size: int, nodes: int, dtype: torch.dtype, device: torch.device):
+    position = (torch.arange(size, dtype=torch.float64) + 0.5) / size * max(nodes - 1, 0)
+    cell = position.floor().clamp(0, max(nodes - 2, 0))
+    fraction = (position - cell) if nodes > 1 else torch.zeros(size, dtype=torch.float64)
+    cells = max(nodes - 1, 1)
+    bounds = torch.searchsorted(cell.contiguous(), torch.arange(cells + 1, dtype=torch.float64))
+    bounds[-1] = size
+    return (cell.to(torch.int32).to(device), fraction.to(dtype).to(device), bounds.to(torch.int32).to(device))
+
+
+def node_axis(size: int, nodes: int, dtype=torch.float64, device="cpu"):
+    """Bilinear coordinates of the pixels of one axis in a grid of ``nodes`` corner-aligned nodes.
+
+    Returns:
+        cell: int32 [size], the lower node of each pixel's cell (0 .. max(nodes - 2, 0)).
+        fraction: [size] weight of the upper node, in [0, 1] (0 everywhere when nodes == 1).
+        bounds: int32 [cells + 1], the first pixel of each cell; the last entry is ``size``.
+    """
+    return _node_axis_cached(int(size), int(nodes), dtype, torch.device(device))
+
+
+def node_cells(psf: torch.Tensor) -> torch.Tensor:
+    """[C, Gy, Gx, K, K] node PSFs -> [C, cells_y * cells_x, K, K, 4]: each grid cell's corner PSFs (00, 01, 10,
+    11), so the kernels read a tap's four node values at once. Differentiable (slices: deterministic backward)."""
+    channels, grid_y, grid_x, size, _ = psf.shape
+    low_y, high_y = slice(0, max(grid_y - 1, 1)), slice(min(1, grid_y - 1), grid_y)
+    low_x, high_x = slice(0, max(grid_x - 1, 1)), slice(min(1, grid_x - 1), grid_x)
+    corners = [psf[:, low_y, low_x], psf[:, low_y, high_x], psf[:, high_y, low_x], psf[:, high_y, high_x]]
+    cells = torch.stack(corners, dim=-1)
+    return cells.reshape(channels, -1, size, size, 4).contiguous()
 
 
 class PSFConv(torch.autograd.Function):
+    """Exact varying convolution with the PSF given per grid cell (`node_cells`)."""
+
     @staticmethod
-    def forward(ctx, image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
+    def forward(ctx, image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_x: int) -> torch.Tensor:
         batch, channels, height, width = image.shape
+        rows = node_axis(height, grid_y, image.dtype, image.device)
+        cols = node_axis(width, grid_x, image.dtype, image.device)
+        cells_x = max(grid_x - 1, 1)
         planes = image.view(batch * channels, height, width)
         out = torch.empty_like(planes)
-        nodes = psf.view(channels, psf.shape[1] * psf.shape[2], psf.shape[3], psf.shape[4])
-        launch(kernels.psf_forward, (batch * channels, height, width), [planes, nodes, psf.shape[2], out],
-               image.device)
-        ctx.save_for_backward(image, psf)
+        launch(kernels.psf_forward, (batch * channels, height, width),
+               [planes, Vectors(cells), cells_x, rows[0], rows[1], cols[0], cols[1], out], image.device)
+        ctx.save_for_backward(image, cells)
+        ctx.grid = (grid_y, grid_x)
         return out.view(batch, channels, height, width)
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
-        image, psf = ctx.saved_tensors
+        image, cells = ctx.saved_tensors
+        grid_y, grid_x = ctx.grid
         batch, channels, height, width = image.shape
-        _, grid_y, grid_x, size, _ = psf.shape
+        size = cells.shape[2]
+        cells_y, cells_x = max(grid_y - 1, 1), max(grid_x - 1, 1)
+        rows = node_axis(height, grid_y, image.dtype, image.device)
+        cols = node_axis(width, grid_x, image.dtype, image.device)
         grad_planes = grad_out.to(image.dtype).contiguous().view(batch * channels, height, width)
         planes = image.view(batch * channels, height, width)
-        grad_image = grad_psf = None
+        grad_image = grad_cells = None
         if ctx.needs_input_grad[0]:
             grad_image = torch.empty_like(planes)
-            nodes = psf.view(channels, grid_y * grid_x, size, size)
             launch(kernels.psf_backward_image, (batch * channels, height, width),
-                   [grad_planes, nodes, grid_x, grad_image], image.device)
+                   [grad_planes, Vectors(cells), cells_x, rows[0], rows[1], cols[0], cols[1], grad_image],
+                   image.device)
             grad_image = grad_image.view_as(image)
         if ctx.needs_input_grad[1]:
-            taps = channels * grid_y * grid_x * size * size
-            # enough lanes to fill the device: split each image's output rows into chunks
-            target_lanes = max(1, reduction_lanes(1 << 30, image.device) * 8 // max(taps, 1))
-            chunks = max(1, min(height, -(-target_lanes // batch)))
-            row_chunk = -(-height // chunks)
-            chunks = -(-height // row_chunk)
-            partials = image.new_empty(taps, batch * chunks)
-            launch(
-                kernels.psf_backward_psf,
-                (taps, batch * chunks),
-                [planes, grad_planes, _support_bounds(height, grid_y, image.device),
-                 _support_bounds(width, grid_x, image.device), grid_y, grid_x, size, channels, row_chunk, partials],
-                image.device,
-            )
-            grad_psf = partials.sum(dim=1).view_as(psf)
-        return grad_image, grad_psf
+            taps = channels * size * size
+            lanes = batch * cells_y * cells_x
+            # split each cell's rows into chunks until the launch fills the device
+            row_chunks = max(1, min(height, -(-_THREADS_TARGET.get(image.device.type, 1) // (taps * lanes))))
+            partials = image.new_empty(batch * row_chunks, channels, cells_y * cells_x, size * size, 4)
+            launch(kernels.psf_backward_cells, (taps, lanes * row_chunks),
+                   [planes, grad_planes, rows[2], rows[1], cols[2], cols[1], size, channels, cells_y, cells_x,
+                    row_chunks, Vectors(partials)], image.device)
+            grad_cells = partials.sum(dim=0).view_as(cells)
+        return grad_image, grad_cells, None, None
 
 
-def _check(image: torch.Tensor, psf: torch.Tensor) -> None:
-    if image.dim() != 4:
-        raise ValueError(f"psf_conv: image must be [B, C, H, W], got {tuple(image.shape)}")
-    if psf.dim() != 5 or psf.shape[3] != psf.shape[4] or psf.shape[3] % 2 == 0:
-        raise ValueError(f"psf_conv: psf must be [C, Gy, Gx, K, K] with K odd, got {tuple(psf.shape)}")
+def _check(image: torch.Tensor, psf: torch.Tensor, method: str) -> None:
+    for name, tensor in (("image", image), ("psf", psf)):
+        if not isinstance(tensor, torch.Tensor):
+            raise TypeError(f"psf_conv: {name} must be a torch.Tensor, got {type(tensor).__name__}")
+        if not tensor.is_floating_point():
+            raise TypeError(f"psf_conv: {name} must be floating point, got {tensor.dtype}")
+    if image.dim() != 4 or 0 in image.shape:
+        raise ValueError(f"psf_conv: image must be a non-empty [B, C, H, W], got {tuple(image.shape)}")
+    if psf.dim() != 5 or 0 in psf.shape or psf.shape[3] != psf.shape[4] or psf.shape[3] % 2 == 0:
+        raise ValueError(f"psf_conv: psf must be a non-empty [C, Gy, Gx, K, K] with K odd, got {tuple(psf.shape)}")
     if psf.shape[0] != image.shape[1]:
         raise ValueError(f"psf_conv: psf has {psf.shape[0]} channels, image has {image.shape[1]}")
+    if psf.device != image.device:
+        raise ValueError(f"psf_conv: image is on {image.device}, psf on {psf.device}")
+    if method not in PSF_METHODS:
+        raise ValueError(f"psf_conv: method must be one of {PSF_METHODS}, got {method!r}")
+    invariant = psf.shape[1] == psf.shape[2] == 1
+    if method in ("conv2d", "fft") and not invariant:
+        raise ValueError(f"psf_conv: method {method!r} is exact only for one PSF (a 1x1 grid), got a "
+                         f"{psf.shape[1]}x{psf.shape[2]} grid; use 'auto', 'direct' or 'patch'")
 
 
-def psf_conv(image: torch.Tensor, psf: torch.Tensor, method: str = "direct") -> torch.Tensor:
+def psf_conv(image: torch.Tensor, psf: torch.Tensor, method: str = "auto") -> torch.Tensor:
     """Convolve with a spatially varying PSF (paper eq. 2, SPEC section 1).
 
     Args:
-        image: [B, C, H, W] linear irradiance.
-        psf: [C, Gy, Gx, K, K] node PSFs (K odd), node (i, j) at the centre of tile (i, j) of a Gy x Gx tiling of
-            the image; bilinear in between, clamped beyond the outer centres. Each PSF should sum to 1.
-        method: "direct" (exact, Warp kernel; default), "fft" (torch.fft, exact for Gy = Gx = 1 only; with a grid it
-            uses the mean PSF) or "patch" (each tile convolved with its own node PSF, no blending: seams).
+        image: [B, C, H, W] linear irradiance (float32 or float64; half types compute in float32).
+        psf: [C, Gy, Gx, K, K] node PSFs (K odd) on a corner-aligned grid (`node_axis`), bilinear in between. Each
+            PSF should sum to 1. Cast to the image's float type.
+        method: "auto" (default: the fastest exact method; the Warp kernel for a varying grid, for one PSF the
+            faster of cuDNN conv2d and the Warp kernel, measured once per shape on CUDA), "direct" (Warp kernel),
+            "conv2d" (cuDNN on the edge-padded image; one PSF only), "fft" (torch.fft; one PSF only; NaN stays
+            local, but float32 rounding is relative to the image maximum: dark pixels beside 1e9 brighter ones
+            lose their precision) or "patch" (each node's region convolved with that node's PSF, no blending:
+            seams; an approximation for comparison).
 
     Returns:
-        [B, C, H, W]. A point source at pixel q renders as PSF_q centred at q (not flipped); borders clamp to edge.
-        Differentiable w.r.t. image and psf for every method.
+        [B, C, H, W] in the image's float type. A point source at pixel q renders as PSF_q centred at q (not
+        flipped); borders clamp to edge. Differentiable w.r.t. image and psf for every method.
     """
-    _check(image, psf)
-    if method == "direct":
-        image, psf = prepare(image, psf)
-        return PSFConv.apply(image, psf)
-    if method == "fft":
-        return psf_conv_fft(image, psf.mean(dim=(1, 2)))
-    if method == "patch":
+    _check(image, psf, method)
+    compute_dtype = torch.float64 if image.dtype == torch.float64 else torch.float32
+    with torch.autocast(image.device.type, enabled=False):
+        image, psf = image.to(compute_dtype), psf.to(compute_dtype)
+        invariant = psf.shape[1] == psf.shape[2] == 1
+        if method == "auto":
+            method = _fastest_invariant(image, psf) if invariant else "direct"
+        if method == "direct":
+            image, psf = prepare(image, psf)
+            return PSFConv.apply(image, node_cells(psf), psf.shape[1], psf.shape[2])
+        if method == "conv2d":
+            return psf_conv_conv2d(image, psf[:, 0, 0])
+        if method == "fft":
+            return psf_conv_fft(image, psf[:, 0, 0])
         return psf_conv_patch(image, psf)
-    raise ValueError(f"psf_conv: method must be one of {PSF_METHODS}, got {method!r}")
+
+
+_FASTEST: dict = {}
+
+
+def _fastest_invariant(image: torch.Tensor, psf: torch.Tensor) -> str:
+    """The faster exact method for one PSF at this shape: measured once per (shape, K, dtype) on CUDA (forward +
+    backward, 3 repeats after a warm-up) and cached; conv2d on the CPU, where the Warp backend runs serially."""
+    if image.device.type != "cuda" or torch.cuda.is_current_stream_capturing():
+        return _FASTEST.get((tuple(image.shape), psf.shape[-1], image.dtype, image.device), "conv2d")
+    key = (tuple(image.shape), psf.shape[-1], image.dtype, image.device)
+    if key not in _FASTEST:
+        probe = torch.rand_like(image).requires_grad_()
+        kernel = psf.detach().clone().requires_grad_()
+        timings = {}
+        for method in ("conv2d", "direct"):
+            for repeat in range(4):
+                if repeat == 1:
+                    torch.cuda.synchronize()
+                    start = time.perf_counter()
+                psf_conv(probe, kernel, method).sum().backward()
+            torch.cuda.synchronize()
+            timings[method] = time.perf_counter() - start
+        _FASTEST[key] = min(timings, key=timings.get)
+    return _FASTEST[key]
+
+
+def psf_conv_conv2d(image: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
+    """Spatially invariant convolution with kernel [C, K, K] by depthwise conv2d (cuDNN) on the edge-padded image."""
+    radius = kernel.shape[-1] // 2
+    padded = F.pad(image, (radius,) * 4, mode="replicate")
+    return F.conv2d(padded, kernel.flip(-1, -2).unsqueeze(1).to(image.dtype), groups=image.shape[1])
 
 
 def psf_conv_fft(image: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
-    """Spatially invariant convolution with kernel [C, K, K] by torch.fft on the edge-padded image (exact)."""
+    """Spatially invariant convolution with kernel [C, K, K] by torch.fft on the edge-padded image.
+
+    Non-finite pixels are convolved as 0 and then mark every output they reach as NaN, as a direct convolution
+    would (an FFT would spread them over the whole plane)."""
     radius = kernel.shape[-1] // 2
-    batch, channels, height, width = image.shape
-    padded = F.pad(image, (radius,) * 4, mode="replicate")
+    height, width = image.shape[-2:]
+    bad = ~torch.isfinite(image)
+    clean = torch.where(bad, torch.zeros((), dtype=image.dtype, device=image.device), image)
+    padded = F.pad(clean, (radius,) * 4, mode="replicate")
     full_h, full_w = height + 2 * radius, width + 2 * radius
     spectrum = torch.fft.rfft2(padded, s=(full_h, full_w))
     kernel_spectrum = torch.fft.rfft2(kernel.to(image.dtype), s=(full_h, full_w))
     result = torch.fft.irfft2(spectrum * kernel_spectrum, s=(full_h, full_w))
     # circular convolution of the padded image with the kernel anchored at (0, 0): valid part starts at 2r
-    return result[..., 2 * radius : 2 * radius + height, 2 * radius : 2 * radius + width]
+    result = result[..., 2 * radius : 2 * radius + height, 2 * radius : 2 * radius + width]
+    reached = F.max_pool2d(F.pad(bad.to(image.dtype), (radius,) * 4, mode="replicate"), kernel.shape[-1], stride=1)
+    return torch.where(reached > 0, torch.full((), float("nan"), dtype=image.dtype, device=image.device), result)
+
+
+def nearest_node_edges(size: int, nodes: int) -> list[int]:
+    """Pixel edges of the regions whose nearest node is each of ``nodes`` corner-aligned nodes (``nodes + 1``
+    entries from 0 to ``size``; a region may be empty when there are more nodes than pixels)."""
+    if nodes == 1:
+        return [0, size]
+    return [0] + [min(size, max(0, round((k - 0.5) / (nodes - 1) * size))) for k in range(1, nodes)] + [size]
 
 
 def psf_conv_patch(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
-    """Patch-wise approximation: each of the Gy x Gx tiles convolved with its own node PSF (cuDNN), no blending."""
-    batch, channels, height, width = image.shape
+    """Patch-wise approximation: the region nearest each node convolved with that node's PSF (cuDNN), no blending."""
+    _, channels, height, width = image.shape
     _, grid_y, grid_x, size, _ = psf.shape
     radius = size // 2
     padded = F.pad(image, (radius,) * 4, mode="replicate")
-    row_edges = [round(k * height / grid_y) for k in range(grid_y + 1)]
-    col_edges = [round(k * width / grid_x) for k in range(grid_x + 1)]
+    row_edges, col_edges = nearest_node_edges(height, grid_y), nearest_node_edges(width, grid_x)
     pieces = []
     for gy in range(grid_y):
+        y0, y1 = row_edges[gy], row_edges[gy + 1]
+        if y1 <= y0:
+            continue
         row = []
         for gx in range(grid_x):
-            y0, y1, x0, x1 = row_edges[gy], row_edges[gy + 1], col_edges[gx], col_edges[gx + 1]
+            x0, x1 = col_edges[gx], col_edges[gx + 1]
+            if x1 <= x0:
+                continue
             window = padded[..., y0 : y1 + 2 * radius, x0 : x1 + 2 * radius]
             kernel = psf[:, gy, gx].flip(-1, -2).unsqueeze(1).to(image.dtype)
             row.append(F.conv2d(window, kernel, groups=channels))

@@ -71,20 +71,16 @@ def quantize_reference(raw: torch.Tensor, bits: int, white_level: float = 1.0, m
 
 
 def bilinear_node_weights(height: int, width: int, grid_y: int, grid_x: int, dtype, device) -> torch.Tensor:
-    """[Gy, Gx, H, W] weights of each PSF-grid node at each pixel: bilinear in the node-centre coordinates
-    (node (i, j) at the centre of tile (i, j) of a Gy x Gx tiling), clamped beyond the outer centres."""
+    """[Gy, Gx, H, W] weight of each PSF-grid node at each pixel: hat functions of the distance to the node, with
+    the nodes spread over the whole field (node n at n / (G - 1) of the image, corners included; pixel q's centre
+    at (q + 0.5) / size), written from the formula w_n(u) = max(0, 1 - |u (G - 1) - n|)."""
 
     def axis(n_nodes, size):
-        position = (torch.arange(size, dtype=dtype, device=device) + 0.5) / size * n_nodes - 0.5
-        position = position.clamp(0, n_nodes - 1)
-        lower = position.floor().clamp(max=max(n_nodes - 2, 0))
-        frac = position - lower
-        weights = torch.zeros(n_nodes, size, dtype=dtype, device=device)
-        idx = torch.arange(size, device=device)
-        weights[lower.long(), idx] += 1 - frac
-        if n_nodes > 1:
-            weights[lower.long() + 1, idx] += frac
-        return weights
+        if n_nodes == 1:
+            return torch.ones(1, size, dtype=dtype, device=device)
+        position = (torch.arange(size, dtype=dtype, device=device) + 0.5) / size * (n_nodes - 1)
+        nodes = torch.arange(n_nodes, dtype=dtype, device=device)
+        return (1 - (position[None, :] - nodes[:, None]).abs()).clamp_min(0)
 
     wy, wx = axis(grid_y, height), axis(grid_x, width)
     return wy[:, None, :, None] * wx[None, :, None, :]

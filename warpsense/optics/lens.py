@@ -185,13 +185,21 @@ class Lens(nn.Module):
         return self.base_coefficients + self.spec.learnable_bound_waves * torch.tanh(self.offset)
 
     def field_points(self, grid: tuple[int, int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Normalised field height h [Gy*Gx] and azimuth [Gy*Gx] of the grid nodes (tile centres)."""
+        """Normalised field height h [Gy*Gx] and azimuth [Gy*Gx] of the grid nodes.
+
+        The nodes cover the whole field, edges and corners included (node n at n / (G - 1) of each axis; the
+        convention of `warpsense.ops.psf.node_axis`), so the corner PSF is rendered at h = 1; G = 1 is on axis."""
         grid_y, grid_x = grid or self.spec.psf_grid
         aspect = self.spec.aspect_ratio
         half_w, half_h = aspect / 2, 0.5
         device = self.base_coefficients.device
-        ys = ((torch.arange(grid_y, dtype=torch.float64, device=device) + 0.5) / grid_y - 0.5) * 2 * half_h
-        xs = ((torch.arange(grid_x, dtype=torch.float64, device=device) + 0.5) / grid_x - 0.5) * 2 * half_w
+
+        def axis(nodes, half):
+            if nodes == 1:
+                return torch.zeros(1, dtype=torch.float64, device=device)
+            return (torch.arange(nodes, dtype=torch.float64, device=device) / (nodes - 1) - 0.5) * 2 * half
+
+        ys, xs = axis(grid_y, half_h), axis(grid_x, half_w)
         y, x = torch.meshgrid(ys, xs, indexing="ij")
         height = torch.sqrt(x * x + y * y) / math.hypot(half_w, half_h)
         return height.reshape(-1), torch.atan2(y, x).reshape(-1)
@@ -227,7 +235,7 @@ class Lens(nn.Module):
         return self.psf_at(field_height, azimuth, **options)
 
     def psf_grid(self, grid: tuple[int, int] | None = None) -> torch.Tensor:
-        """[3, Gy, Gx, K, K] PSFs at the centres of a Gy x Gx tiling of the image, each summing to 1 (float64)."""
+        """[3, Gy, Gx, K, K] PSFs at the grid nodes (corners included, `field_points`), each summing to 1 (float64)."""
         grid_y, grid_x = grid or self.spec.psf_grid
         height, azimuth = self.field_points((grid_y, grid_x))
         psf = self.psf_at(height, azimuth)
