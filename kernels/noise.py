@@ -22,18 +22,28 @@ def standard_normal(seed: wp.int32, index: wp.int32):
     return wp.sqrt(-2.0 * wp.log(first + 5.96e-8)) * wp.cos(2.0 * wp.pi * second)
 
 
+@wp.func
+def noise_key(i: int, per_image: int, image_stride: int):
+    """Counter of element i of a [B, per_image] tensor: its flat index (image_stride 1, one seed for the batch) or
+    its index within its image (image_stride 0, a seed per image)."""
+    b = i / per_image
+    return b * per_image * image_stride + (i - b * per_image)
+
+
 @wp.kernel
 def noise_forward(
     raw: wp.array(dtype=Any),
     shot: wp.array(dtype=Any),
     read: wp.array(dtype=Any),
-    seed: wp.int32,
+    seeds: wp.array(dtype=wp.int32),
+    per_image: int,
+    image_stride: int,
     out: wp.array(dtype=Any),
 ):
     i = wp.tid()
     signal = raw[i]
     variance = shot[0] * wp.max(signal, raw.dtype(0.0)) + read[0] * read[0]
-    eps = raw.dtype(standard_normal(seed, i))
+    eps = raw.dtype(standard_normal(seeds[i / per_image], noise_key(i, per_image, image_stride)))
     out[i] = signal + wp.sqrt(wp.max(variance, raw.dtype(0.0))) * eps
 
 
@@ -42,7 +52,9 @@ def noise_backward(
     raw: wp.array(dtype=Any),
     shot: wp.array(dtype=Any),
     read: wp.array(dtype=Any),
-    seed: wp.int32,
+    seeds: wp.array(dtype=wp.int32),
+    per_image: int,
+    image_stride: int,
     grad_out: wp.array(dtype=Any),
     grad_raw: wp.array(dtype=Any),
     partials: wp.array2d(dtype=Any),
@@ -63,7 +75,7 @@ def noise_backward(
         sigma = wp.sqrt(wp.max(shot[0] * positive + read[0] * read[0], zero))
         g = grad_out[i]
         if sigma > zero:
-            eps = raw.dtype(standard_normal(seed, i))
+            eps = raw.dtype(standard_normal(seeds[i / per_image], noise_key(i, per_image, image_stride)))
             d_variance = g * eps / (raw.dtype(2.0) * sigma)
             if signal > zero:
                 grad_raw[i] = g + d_variance * shot[0]
@@ -77,30 +89,52 @@ def noise_backward(
     partials[lane, 1] = acc_read
 
 
+# Above this mean photon count the exact sampler draws from the normal limit N(lambda, lambda), rounded: Warp's
+# Poisson sampler works in float32 with a uint32 count, which biases its variance from ~1e6 on and wraps at 2^32.
+# At 1e4 the normal limit's skewness error (1 / sqrt(lambda) = 1%) is below the Poisson noise of any statistic.
+POISSON_NORMAL_LIMIT = wp.constant(1.0e4)
+READ_STREAM = wp.constant(0x5BD1E995)  # seed offset of the read-noise draw, a stream independent of the photon-count draw
+
+
 @wp.kernel
 def poisson_sample(
     raw: wp.array(dtype=Any),
     shot: wp.array(dtype=Any),
     read: wp.array(dtype=Any),
-    seed: wp.int32,
+    seeds: wp.array(dtype=wp.int32),
+    per_image: int,
+    image_stride: int,
     out: wp.array(dtype=Any),
 ):
     """Exact Poisson shot noise (photon count n ~ Poisson(R / shot), R' = shot * n) plus Gaussian read noise.
 
-    Not differentiable; for evaluation at low light where the Gaussian approximation of eq. 5 breaks down.
+    Not differentiable; for evaluation at low light where the Gaussian approximation of eq. 5 breaks down. Counts
+    above POISSON_NORMAL_LIMIT come from the normal limit; NaN and infinite inputs pass through unchanged.
     """
     i = wp.tid()
-    state = wp.rand_init(seed, i)
-    signal = wp.max(raw[i], raw.dtype(0.0))
+    signal = raw[i]
+    if not wp.isfinite(signal):
+        out[i] = signal
+        return
+    seed = seeds[i / per_image]
+    key = noise_key(i, per_image, image_stride)
+    signal = wp.max(signal, raw.dtype(0.0))
     value = signal
     if shot[0] > raw.dtype(0.0):
-        photons = wp.poisson(state, wp.float32(signal / shot[0]))
-        value = shot[0] * raw.dtype(photons)
-    out[i] = value + read[0] * raw.dtype(wp.randn(state))
+        mean = signal / shot[0]
+        if mean > raw.dtype(POISSON_NORMAL_LIMIT):
+            count = wp.max(wp.floor(mean + wp.sqrt(mean) * raw.dtype(standard_normal(seed, key)) + raw.dtype(0.5)),
+                           raw.dtype(0.0))
+        else:
+            state = wp.rand_init(seed, key)
+            count = raw.dtype(wp.poisson(state, wp.float32(mean)))
+        value = shot[0] * count
+    out[i] = value + read[0] * raw.dtype(standard_normal(seed ^ READ_STREAM, key))
 
 
 for _float in (wp.float32, wp.float64):
     _flat = wp.array(dtype=_float)
-    wp.overload(noise_forward, [_flat, _flat, _flat, wp.int32, _flat])
-    wp.overload(poisson_sample, [_flat, _flat, _flat, wp.int32, _flat])
-    wp.overload(noise_backward, [_flat, _flat, _flat, wp.int32, _flat, _flat, wp.array2d(dtype=_float)])
+    _seeds = wp.array(dtype=wp.int32)
+    wp.overload(noise_forward, [_flat, _flat, _flat, _seeds, int, int, _flat])
+    wp.overload(poisson_sample, [_flat, _flat, _flat, _seeds, int, int, _flat])
+    wp.overload(noise_backward, [_flat, _flat, _flat, _seeds, int, int, _flat, _flat, wp.array2d(dtype=_float)])

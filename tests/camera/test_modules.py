@@ -49,7 +49,7 @@ def test_cfa_layouts_tiles_and_errors():
 def test_noise_module_equals_functional_and_seeds():
     module = SensorNoise(0.015, 0.002, eval_seed=42).eval()
     raw = torch.rand(2, 1, 5, 5)
-    torch.testing.assert_close(module(raw), poisson_gaussian(raw, 0.015, 0.002, 42))
+    torch.testing.assert_close(module(raw), poisson_gaussian(raw, 0.015, 0.002, 42 + torch.arange(2)))
     assert torch.equal(module(raw), module(raw))  # eval: fixed seed
     module.train()
     assert not torch.equal(module(raw), module(raw))  # training: a new seed per call
@@ -103,7 +103,7 @@ def test_camera_chain_equals_functional_composition():
     radiance = torch.rand(2, 3, 16, 20)
     image = psf_conv(radiance, camera.optics.psf())
     raw = cfa_mosaic(image, camera.cfa.phi() * camera.exposure.gain())
-    raw = poisson_gaussian(raw, *camera.noise.levels(), camera.noise.eval_seed)
+    raw = poisson_gaussian(raw, *camera.noise.levels(), camera.noise.eval_seed + torch.arange(2))
     expected = quantize_ste(raw, 10)
     torch.testing.assert_close(camera(radiance), expected)
 
@@ -116,3 +116,29 @@ def test_fixed_isp_reconstructs_smooth_colour():
     torch.testing.assert_close(isp(raw), colour, atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match="R/G/B layout"):
         FixedISP([["R", "C"], ["C", "C"]])
+
+
+def test_camera_fused_equals_per_stage_chain_with_gradients():
+    """The fused sensor kernel and the per-stage ops (taken for exact Poisson / max quantization) agree."""
+    config = load_config(None, ["noise.learnable=true"])
+    camera = Camera.from_config(config).train()
+    radiance = torch.rand(2, 3, 8, 10, requires_grad=True)
+    seeds = camera.noise.seeds(2)
+    camera.noise.seed_counter.sub_(2)  # replay the same draw
+    fused = camera(radiance)
+    assert camera.fusable()
+    raw = cfa_mosaic(radiance, camera.cfa.phi() * camera.exposure.gain())
+    expected = quantize_ste(poisson_gaussian(raw, *camera.noise.levels(), seeds), 10)
+    torch.testing.assert_close(fused, expected)
+    parameters = [radiance, camera.cfa.logits, camera.exposure.gain_logit, camera.noise.shot_logit]
+    grad = torch.randn_like(fused)
+    for mine, theirs in zip(torch.autograd.grad(fused, parameters, grad), torch.autograd.grad(expected, parameters, grad)):
+        torch.testing.assert_close(mine, theirs)
+
+
+def test_eval_noise_keyed_by_dataset_index():
+    camera = Camera.from_config(load_config(None, [])).eval()
+    radiance = torch.rand(4, 3, 6, 6)
+    whole = camera(radiance, torch.arange(10, 14))
+    torch.testing.assert_close(camera(radiance[2:], torch.arange(12, 14)), whole[2:])
+    assert not torch.equal(camera(radiance[:2], torch.arange(0, 2)), whole[:2])

@@ -11,19 +11,23 @@ from warpsense.ops.noise import poisson_gaussian, poisson_gaussian_exact
 class SensorNoise(nn.Module):
     """Poisson-Gaussian noise with shot (variance coefficient) and read (std) levels.
 
-    Training draws a new seed from torch's generator every call (so a seeded run is reproducible); eval uses
-    ``eval_seed``. Learnable levels are bounded to [0, 2x] their initial values: level = 2 * init * sigmoid(p).
-    ``exact=True`` samples true Poisson photon counts (eval only, not differentiable).
+    Seeds are per image and live on the device (no host round trip, and a captured CUDA graph draws new noise on
+    every replay): training takes the next ``batch`` values of a counter started from torch's generator at
+    construction (a seeded run is reproducible); eval uses ``eval_seed`` + the image's index in its dataset when
+    the caller gives it (``image_index``), else + its place in the batch. Learnable levels are bounded to [0, 2x]
+    their initial values: level = 2 * init * sigmoid(p). ``exact=True`` samples true Poisson photon counts (eval
+    only, not differentiable).
     """
 
     def __init__(self, shot: float = 0.015, read: float = 0.002, learnable: bool = False, eval_seed: int = 1234):
         super().__init__()
-        if shot < 0 or read < 0:
+        if not (shot >= 0 and read >= 0):
             raise ValueError(f"noise levels must be >= 0, got shot={shot}, read={read}")
         self.register_buffer("shot_init", torch.tensor(float(shot)))
         self.register_buffer("read_init", torch.tensor(float(read)))
         self.shot_logit = nn.Parameter(torch.tensor(0.0), requires_grad=learnable)
         self.read_logit = nn.Parameter(torch.tensor(0.0), requires_grad=learnable)
+        self.register_buffer("seed_counter", torch.randint(0, 2**30, (1,), dtype=torch.int64), persistent=False)
         self.eval_seed = eval_seed
         self.scale = 1.0
         self.exact = False
@@ -33,13 +37,20 @@ class SensorNoise(nn.Module):
         read = 2 * self.read_init * torch.sigmoid(self.read_logit) * self.scale
         return shot, read
 
-    def next_seed(self) -> int:
+    def seeds(self, batch: int, image_index: torch.Tensor | None = None) -> torch.Tensor:
+        """int64 [batch] per-image seeds on the module's device (see the class docstring)."""
+        offsets = torch.arange(batch, device=self.seed_counter.device)
         if self.training:
-            return int(torch.randint(0, 2**31 - 1, (1,)).item())
-        return self.eval_seed
+            seeds = self.seed_counter + offsets
+            self.seed_counter.add_(batch)
+            return seeds % (2**31 - 1)
+        if image_index is not None:
+            offsets = image_index.to(self.seed_counter.device)
+        return (self.eval_seed + offsets) % (2**31 - 1)
 
-    def forward(self, raw: torch.Tensor) -> torch.Tensor:
+    def forward(self, raw: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         shot, read = self.levels()
+        seeds = self.seeds(raw.shape[0], image_index)
         if self.exact:
-            return poisson_gaussian_exact(raw, shot, read, self.next_seed())
-        return poisson_gaussian(raw, shot, read, self.next_seed())
+            return poisson_gaussian_exact(raw, shot, read, seeds)
+        return poisson_gaussian(raw, shot, read, seeds)

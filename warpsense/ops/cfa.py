@@ -18,6 +18,7 @@ class CFAMosaic(torch.autograd.Function):
         return raw
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_raw: torch.Tensor):
         rgb, phi = ctx.saved_tensors
         grad_raw = grad_raw.to(rgb.dtype).contiguous()

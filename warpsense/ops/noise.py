@@ -7,19 +7,39 @@ import torch
 from warpsense.kernels import noise as kernels
 from warpsense.ops._warp import launch, prepare, reduction_lanes, scalar_tensor, seed_int32
 
+POISSON_NORMAL_LIMIT = float(kernels.POISSON_NORMAL_LIMIT)
+
+
+def noise_seeds(seed: int | torch.Tensor, batch: int, device: torch.device) -> tuple[torch.Tensor, int]:
+    """(int32 seeds [batch], image_stride) for the kernels: one int seeds the whole batch, keyed by flat element
+    index (image_stride 1); an integer tensor [batch] gives each image its own seed, keyed by the element's index
+    within the image (image_stride 0), so an image's noise does not depend on its place in the batch."""
+    if isinstance(seed, torch.Tensor):
+        if seed.dtype.is_floating_point or seed.dtype == torch.bool or seed.shape != (batch,):
+            raise ValueError(f"seed must be an int or an integer tensor of shape ({batch},), got {seed.dtype} "
+                             f"{tuple(seed.shape)}")
+        return seed.to(device=device, dtype=torch.int32), 0
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise TypeError(f"seed must be an int or an integer tensor, got {type(seed).__name__}")
+    return torch.full((batch,), seed_int32(seed), dtype=torch.int32, device=device), 1
+
 
 class PoissonGaussian(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, raw: torch.Tensor, shot: torch.Tensor, read: torch.Tensor, seed: int) -> torch.Tensor:
+    def forward(ctx, raw: torch.Tensor, shot: torch.Tensor, read: torch.Tensor, seeds: torch.Tensor,
+                image_stride: int) -> torch.Tensor:
         out = torch.empty_like(raw)
-        launch(kernels.noise_forward, raw.numel(), [raw.view(-1), shot, read, seed, out.view(-1)], raw.device)
-        ctx.save_for_backward(raw, shot, read)
-        ctx.seed = seed
+        per_image = raw.numel() // seeds.numel()
+        launch(kernels.noise_forward, raw.numel(),
+               [raw.view(-1), shot, read, seeds, per_image, image_stride, out.view(-1)], raw.device)
+        ctx.save_for_backward(raw, shot, read, seeds)
+        ctx.image_stride = image_stride
         return out
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out: torch.Tensor):
-        raw, shot, read = ctx.saved_tensors
+        raw, shot, read, seeds = ctx.saved_tensors
         grad_out = grad_out.to(raw.dtype).contiguous()
         lanes = reduction_lanes(raw.numel(), raw.device)
         grad_raw = torch.empty_like(raw)
@@ -27,53 +47,71 @@ class PoissonGaussian(torch.autograd.Function):
         launch(
             kernels.noise_backward,
             lanes,
-            [raw.view(-1), shot, read, ctx.seed, grad_out.view(-1), grad_raw.view(-1), partials],
+            [raw.view(-1), shot, read, seeds, raw.numel() // seeds.numel(), ctx.image_stride, grad_out.view(-1),
+             grad_raw.view(-1), partials],
             raw.device,
         )
         sums = partials.sum(dim=0)
-        return grad_raw, sums[0:1], sums[1:2], None
+        return grad_raw, sums[0:1], sums[1:2], None, None
 
 
-def _noise_inputs(raw, shot, read, name):
-    if raw.dim() < 1 or raw.numel() == 0:
-        raise ValueError(f"{name}: raw must be a non-empty tensor, got shape {tuple(raw.shape)}")
+def _noise_inputs(raw, shot, read, seed, name):
+    if not isinstance(raw, torch.Tensor):
+        raise TypeError(f"{name}: raw must be a torch.Tensor, got {type(raw).__name__}")
+    if raw.numel() == 0:
+        raise ValueError(f"{name}: raw must be non-empty, got shape {tuple(raw.shape)}")
     if raw.numel() >= 2**31:
         raise ValueError(f"{name}: at most 2^31 - 1 elements per call (noise is keyed by an int32 element index)")
-    return prepare(raw, scalar_tensor(shot, raw), scalar_tensor(read, raw))
+    for level_name, level in (("shot", shot), ("read", read)):
+        if not isinstance(level, torch.Tensor):
+            if isinstance(level, bool) or not isinstance(level, (int, float)):
+                raise TypeError(f"{name}: {level_name} must be a float or a tensor, got {type(level).__name__}")
+            if not level >= 0 or level == float("inf"):
+                raise ValueError(f"{name}: {level_name} must be finite and >= 0, got {level!r}")
+    batch = raw.shape[0] if raw.dim() > 0 else 1
+    seeds, image_stride = noise_seeds(seed, batch, raw.device)
+    raw, shot_t, read_t = prepare(raw, scalar_tensor(shot, raw), scalar_tensor(read, raw))
+    return raw, shot_t, read_t, seeds, image_stride
 
 
 def poisson_gaussian(
-    raw: torch.Tensor, shot: float | torch.Tensor, read: float | torch.Tensor, seed: int
+    raw: torch.Tensor, shot: float | torch.Tensor, read: float | torch.Tensor, seed: int | torch.Tensor
 ) -> torch.Tensor:
     """Add heteroscedastic Gaussian noise, the Poisson-Gaussian model of paper eq. 5.
 
     R' = R + sqrt(shot * max(R, 0) + read^2) * eps, eps ~ N(0, 1).
 
     Args:
-        raw: any shape, signal R in units of the white level (typically [0, 1]).
-        shot: shot-noise VARIANCE coefficient (variance = shot * R), >= 0; float or 0-d tensor (learnable).
+        raw: any shape (the first dimension is the batch), signal R in units of the white level (typically [0, 1]).
+        shot: shot-noise VARIANCE coefficient (variance = shot * R), >= 0; float or 0-d tensor (learnable). A
+            learnable tensor that goes negative is clamped at 0 inside the square root.
         read: read-noise STANDARD DEVIATION, >= 0; float or 0-d tensor (learnable).
-        seed: noise seed; eps[i] is a pure function of (seed, flat index i), identical on CPU and CUDA and
-            regenerated in backward (nothing stored). Draw a new seed per training step.
+        seed: an int (eps[i] a pure function of (seed, flat index i)) or an integer tensor [B] of per-image seeds
+            (eps a function of (seed[b], index within the image)). Identical on CPU and CUDA, regenerated in
+            backward (nothing stored). Draw a new seed per training step.
 
     Returns:
         Noisy tensor of raw's shape. Gradients reach raw, shot and read; where the noise std is 0 its derivative
-        is defined as 0.
+        is defined as 0. Once differentiable (double backward raises).
     """
-    out_shape = raw.shape
-    raw, shot_t, read_t = _noise_inputs(raw, shot, read, "poisson_gaussian")
-    return PoissonGaussian.apply(raw, shot_t, read_t, seed_int32(seed)).view(out_shape)
+    out_shape = raw.shape if isinstance(raw, torch.Tensor) else None
+    raw, shot_t, read_t, seeds, image_stride = _noise_inputs(raw, shot, read, seed, "poisson_gaussian")
+    return PoissonGaussian.apply(raw, shot_t, read_t, seeds, image_stride).view(out_shape)
 
 
 @torch.no_grad()
-def poisson_gaussian_exact(raw: torch.Tensor, shot: float | torch.Tensor, read: float | torch.Tensor, seed: int):
+def poisson_gaussian_exact(raw: torch.Tensor, shot: float | torch.Tensor, read: float | torch.Tensor,
+                           seed: int | torch.Tensor):
     """Exact Poisson photon counts (mean R / shot, scaled back by shot) plus Gaussian read noise; not differentiable.
 
-    Use for evaluation at low light, where the Gaussian approximation of the shot noise is poor.
+    Use for evaluation at low light, where the Gaussian approximation of the shot noise is poor. Mean counts above
+    POISSON_NORMAL_LIMIT (1e4) are drawn from the normal limit (Warp's Poisson sampler is float32 with a uint32
+    count); NaN and infinite inputs pass through. Seeds as in `poisson_gaussian`.
     """
-    out_shape = raw.shape
-    raw, shot_t, read_t = _noise_inputs(raw, shot, read, "poisson_gaussian_exact")
+    out_shape = raw.shape if isinstance(raw, torch.Tensor) else None
+    raw, shot_t, read_t, seeds, image_stride = _noise_inputs(raw, shot, read, seed, "poisson_gaussian_exact")
     out = torch.empty_like(raw)
-    launch(kernels.poisson_sample, raw.numel(), [raw.view(-1), shot_t, read_t, seed_int32(seed), out.view(-1)],
+    launch(kernels.poisson_sample, raw.numel(),
+           [raw.view(-1), shot_t, read_t, seeds, raw.numel() // seeds.numel(), image_stride, out.view(-1)],
            raw.device)
     return out.view(out_shape)

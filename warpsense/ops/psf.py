@@ -72,6 +72,7 @@ class PSFConv(torch.autograd.Function):
         return out.view(batch, channels, height, width)
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out: torch.Tensor):
         image, cells = ctx.saved_tensors
         grid_y, grid_x = ctx.grid

@@ -20,23 +20,27 @@ from warpsense.train.system import build_system
 @torch.no_grad()
 def evaluate(model, dataset, device, batch_size: int = 4, context=None, class_names=None, amp: bool = False,
              progress: bool = False, blur_sigma: float = 0.0) -> dict:
-    """Metrics of ``model`` on ``dataset`` (full images, eval-mode camera: fixed noise seed).
+    """Metrics of ``model`` on ``dataset`` (full images, eval-mode camera: noise seeded by each image's index).
 
     With a distributed ``context`` each rank takes every world_size-th image and the confusion matrices are summed.
     ``blur_sigma`` > 0 adds a Gaussian blur (pixels) to the radiance before the camera (robustness sweep).
     """
     was_training = model.training
     model.eval()
+    indices = list(range(len(dataset)))
     if context is not None and context.enabled:
-        dataset = Subset(dataset, list(range(context.rank, len(dataset), context.world_size)))
+        indices = indices[context.rank :: context.world_size]
+        dataset = Subset(dataset, indices)
+    indices = torch.tensor(indices, dtype=torch.int64)
     loader = DataLoader(dataset, batch_size=batch_size, shuffle=False)
     num_classes = model.network.head.out_channels
     confusion = ConfusionMatrix(num_classes, device)
-    for images, labels in tqdm(loader, desc="eval", disable=not progress, leave=False):
+    for batch, (images, labels) in enumerate(tqdm(loader, desc="eval", disable=not progress, leave=False)):
         images, labels = images.to(device), labels.to(device)
         if blur_sigma > 0:
             images = gaussian_blur(model.radiance(images), blur_sigma)
-        logits, _ = model(images, amp)
+        image_index = indices[batch * batch_size : batch * batch_size + images.shape[0]]
+        logits, _ = model(images, amp, image_index)
         confusion.update(logits.argmax(dim=1), labels)
     if context is not None and context.enabled:
         context.all_reduce_sum(confusion.matrix)

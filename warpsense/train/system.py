@@ -30,12 +30,13 @@ class SensingModel(nn.Module):
                 image = unprocess(image)
         return image
 
-    def sense(self, image: torch.Tensor) -> torch.Tensor:
-        sensed = self.camera(self.radiance(image))
+    def sense(self, image: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
+        sensed = self.camera(self.radiance(image), image_index)
         return self.isp(sensed) if self.isp is not None else sensed
 
-    def forward(self, image: torch.Tensor, amp: bool = False):
-        sensed = self.sense(image)
+    def forward(self, image: torch.Tensor, amp: bool = False, image_index: torch.Tensor | None = None):
+        """``image_index`` [B]: the images' indices in their dataset, which key the eval-mode sensor noise."""
+        sensed = self.sense(image, image_index)
         with torch.autocast(device_type=sensed.device.type, dtype=torch.bfloat16, enabled=amp):
             logits = self.network(sensed)
         return logits, sensed

@@ -1,0 +1,81 @@
+"""The fused sensor op: CFA mosaic -> Poisson-Gaussian noise -> quantization in one Warp kernel (forward and
+backward), equal to the chain `cfa_mosaic` -> `poisson_gaussian` -> `quantize_ste` (full-well mode)."""
+
+from __future__ import annotations
+
+import torch
+
+from warpsense.kernels import sensor as kernels
+from warpsense.ops._warp import launch, prepare, reduction_lanes, scalar_tensor
+from warpsense.ops.noise import noise_seeds
+from warpsense.ops.quantize import check_quantize_arguments
+
+
+class SensorCapture(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, rgb, phi, shot, read, white, seeds, image_stride: int, noisy: int, steps: int):
+        batch, _, height, width = rgb.shape
+        raw = rgb.new_empty(batch, 1, height, width)
+        arguments = [rgb, phi, shot, read, seeds, image_stride, noisy, steps, white]
+        launch(kernels.sensor_forward, (batch, height, width), [*arguments, raw], rgb.device)
+        ctx.save_for_backward(rgb, phi, shot, read, white, seeds)
+        ctx.flags = (image_stride, noisy, steps)
+        return raw
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_raw):
+        rgb, phi, shot, read, white, seeds = ctx.saved_tensors
+        image_stride, noisy, steps = ctx.flags
+        grad_raw = grad_raw.to(rgb.dtype).contiguous()
+        tile = phi.shape[0]
+        batch, _, height, width = rgb.shape
+        lanes = reduction_lanes(batch * (-(-height // tile)) * (-(-width // tile)), rgb.device)
+        want_rgb = ctx.needs_input_grad[0]
+        grad_rgb = torch.empty_like(rgb) if want_rgb else rgb.new_empty(1, 3, 1, 1)
+        partials = rgb.new_empty(tile * tile, lanes, 5)
+        launch(kernels.sensor_backward, (tile * tile, lanes),
+               [rgb, phi, shot, read, seeds, image_stride, noisy, steps, white, grad_raw, int(want_rgb), grad_rgb,
+                partials], rgb.device)
+        sums = partials.sum(dim=1)
+        grad_phi = sums[:, :3].reshape(tile, tile, 3)
+        levels = sums[:, 3:].sum(dim=0)
+        return (grad_rgb if want_rgb else None), grad_phi, levels[0:1], levels[1:2], None, None, None, None, None
+
+
+def sensor_capture(rgb: torch.Tensor, phi: torch.Tensor, shot: float | torch.Tensor | None = None,
+                   read: float | torch.Tensor | None = None, seed: int | torch.Tensor = 0, bits: int | None = None,
+                   white_level: float = 1.0) -> torch.Tensor:
+    """Radiance to quantized RAW in one pass (paper eq. 4-6; exposure is folded into ``phi`` by the caller).
+
+    Args:
+        rgb: [B, 3, H, W] linear irradiance.
+        phi: [T, T, 3] effective spectral responses (exposure gain a(g) times the CFA responses).
+        shot, read: noise levels as in `poisson_gaussian` (variance coefficient, standard deviation); None for
+            both: no noise stage.
+        seed: int or integer tensor [B] of per-image seeds, as in `poisson_gaussian` (the same noise draw).
+        bits: ADC bit depth (1..24) with full-well level ``white_level``; None: no quantization stage.
+
+    Returns:
+        raw [B, 1, H, W], equal to quantize_ste(poisson_gaussian(cfa_mosaic(rgb, phi), shot, read, seed), bits,
+        white_level) and with the same gradients (w.r.t. rgb, phi, shot and read). Once differentiable.
+    """
+    if not isinstance(rgb, torch.Tensor) or rgb.dim() != 4 or rgb.shape[1] != 3 or 0 in rgb.shape:
+        raise ValueError(f"sensor_capture: rgb must be a non-empty [B, 3, H, W] tensor, got "
+                         f"{tuple(rgb.shape) if isinstance(rgb, torch.Tensor) else type(rgb).__name__}")
+    if phi.dim() != 3 or phi.shape[0] != phi.shape[1] or phi.shape[2] != 3 or phi.shape[0] < 1:
+        raise ValueError(f"sensor_capture: phi must be [T, T, 3] with T >= 1, got {tuple(phi.shape)}")
+    if (shot is None) != (read is None):
+        raise ValueError("sensor_capture: give both shot and read (noise) or neither")
+    noisy = shot is not None
+    if bits is not None:
+        check_quantize_arguments(bits, white_level, "full_well", "sensor_capture")
+    if rgb.numel() >= 2**31:
+        raise ValueError("sensor_capture: at most 2^31 - 1 elements per call (noise is keyed by an int32 index)")
+    seeds, image_stride = noise_seeds(seed, rgb.shape[0], rgb.device)
+    rgb, phi = prepare(rgb, phi)
+    shot_t = scalar_tensor(shot if noisy else 0.0, rgb)
+    read_t = scalar_tensor(read if noisy else 0.0, rgb)
+    white = scalar_tensor(white_level, rgb)
+    steps = (1 << bits) - 1 if bits is not None else 0
+    return SensorCapture.apply(rgb, phi, shot_t, read_t, white, seeds, image_stride, int(noisy), steps)
