@@ -50,6 +50,8 @@ class DataConfig:
     hflip: bool = True
     batch_size: int = 8
     num_workers: int = 0
+    on_device: str = field(default="auto", metadata=_choices("auto", "always", "never"))
+    on_device_max_mb: int = 2048
     max_train_images: int = 0
     max_val_images: int = 0
     scenes_train: int = 256
@@ -65,7 +67,7 @@ class OpticsConfig:
     lens: str = "phone_68deg"
     learnable: bool = False
     normalize_mean: float = 0.5
-    method: str = field(default="direct", metadata=_choices("direct", "fft", "patch"))
+    method: str = field(default="auto", metadata=_choices("auto", "direct", "conv2d", "fft", "patch"))
     energy_eps: float = 1e-3
     field_tolerance: float = 1e-3
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 from torch.nn import functional as F
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, Sampler
 
 from warpsense.data.labels import IGNORE_INDEX
 
@@ -37,20 +37,39 @@ def scale_crop_flip(image: torch.Tensor, label: torch.Tensor, crop: tuple[int, i
 
 class Augmented(Dataset):
     """Wraps a dataset with `scale_crop_flip`; sample i of epoch e draws from a generator seeded by (seed, e, i),
-    so augmentation is the same whatever the worker count, and a resumed run repeats it exactly."""
+    so augmentation is the same whatever the worker count, and a resumed run repeats it exactly.
+
+    The epoch travels inside the index (`EpochSampler` yields e * len + i): DataLoader workers, persistent ones
+    included, hold their own copy of this object, which a `set_epoch` call in the main process never reaches.
+    """
 
     def __init__(self, dataset, crop: tuple[int, int], scale_range=(1.0, 1.0), hflip: bool = True, seed: int = 0):
         self.dataset, self.crop, self.scale_range, self.hflip, self.seed = dataset, crop, scale_range, hflip, seed
-        self.epoch = 0
         self.classes = dataset.classes
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = epoch
 
     def __len__(self) -> int:
         return len(self.dataset)
 
     def __getitem__(self, index: int):
+        epoch, index = divmod(int(index), len(self.dataset))
         image, label = self.dataset[index]
-        generator = torch.Generator().manual_seed((self.seed * 1_000_003 + self.epoch) * 1_000_003 + index)
+        generator = torch.Generator().manual_seed((self.seed * 1_000_003 + epoch) * 1_000_003 + index)
         return scale_crop_flip(image, label, self.crop, self.scale_range, self.hflip, generator)
+
+
+class EpochSampler(Sampler):
+    """Wraps a sampler with ``set_epoch`` (e.g. DistributedSampler) and yields epoch * dataset_size + index, the
+    form `Augmented` reads its epoch from."""
+
+    def __init__(self, sampler, dataset_size: int):
+        self.sampler, self.dataset_size, self.epoch = sampler, dataset_size, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+        self.sampler.set_epoch(epoch)
+
+    def __len__(self) -> int:
+        return len(self.sampler)
+
+    def __iter__(self):
+        return (self.epoch * self.dataset_size + index for index in self.sampler)

@@ -15,6 +15,8 @@ from torch.utils.data import DataLoader, DistributedSampler
 from tqdm import tqdm
 
 from warpsense.data import build_dataset
+from warpsense.data.on_device import DeviceBatches, dataset_megabytes
+from warpsense.data.transforms import EpochSampler
 from warpsense.models import count_parameters
 from warpsense.train.checkpoint import read_checkpoint, restore, save_checkpoint
 from warpsense.train.distributed import DistributedContext
@@ -86,6 +88,29 @@ def _fit_time_budget(config, epoch_seconds: float, context) -> None:
         config.train.epochs = epochs
 
 
+def build_train_batches(config, train_set, context, progress: bool = True):
+    """The training batches: on the GPU (`DeviceBatches`) when ``data.on_device`` allows and the decoded set fits
+    in ``data.on_device_max_mb``, else a DataLoader (workers decode and augment on the CPU). Both have
+    ``set_epoch``, ``len`` and iterate (uint8 images [B, 3, h, w], int64 labels [B, h, w])."""
+    device = context.device
+    per_rank = config.data.batch_size // context.world_size
+    crop = (config.data.crop_height, config.data.crop_width)
+    on_device = config.data.on_device == "always" or (
+        config.data.on_device == "auto" and device.type == "cuda"
+        and dataset_megabytes(train_set.dataset) <= config.data.on_device_max_mb)
+    if on_device:
+        return DeviceBatches(train_set.dataset, device, per_rank, crop, (config.data.scale_min, config.data.scale_max),
+                             config.data.hflip, config.run.seed, context.rank, context.world_size,
+                             progress and context.is_main)
+    sampler = EpochSampler(DistributedSampler(train_set, num_replicas=context.world_size, rank=context.rank,
+                                              shuffle=True, seed=config.run.seed, drop_last=True), len(train_set))
+    loader = DataLoader(train_set, batch_size=per_rank, sampler=sampler, num_workers=config.data.num_workers,
+                        drop_last=True, pin_memory=device.type == "cuda",
+                        persistent_workers=config.data.num_workers > 0)
+    loader.set_epoch = sampler.set_epoch
+    return loader
+
+
 def train(config, resume: str | Path | bool = False, progress: bool = True, return_model: bool = False):
     """Train ``config`` and return the run directory.
 
@@ -117,11 +142,7 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
     base_lrs = [group["lr"] for group in optimizer.param_groups]
     if config.data.batch_size % context.world_size:
         raise ValueError(f"data.batch_size={config.data.batch_size} must be divisible by {context.world_size} ranks")
-    sampler = DistributedSampler(train_set, num_replicas=context.world_size, rank=context.rank, shuffle=True,
-                                 seed=config.run.seed, drop_last=True)
-    loader = DataLoader(train_set, batch_size=config.data.batch_size // context.world_size, sampler=sampler,
-                        num_workers=config.data.num_workers, drop_last=True, pin_memory=device.type == "cuda",
-                        persistent_workers=config.data.num_workers > 0)
+    loader = build_train_batches(config, train_set, context, progress)
     steps_per_epoch = len(loader)
     if config.train.max_steps_per_epoch:
         steps_per_epoch = min(steps_per_epoch, config.train.max_steps_per_epoch)
@@ -160,8 +181,7 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
             model.camera.cfa.set_temperature(temperature_at(epoch, config))
         wrapped = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
                                           broadcast_buffers=False) if context.enabled else model
-        sampler.set_epoch(epoch)
-        train_set.set_epoch(epoch)
+        loader.set_epoch(epoch)
         model.train()
         sums = torch.zeros(5, device=device, dtype=torch.float64)  # loss, ohem, lovasz, smooth, steps
         started = time.perf_counter()

@@ -12,53 +12,54 @@ def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: flo
                        ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
     """Mean cross-entropy over the hardest ``fraction`` of the valid pixels (paper eq. 7).
 
+    Computed without a host round trip (the number of valid pixels stays on the device): the losses are ranked
+    by a sort and the first round(fraction * valid) kept. Returns 0 when no pixel is valid.
+
     Args:
         logits: [B, K, H, W]; target: [B, H, W] class indices, ``ignore_index`` excluded.
         fraction: share of valid pixels kept (at least one); 1.0 is plain cross-entropy.
     """
     losses = F.cross_entropy(logits.float(), target, ignore_index=ignore_index, reduction="none").flatten()
-    valid = losses[(target.flatten() != ignore_index)]
-    if valid.numel() == 0:
-        return logits.sum() * 0.0
-    keep = max(1, int(round(fraction * valid.numel())))
-    if keep >= valid.numel():
-        return valid.mean()
-    return torch.topk(valid, keep, sorted=False).values.mean()
+    valid = target.flatten() != ignore_index
+    count = valid.sum()
+    if fraction >= 1.0:
+        return losses.sum() / count.clamp_min(1)
+    keep = torch.round(fraction * count).clamp_min(1)
+    ranked = torch.where(valid, losses, 0.0).sort(descending=True).values
+    kept = torch.arange(ranked.numel(), device=ranked.device) < keep
+    return (ranked * kept).sum() / keep
 
 
-def lovasz_grad(sorted_errors_labels: torch.Tensor) -> torch.Tensor:
+def lovasz_grad(sorted_labels: torch.Tensor) -> torch.Tensor:
     """Gradient of the Lovasz extension of the Jaccard loss w.r.t. sorted errors (Berman et al. 2018, alg. 1).
 
     Args:
-        sorted_errors_labels: [P] ground-truth indicator (0/1) of pixels sorted by decreasing error.
+        sorted_labels: [..., P] ground-truth indicator (0/1) of pixels sorted by decreasing error, per row.
     """
-    gts = sorted_errors_labels.sum()
-    intersection = gts - sorted_errors_labels.cumsum(0)
-    union = gts + (1 - sorted_errors_labels).cumsum(0)
+    gts = sorted_labels.sum(dim=-1, keepdim=True)
+    intersection = gts - sorted_labels.cumsum(-1)
+    union = gts + (1 - sorted_labels).cumsum(-1)
     jaccard = 1.0 - intersection / union
-    if jaccard.numel() > 1:
-        jaccard = torch.cat([jaccard[:1], jaccard[1:] - jaccard[:-1]])
+    if jaccard.shape[-1] > 1:
+        jaccard = torch.cat([jaccard[..., :1], jaccard[..., 1:] - jaccard[..., :-1]], dim=-1)
     return jaccard
 
 
 def lovasz_softmax(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
     """Lovasz-softmax loss (Berman, Rannen Triki, Blaschko, CVPR 2018), averaged over the classes present in the
-    batch's labels; ignored pixels are dropped. Returns 0 (with a graph) when no pixel is valid."""
-    probabilities = torch.softmax(logits.float(), dim=1)
-    num_classes = probabilities.shape[1]
-    probabilities = probabilities.permute(0, 2, 3, 1).reshape(-1, num_classes)
+    batch's labels. All classes are sorted at once and absent ones masked out, so no host round trip; ignored
+    pixels get error 0 and foreground 0, which adds nothing to the loss. Returns 0 when no pixel is valid."""
+    num_classes = logits.shape[1]
+    probabilities = torch.softmax(logits.float(), dim=1).transpose(0, 1).reshape(num_classes, -1)
     labels = target.reshape(-1)
     valid = labels != ignore_index
-    probabilities, labels = probabilities[valid], labels[valid]
-    if labels.numel() == 0:
-        return logits.sum() * 0.0
-    losses = []
-    for c in torch.unique(labels):
-        foreground = (labels == c).float()
-        errors = (foreground - probabilities[:, c]).abs()
-        errors_sorted, order = torch.sort(errors, descending=True)
-        losses.append(torch.dot(errors_sorted, lovasz_grad(foreground[order])))
-    return torch.stack(losses).mean()
+    classes = torch.arange(num_classes, device=labels.device)[:, None]
+    foreground = ((labels[None] == classes) & valid).float()
+    errors = (foreground - probabilities).abs() * valid
+    errors_sorted, order = errors.sort(dim=1, descending=True)
+    losses = (errors_sorted * lovasz_grad(foreground.gather(1, order))).sum(dim=1)
+    present = (foreground.sum(dim=1) > 0).float()
+    return (losses * present).sum() / present.sum().clamp_min(1)
 
 
 def edge_aware_smoothness(logits: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1) -> torch.Tensor:

@@ -1,0 +1,70 @@
+import pytest
+import torch
+from torch.utils.data import DataLoader, SequentialSampler
+
+from warpsense.data import StreetScenes
+from warpsense.data.labels import IGNORE_INDEX
+from warpsense.data.on_device import DeviceBatches
+from warpsense.data.transforms import Augmented, EpochSampler
+
+
+class _Sequential(SequentialSampler):
+    def set_epoch(self, epoch):
+        pass
+
+
+def test_augmentation_changes_between_epochs_with_persistent_workers():
+    """set_epoch in the main process never reached persistent workers' copies: the epoch now travels in the index."""
+    dataset = Augmented(StreetScenes(4, 48, 64, seed=0), (32, 40), (0.8, 1.2), seed=0)
+    sampler = EpochSampler(_Sequential(dataset), len(dataset))
+    loader = DataLoader(dataset, batch_size=4, sampler=sampler, num_workers=2, persistent_workers=True)
+    epochs = []
+    for epoch in range(2):
+        sampler.set_epoch(epoch)
+        epochs.append(next(iter(loader))[0])
+    assert not torch.equal(epochs[0], epochs[1])
+    sampler.set_epoch(0)
+    assert torch.equal(next(iter(loader))[0], epochs[0])  # and an epoch repeats exactly
+
+
+def _batches(scale=(1.0, 1.0), hflip=False, crop=(20, 24)):
+    scenes = StreetScenes(6, 30, 40, seed=1)
+    return scenes, DeviceBatches(scenes, "cpu", batch_size=3, crop=crop, scale_range=scale, hflip=hflip, seed=0,
+                                 progress=False)
+
+
+def test_device_batches_cardinality_and_epochs():
+    _, batches = _batches((0.7, 1.4), True)
+    assert len(batches) == 2
+    first = [b for b in batches]
+    assert all(images.shape == (3, 3, 20, 24) and images.dtype == torch.uint8 and labels.shape == (3, 20, 24)
+               for images, labels in first)
+    batches.set_epoch(1)
+    assert not torch.equal(next(iter(batches))[0], first[0][0])
+    batches.set_epoch(0)
+    assert torch.equal(next(iter(batches))[0], first[0][0])
+
+
+def test_device_batches_unscaled_crop_is_a_window_of_the_image():
+    scenes, batches = _batches()
+    generator = torch.Generator().manual_seed(3)
+    images, labels = batches.augment(torch.tensor([2, 4]), generator)
+    for k, index in enumerate((2, 4)):
+        source, source_label = scenes[index]
+        windows = [(y, x) for y in range(11) for x in range(17)
+                   if torch.equal(source[:, y : y + 20, x : x + 24], images[k])]
+        assert windows, "the batch is not a crop of its image"
+        y, x = windows[0]
+        assert torch.equal(source_label[y : y + 20, x : x + 24], labels[k])
+
+
+def test_device_batches_flip_and_padding():
+    scenes, batches = _batches(hflip=True, crop=(36, 48))  # crop larger than the 30 x 40 image: padded
+    generator = torch.Generator().manual_seed(0)
+    images, labels = batches.augment(torch.tensor([0, 0, 0, 0, 0, 0]), generator)
+    source, source_label = scenes[0]
+    plain = [k for k in range(6) if torch.equal(images[k, :, :30, :40], source)]
+    flipped = [k for k in range(6) if torch.equal(images[k, :, :30, -40:], source.flip(-1))]
+    assert plain and flipped
+    assert (labels[plain[0], 30:] == IGNORE_INDEX).all() and (images[plain[0], :, 30:] == 0).all()
+    assert torch.equal(labels[flipped[0], :30, -40:], source_label.flip(-1))

@@ -1,0 +1,101 @@
+"""A training set held on the GPU: decoded once as uint8, augmented there in batches with fixed output shapes.
+
+Same augmentation as `warpsense.data.transforms.scale_crop_flip` (random rescale, crop padded with 0 / the ignore
+label, horizontal flip), drawn per batch from a device generator, so a training step needs no host work and no
+host-device copy.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch.nn import functional as F
+from tqdm import tqdm
+
+from warpsense.data.labels import IGNORE_INDEX
+
+
+def dataset_megabytes(dataset) -> float:
+    """Decoded size of ``dataset`` (uint8 images + uint8 labels), from its first item."""
+    image, _ = dataset[0]
+    return len(dataset) * image.shape[1] * image.shape[2] * 4 / 1e6
+
+
+class DeviceBatches:
+    """Iterates batches (uint8 images [B, 3, h, w], int64 labels [B, h, w]) of a dataset kept on ``device``.
+
+    Images of different sizes are padded to the largest (with 0 / the ignore label) and remember their own size, so
+    the crop never samples the padding as if it were image. Per epoch the order is a permutation drawn from a
+    generator seeded by (seed, epoch), so resumed runs repeat it; with ``world_size`` > 1 each rank takes its share.
+    """
+
+    def __init__(self, dataset, device, batch_size: int, crop: tuple[int, int], scale_range=(1.0, 1.0),
+                 hflip: bool = True, seed: int = 0, rank: int = 0, world_size: int = 1, progress: bool = True):
+        sizes = []
+        items = []
+        for index in tqdm(range(len(dataset)), desc="loading training set onto the device", disable=not progress,
+                          leave=False):
+            image, label = dataset[index]
+            items.append((image, label))
+            sizes.append(image.shape[1:])
+        height = max(size[0] for size in sizes)
+        width = max(size[1] for size in sizes)
+        self.images = torch.zeros(len(items), 3, height, width, dtype=torch.uint8, device=device)
+        self.labels = torch.full((len(items), height, width), IGNORE_INDEX, dtype=torch.uint8, device=device)
+        for index, (image, label) in enumerate(items):
+            self.images[index, :, : image.shape[1], : image.shape[2]] = image.to(device)
+            self.labels[index, : label.shape[0], : label.shape[1]] = label.clamp(max=IGNORE_INDEX).to(device)
+        self.sizes = torch.tensor(sizes, dtype=torch.float32, device=device)  # [N, 2] (height, width)
+        self.device, self.batch_size, self.crop = torch.device(device), batch_size, crop
+        self.scale_range, self.hflip, self.seed = scale_range, hflip, seed
+        self.rank, self.world_size = rank, world_size
+        self.epoch = 0
+        self.classes = dataset.classes
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.images) // self.world_size // self.batch_size
+
+    def __iter__(self):
+        generator = torch.Generator(device=self.device).manual_seed(self.seed * 1_000_003 + self.epoch)
+        order = torch.randperm(len(self.images), generator=generator, device=self.device)
+        order = order[self.rank :: self.world_size]
+        for step in range(len(self)):
+            indices = order[step * self.batch_size : (step + 1) * self.batch_size]
+            yield self.augment(indices, generator)
+
+    def augment(self, indices: torch.Tensor, generator: torch.Generator):
+        """Scale, crop and flip the images at ``indices`` into one fixed-shape batch (bilinear images, nearest
+        labels), all on the device."""
+        batch = indices.shape[0]
+        crop_h, crop_w = self.crop
+        low, high = self.scale_range
+        draws = torch.rand(batch, 4, generator=generator, device=self.device)
+        scale = low + (high - low) * draws[:, 0]
+        size = self.sizes[indices]  # [B, 2] source height, width
+        scaled_h, scaled_w = size[:, 0] * scale, size[:, 1] * scale
+        # top-left corner of the crop in the scaled image (the crop may hang over when the scaled image is smaller)
+        top = (draws[:, 1] * (scaled_h - crop_h).clamp_min(0)).floor()
+        left = (draws[:, 2] * (scaled_w - crop_w).clamp_min(0)).floor()
+        flip = (draws[:, 3] < 0.5) if self.hflip else torch.zeros(batch, dtype=torch.bool, device=self.device)
+        # output pixel (i, j) -> scaled pixel (top + i, left + j) -> source pixel centre / scale, in the padded store
+        rows = torch.arange(crop_h, device=self.device, dtype=torch.float32)
+        cols = torch.arange(crop_w, device=self.device, dtype=torch.float32)
+        cols = torch.where(flip[:, None], crop_w - 1 - cols[None, :], cols[None, :])
+        source_y = (top[:, None] + rows[None, :] + 0.5) / scale[:, None] - 0.5
+        source_x = (left[:, None] + cols + 0.5) / scale[:, None] - 0.5
+        store_h, store_w = self.images.shape[-2:]
+        inside_y = (top[:, None] + rows[None, :]) < scaled_h[:, None]
+        inside_x = (left[:, None] + cols) < scaled_w[:, None]
+        grid_y = (source_y + 0.5) / store_h * 2 - 1
+        grid_x = (source_x + 0.5) / store_w * 2 - 1
+        grid = torch.stack(torch.broadcast_tensors(grid_x[:, None, :], grid_y[:, :, None]), dim=-1)
+        images = F.grid_sample(self.images[indices].float(), grid, mode="bilinear", padding_mode="border",
+                               align_corners=False)
+        labels = F.grid_sample(self.labels[indices, None].float(), grid, mode="nearest", padding_mode="border",
+                               align_corners=False)[:, 0]
+        inside = inside_y[:, :, None] & inside_x[:, None, :]
+        images = torch.where(inside[:, None], images, 0.0).round_().clamp_(0, 255).to(torch.uint8)
+        labels = torch.where(inside, labels, float(IGNORE_INDEX)).long()
+        return images, labels
