@@ -37,7 +37,7 @@ def _eval(args) -> int:
 def _bench(args) -> int:
     from warpsense.bench.runner import run_bench
 
-    run_bench(device=args.device, quick=args.quick, json_out=args.json, plot_out=args.plot)
+    run_bench(device=args.device, quick=args.quick, json_out=args.json, plot_out=args.plot, suite=args.suite)
     return 0
 
 
@@ -91,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench = commands.add_parser("bench", help="kernel microbenchmarks: error against run time",
                                 description="Benchmark every Warp kernel against its plain-torch reference.")
     bench.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device to benchmark")
+    bench.add_argument("--suite", default="kernels", choices=["kernels", "train", "all"],
+                       help="kernels: each op vs its reference; train: training step and latency vs the plain-torch "
+                            "baseline; all: both (default: kernels)")
     bench.add_argument("--quick", action="store_true", help="small sizes and few repeats (< 2 min on 2 CPU cores)")
     bench.add_argument("--json", metavar="OUT", help="write the records as JSON")
     bench.add_argument("--plot", metavar="OUT.png", help="write the error-vs-time Pareto plot")

@@ -95,9 +95,32 @@ class Bench:
                     self.record(kernel, method, precision, shape, "bwd", timing, None, bytes_bwd)
 
 
-def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = None, plot_out: str | None = None) -> list[dict]:
+BENCH_SUITES = ("kernels", "train", "all")
+
+
+def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = None, plot_out: str | None = None,
+              suite: str = "kernels") -> list[dict]:
+    """Run a benchmark suite ("kernels": every op against its reference; "train": training step and latency of
+    the whole system against the plain-torch baseline; "all") and write the JSON / plot."""
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda: no CUDA device available")
+    if suite not in BENCH_SUITES:
+        raise ValueError(f"--suite must be one of {BENCH_SUITES}, got {suite!r}")
+    records = []
+    if suite in ("kernels", "all"):
+        records += _kernel_suite(device, quick)
+    if suite in ("train", "all"):
+        from warpsense.bench.train_suite import run_train_suite
+
+        records += run_train_suite(device, quick, _metadata(device))
+    if json_out:
+        Path(json_out).write_text(json.dumps({"metadata": _metadata(device), "records": records}, indent=2))
+    if plot_out:
+        plot_pareto([r for r in records if "kernel" in r], plot_out)
+    return records
+
+
+def _kernel_suite(device: str, quick: bool) -> list[dict]:
     torch.manual_seed(0)
     bench = Bench(device, repeats=5 if quick else 30)
     if quick:
@@ -139,27 +162,23 @@ def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = N
     for batch, height, width in psf_sizes:
         image = torch.rand(batch, 3, height, width, dtype=torch.float64, device=device, requires_grad=True)
         shape = (batch, 3, height, width)
-        bench.case("psf_conv_invariant", "warp", shape, psf_conv, [image, invariant])
+        bench.case("psf_conv_invariant", "warp", shape, lambda x, p: psf_conv(x, p, "direct"), [image, invariant])
+        bench.case("psf_conv_invariant", "auto", shape, psf_conv, [image, invariant])
         bench.case("psf_conv_invariant", "cudnn_conv2d" if device == "cuda" else "torch_conv2d", shape,
                    lambda x, p: F.conv2d(F.pad(x, (size // 2,) * 4, mode="replicate"),
                                          p[:, 0, 0].flip(-1, -2).unsqueeze(1), groups=3), [image, invariant])
         bench.case("psf_conv_invariant", "torch_fft", shape, lambda x, p: psf_conv_fft(x, p[:, 0, 0]), [image, invariant])
-        bench.case("psf_conv_varying", "warp", shape, psf_conv, [image, varying])
+        bench.case("psf_conv_varying", "warp", shape, lambda x, p: psf_conv(x, p, "direct"), [image, varying])
         bench.case("psf_conv_varying", "torch_patch", shape, psf_conv_patch, [image, varying])
         bench.case("psf_conv_varying", "torch_blend", shape, psf_conv_reference, [image, varying])
         # the approximations' error is against the exact varying result, not their own float64 run
         exact = psf_conv_reference(image.detach(), varying.detach())
-        for row in bench.records[-6:]:
+        for row in bench.records[-5:]:
             if row["kernel"] == "psf_conv_varying" and row["pass"] == "fwd" and row["method"] == "torch_patch":
                 row.update(_errors(psf_conv_patch(image.detach().float(), varying.detach().float()), exact))
     _psf_quality(bench, device, quick)
     if not quick:
         _end_to_end(bench, device)
-    payload = {"metadata": _metadata(device), "records": bench.records}
-    if json_out:
-        Path(json_out).write_text(json.dumps(payload, indent=2))
-    if plot_out:
-        plot_pareto(bench.records, plot_out)
     return bench.records
 
 

@@ -13,7 +13,8 @@ class SensorNoise(nn.Module):
 
     Seeds are per image and live on the device (no host round trip, and a captured CUDA graph draws new noise on
     every replay): training takes the next ``batch`` values of a counter started from torch's generator at
-    construction (a seeded run is reproducible); eval uses ``eval_seed`` + the image's index in its dataset when
+    construction (a seeded run is reproducible; the counter is saved with the model, so a resumed run continues
+    the same draws); eval uses ``eval_seed`` + the image's index in its dataset when
     the caller gives it (``image_index``), else + its place in the batch. Learnable levels are bounded to [0, 2x]
     their initial values: level = 2 * init * sigmoid(p). ``exact=True`` samples true Poisson photon counts (eval
     only, not differentiable).
@@ -27,10 +28,18 @@ class SensorNoise(nn.Module):
         self.register_buffer("read_init", torch.tensor(float(read)))
         self.shot_logit = nn.Parameter(torch.tensor(0.0), requires_grad=learnable)
         self.read_logit = nn.Parameter(torch.tensor(0.0), requires_grad=learnable)
-        self.register_buffer("seed_counter", torch.randint(0, 2**30, (1,), dtype=torch.int64), persistent=False)
+        self.register_buffer("seed_counter", torch.randint(0, 2**30, (1,), dtype=torch.int64))
         self.eval_seed = eval_seed
         self.scale = 1.0
         self.exact = False
+
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                              error_msgs):
+        # checkpoints written before the counter existed load with the counter this module started with
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                                      error_msgs)
+        if prefix + "seed_counter" in missing_keys:
+            missing_keys.remove(prefix + "seed_counter")
 
     def levels(self) -> tuple[torch.Tensor, torch.Tensor]:
         shot = 2 * self.shot_init * torch.sigmoid(self.shot_logit) * self.scale**2

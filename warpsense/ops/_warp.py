@@ -68,7 +68,8 @@ def scalar_tensor(value: float | torch.Tensor, like: torch.Tensor) -> torch.Tens
         if value.numel() != 1:
             raise ValueError(f"expected a scalar (0-d or 1-element) tensor, got shape {tuple(value.shape)}")
         return value.reshape(1).to(device=like.device, dtype=like.dtype)
-    return torch.tensor([float(value)], device=like.device, dtype=like.dtype)
+    # a fill kernel, not a host-to-device copy: capturable in a CUDA graph
+    return torch.full((1,), float(value), device=like.device, dtype=like.dtype)
 
 
 _LAUNCH_CACHE: "collections.OrderedDict" = collections.OrderedDict()

@@ -173,16 +173,21 @@ def _fastest_invariant(image: torch.Tensor, psf: torch.Tensor) -> str:
         probe = torch.rand_like(image).requires_grad_()
         kernel = psf.detach().clone().requires_grad_()
         timings = {}
-        for method in ("conv2d", "direct"):
-            for repeat in range(4):
-                if repeat == 1:
-                    torch.cuda.synchronize()
-                    start = time.perf_counter()
-                psf_conv(probe, kernel, method).sum().backward()
-            torch.cuda.synchronize()
-            timings[method] = time.perf_counter() - start
+        with torch.enable_grad():
+            _time_methods(probe, kernel, timings)
         _FASTEST[key] = min(timings, key=timings.get)
     return _FASTEST[key]
+
+
+def _time_methods(probe: torch.Tensor, kernel: torch.Tensor, timings: dict) -> None:
+    for method in ("conv2d", "direct"):
+        for repeat in range(4):
+            if repeat == 1:
+                torch.cuda.synchronize()
+                start = time.perf_counter()
+            psf_conv(probe, kernel, method).sum().backward()
+        torch.cuda.synchronize()
+        timings[method] = time.perf_counter() - start
 
 
 def psf_conv_conv2d(image: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,150 @@
+"""`warpsense bench --suite train`: the training step and batch-1 latency of the whole system (sensor + network),
+warpsense against the plain-torch baseline of SPEC section 8 built from `warpsense.ops.reference` and the same
+network, in one run.
+
+Cameras: "simple" = the baseline's camera (one 7x7 Gaussian PSF, exposure, 2x2 softmax CFA, Poisson-Gaussian
+noise, 10-bit ADC); "codesign" = the camvid_codesign preset's camera (learnable 80/68 deg lens rendered every step,
+5x5 PSF grid, the rest learnable as in training). Losses: "ce" (cross-entropy) and "full" (0.6 OHEM + 0.4 Lovasz +
+0.01 edge-aware smoothness, the training loss). Network: DSUNet in bf16 autocast on CUDA.
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+from torch import nn
+
+from warpsense.bench.timing import _sync, time_cuda_graph, time_function
+from warpsense.camera import Camera
+from warpsense.config import load_config
+from warpsense.data.color import srgb_to_linear
+from warpsense.models import build_model
+from warpsense.ops import psf_conv
+from warpsense.ops.reference import (cfa_mosaic_reference, poisson_gaussian_reference, psf_conv_reference,
+                                     quantize_reference)
+from warpsense.train.losses import segmentation_loss
+
+
+def gaussian_psf(size: int = 7, sigma: float = 1.2, channels: int = 3) -> torch.Tensor:
+    """[C, 1, 1, K, K] isotropic Gaussian PSF summing to 1."""
+    x = torch.arange(size, dtype=torch.float32) - size // 2
+    kernel = torch.exp(-0.5 * (x[:, None] ** 2 + x[None, :] ** 2) / sigma**2)
+    return (kernel / kernel.sum()).expand(channels, 1, 1, size, size).contiguous()
+
+
+class BaselineCamera(nn.Module):
+    """The plain-torch camera a user would write: eager reference ops (conv2d blur, mosaic, noise, STE)."""
+
+    def __init__(self):
+        super().__init__()
+        self.register_buffer("psf", gaussian_psf())
+        self.gain_logit = nn.Parameter(torch.tensor(-1.3863))
+        self.logits = nn.Parameter(torch.nn.functional.one_hot(torch.tensor([[0, 1], [1, 2]]), 3).float() * 4)
+
+    def forward(self, radiance):
+        image = psf_conv_reference(radiance, self.psf)
+        phi = torch.softmax(self.logits, dim=-1) * (0.25 + 3.75 * torch.sigmoid(self.gain_logit))
+        raw = cfa_mosaic_reference(image, phi)
+        raw = poisson_gaussian_reference(raw, 0.015, 0.002, torch.randn_like(raw))
+        return quantize_reference(raw, 10)
+
+
+class SimpleCamera(nn.Module):
+    """The same camera in warpsense: psf_conv (auto method) then the fused sensor kernel."""
+
+    def __init__(self):
+        super().__init__()
+        self.register_buffer("psf", gaussian_psf())
+        self.camera = Camera.from_config(load_config(None, ["cfa.mode=softmax"]))
+
+    def forward(self, radiance):
+        return self.camera(psf_conv(radiance, self.psf))
+
+
+def build(method: str, camera_name: str, device) -> tuple[nn.Module, nn.Module]:
+    if camera_name == "codesign":
+        if method != "warpsense":
+            raise ValueError("the codesign camera is timed for warpsense only")
+        camera = Camera.from_config(load_config("camvid_codesign", []))
+    else:
+        camera = BaselineCamera() if method == "torch_baseline" else SimpleCamera()
+    network = build_model("dsunet", in_channels=1, num_classes=11, width=16, tile=2)
+    return camera.to(device), network.to(device)
+
+
+def training_throughput(method, camera_name, loss_name, device, batch, height, width, steps, warmup) -> float:
+    """Images per second of full training steps (sensor + network forward, loss, backward, AdamW step)."""
+    torch.manual_seed(0)
+    camera, network = build(method, camera_name, device)
+    camera.train(), network.train()
+    parameters = [p for p in list(camera.parameters()) + list(network.parameters()) if p.requires_grad]
+    optimizer = torch.optim.AdamW(parameters, lr=1e-3)
+    loss_config = load_config(None, [] if loss_name == "full" else
+                              ["loss.ohem_fraction=1.0", "loss.lovasz_weight=0.0", "loss.smooth_weight=0.0"]).loss
+    amp = torch.device(device).type == "cuda"
+    images = torch.randint(0, 256, (batch, 3, height, width), dtype=torch.uint8, device=device)
+    labels = torch.randint(0, 11, (batch, height, width), device=device)
+
+    def step():
+        sensed = camera(srgb_to_linear(images))
+        with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=amp):
+            logits = network(sensed)
+        loss, _ = segmentation_loss(logits, labels, sensed, loss_config)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+
+    for _ in range(warmup):
+        step()
+    _sync(device)
+    start = time.perf_counter()
+    for _ in range(steps):
+        step()
+    _sync(device)
+    return steps * batch / (time.perf_counter() - start)
+
+
+def latency(method, camera_name, device, height, width, graph: bool) -> dict:
+    """Batch-1 end-to-end inference time (uint8 frame -> logits), eager or replayed as a CUDA graph."""
+    torch.manual_seed(0)
+    camera, network = build(method, camera_name, device)
+    camera.eval(), network.eval()
+    frame = torch.randint(0, 256, (1, 3, height, width), dtype=torch.uint8, device=device)
+    amp = torch.device(device).type == "cuda"
+
+    def infer():
+        with torch.no_grad(), torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=amp):
+            return network(camera(srgb_to_linear(frame)))
+
+    return time_cuda_graph(infer, 100) if graph else time_function(infer, device, 50)
+
+
+def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
+    """All records of the suite; prints one line each."""
+    if quick:
+        batch, height, width, steps, warmup = 2, 64, 96, 2, 1
+    else:
+        batch, height, width, steps, warmup = 16, 192, 640, 30, 5
+    records = []
+
+    def add(record):
+        record.update({"suite": "train", "device": device, "device_name": metadata.get("device_name")})
+        records.append(record)
+        figure = (f"{record['images_per_s']:8.1f} img/s" if "images_per_s" in record
+                  else f"{record['median_ms']:8.3f} ms")
+        print(f"train-suite {record['method']:>15s} {record['camera']:>9s} {record.get('loss', record.get('mode')):>6s}"
+              f" {figure}", flush=True)
+
+    cases = [("torch_baseline", "simple"), ("warpsense", "simple"), ("warpsense", "codesign")]
+    for method, camera_name in cases:
+        for loss_name in ("ce", "full"):
+            rate = training_throughput(method, camera_name, loss_name, device, batch, height, width, steps, warmup)
+            add({"method": method, "camera": camera_name, "loss": loss_name, "images_per_s": rate,
+                 "shape": [batch, 3, height, width]})
+    for method, camera_name in cases:
+        for graph in ((False, True) if device == "cuda" else (False,)):
+            timing = latency(method, camera_name, device, height, width, graph)
+            add({"method": method, "camera": camera_name, "mode": "graph" if graph else "eager",
+                 "median_ms": timing["median_ms"], "iqr_ms": timing["iqr_ms"], "shape": [1, 3, height, width]})
+    return records
