@@ -1,4 +1,3 @@
-import pytest
 import torch
 from torch.utils.data import DataLoader, SequentialSampler
 
