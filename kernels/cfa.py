@@ -10,13 +10,35 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
-@wp.kernel
-def cfa_forward(rgb: wp.array4d(dtype=Any), phi: wp.array3d(dtype=Any), raw: wp.array4d(dtype=Any)):
-    b, y, x = wp.tid()
+@wp.func
+def mosaic_value(rgb: wp.array4d(dtype=Any), phi: wp.array3d(dtype=Any), b: int, y: int, x: int):
+    """R(p) = <rgb(p), phi[p mod T]> at pixel (y, x) of image b."""
     tile = phi.shape[0]
     sy = y % tile
     sx = x % tile
-    raw[b, 0, y, x] = rgb[b, 0, y, x] * phi[sy, sx, 0] + rgb[b, 1, y, x] * phi[sy, sx, 1] + rgb[b, 2, y, x] * phi[sy, sx, 2]
+    return rgb[b, 0, y, x] * phi[sy, sx, 0] + rgb[b, 1, y, x] * phi[sy, sx, 1] + rgb[b, 2, y, x] * phi[sy, sx, 2]
+
+
+@wp.func
+def site_pixel_count(height: int, width: int, tile: int, site_y: int, site_x: int):
+    """(columns, pixels per image) of CFA site (site_y, site_x): the pixels p with p mod T equal to the site."""
+    rows = (height - site_y + tile - 1) / tile
+    cols = (width - site_x + tile - 1) / tile
+    return cols, rows * cols
+
+
+@wp.func
+def site_pixel(m: int, site_y: int, site_x: int, tile: int, cols: int, per_image: int):
+    """(image, y, x) of the m-th pixel of a CFA site over the batch (images one after another)."""
+    b = m / per_image
+    r = m - b * per_image
+    return b, site_y + (r / cols) * tile, site_x + (r % cols) * tile
+
+
+@wp.kernel
+def cfa_forward(rgb: wp.array4d(dtype=Any), phi: wp.array3d(dtype=Any), raw: wp.array4d(dtype=Any)):
+    b, y, x = wp.tid()
+    raw[b, 0, y, x] = mosaic_value(rgb, phi, b, y, x)
 
 
 @wp.kernel
@@ -36,20 +58,13 @@ def cfa_backward(
     lanes = phi_partials.shape[1]
     sy = site / tile
     sx = site % tile
-    height = rgb.shape[2]
-    width = rgb.shape[3]
-    rows = (height - sy + tile - 1) / tile
-    cols = (width - sx + tile - 1) / tile
-    per_image = rows * cols
+    cols, per_image = site_pixel_count(rgb.shape[2], rgb.shape[3], tile, sy, sx)
     total = rgb.shape[0] * per_image
     acc0 = rgb.dtype(0.0)
     acc1 = rgb.dtype(0.0)
     acc2 = rgb.dtype(0.0)
     for m in range(lane, total, lanes):
-        b = m / per_image
-        r = m - b * per_image
-        y = sy + (r / cols) * tile
-        x = sx + (r % cols) * tile
+        b, y, x = site_pixel(m, sy, sx, tile, cols, per_image)
         g = grad_raw[b, 0, y, x]
         acc0 += g * rgb[b, 0, y, x]
         acc1 += g * rgb[b, 1, y, x]

@@ -23,6 +23,31 @@ def standard_normal(seed: wp.int32, index: wp.int32):
 
 
 @wp.func
+def noise_sigma(signal: Any, shot: Any, read: Any):
+    """Noise standard deviation sqrt(shot * max(R, 0) + read^2), 0 where the variance is negative."""
+    zero = type(signal)(0.0)
+    return wp.sqrt(wp.max(shot * wp.max(signal, zero) + read * read, zero))
+
+
+@wp.func
+def noise_adjoint(signal: Any, shot: Any, read: Any, sigma: Any, eps: Any, g: Any):
+    """(dL/dR, dL/dshot, dL/dread) of R' = R + sigma(R) eps for dL/dR' = g. Where sigma is 0 the noise term is
+    taken as constant: its derivative (infinite for sqrt at 0) is defined as 0 there."""
+    zero = type(signal)(0.0)
+    two = type(signal)(2.0)
+    grad_signal = g
+    grad_shot = zero
+    grad_read = zero
+    if sigma > zero:
+        d_variance = g * eps / (two * sigma)
+        if signal > zero:
+            grad_signal = g + d_variance * shot
+        grad_shot = d_variance * wp.max(signal, zero)
+        grad_read = d_variance * two * read
+    return grad_signal, grad_shot, grad_read
+
+
+@wp.func
 def noise_key(i: int, per_image: int, image_stride: int):
     """Counter of element i of a [B, per_image] tensor: its flat index (image_stride 1, one seed for the batch) or
     its index within its image (image_stride 0, a seed per image)."""
@@ -42,9 +67,8 @@ def noise_forward(
 ):
     i = wp.tid()
     signal = raw[i]
-    variance = shot[0] * wp.max(signal, raw.dtype(0.0)) + read[0] * read[0]
     eps = raw.dtype(standard_normal(seeds[i / per_image], noise_key(i, per_image, image_stride)))
-    out[i] = signal + wp.sqrt(wp.max(variance, raw.dtype(0.0))) * eps
+    out[i] = signal + noise_sigma(signal, shot[0], read[0]) * eps
 
 
 @wp.kernel
@@ -59,11 +83,8 @@ def noise_backward(
     grad_raw: wp.array(dtype=Any),
     partials: wp.array2d(dtype=Any),
 ):
-    """Lane-strided: writes grad_raw and per-lane sums of d/dshot and d/dread into partials[lane, 0:2].
-
-    Where the standard deviation is 0 (shot * R + read^2 = 0) the noise term is taken as constant: its derivative
-    (infinite for sqrt at 0) is defined as 0 there.
-    """
+    """Lane-strided: writes grad_raw and per-lane sums of d/dshot and d/dread into partials[lane, 0:2]
+    (`noise_adjoint`)."""
     lane = wp.tid()
     lanes = partials.shape[0]
     zero = raw.dtype(0.0)
@@ -71,20 +92,14 @@ def noise_backward(
     acc_read = zero
     for i in range(lane, raw.shape[0], lanes):
         signal = raw[i]
-        positive = wp.max(signal, zero)
-        sigma = wp.sqrt(wp.max(shot[0] * positive + read[0] * read[0], zero))
-        g = grad_out[i]
-        if sigma > zero:
+        sigma = noise_sigma(signal, shot[0], read[0])
+        eps = zero
+        if sigma > zero:  # regenerate eps only where it matters
             eps = raw.dtype(standard_normal(seeds[i / per_image], noise_key(i, per_image, image_stride)))
-            d_variance = g * eps / (raw.dtype(2.0) * sigma)
-            if signal > zero:
-                grad_raw[i] = g + d_variance * shot[0]
-            else:
-                grad_raw[i] = g
-            acc_shot += d_variance * positive
-            acc_read += d_variance * raw.dtype(2.0) * read[0]
-        else:
-            grad_raw[i] = g
+        grad_signal, grad_shot, grad_read = noise_adjoint(signal, shot[0], read[0], sigma, eps, grad_out[i])
+        grad_raw[i] = grad_signal
+        acc_shot += grad_shot
+        acc_read += grad_read
     partials[lane, 0] = acc_shot
     partials[lane, 1] = acc_read
 

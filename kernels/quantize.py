@@ -14,19 +14,27 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.func
+def quantize_value(value: Any, white: Any, levels: Any):
+    """floor(clip(value, 0, w) / w * L + 1/2) / L * w; NaN stays NaN (clamp would turn it into a valid code)."""
+    result = value
+    if not wp.isnan(value):
+        result = wp.floor(wp.clamp(value, type(value)(0.0), white) / white * levels + type(value)(0.5)) / levels * white
+    return result
+
+
+@wp.func
+def passes_gradient(value: Any, white: Any):
+    """The clipped straight-through estimator passes the gradient on [0, w] (not at NaN)."""
+    return value >= type(value)(0.0) and value <= white
+
+
 @wp.kernel
 def quantize_forward(
     values: wp.array2d(dtype=Any), white: wp.array(dtype=Any), steps: wp.int32, out: wp.array2d(dtype=Any)
 ):
     b, i = wp.tid()
-    w = white[b]
-    levels = values.dtype(steps)
-    value = values[b, i]
-    if wp.isnan(value):
-        out[b, i] = value  # NaN propagates (clamp would silently turn it into a valid code)
-    else:
-        clipped = wp.clamp(value, values.dtype(0.0), w)
-        out[b, i] = wp.floor(clipped / w * levels + values.dtype(0.5)) / levels * w
+    out[b, i] = quantize_value(values[b, i], white[b], values.dtype(steps))
 
 
 @wp.kernel
@@ -37,8 +45,7 @@ def quantize_backward(
     grad_values: wp.array2d(dtype=Any),
 ):
     b, i = wp.tid()
-    v = values[b, i]
-    if v >= values.dtype(0.0) and v <= white[b]:
+    if passes_gradient(values[b, i], white[b]):
         grad_values[b, i] = grad_out[b, i]
     else:
         grad_values[b, i] = values.dtype(0.0)

@@ -15,17 +15,11 @@ from typing import Any
 
 import warp as wp
 
-from warpsense.kernels.noise import standard_normal
+from warpsense.kernels.cfa import mosaic_value, site_pixel, site_pixel_count
+from warpsense.kernels.noise import noise_adjoint, noise_sigma, standard_normal
+from warpsense.kernels.quantize import passes_gradient, quantize_value
 
 wp.set_module_options({"enable_backward": False})
-
-
-@wp.func
-def capture_signal(rgb: wp.array4d(dtype=Any), phi: wp.array3d(dtype=Any), b: int, y: int, x: int):
-    tile = phi.shape[0]
-    sy = y % tile
-    sx = x % tile
-    return rgb[b, 0, y, x] * phi[sy, sx, 0] + rgb[b, 1, y, x] * phi[sy, sx, 1] + rgb[b, 2, y, x] * phi[sy, sx, 2]
 
 
 @wp.kernel
@@ -44,16 +38,12 @@ def sensor_forward(
     b, y, x = wp.tid()
     height = rgb.shape[2]
     width = rgb.shape[3]
-    zero = rgb.dtype(0.0)
-    value = capture_signal(rgb, phi, b, y, x)
+    value = mosaic_value(rgb, phi, b, y, x)
     if noisy != 0:
         index = b * height * width * image_stride + y * width + x
-        sigma = wp.sqrt(wp.max(shot[0] * wp.max(value, zero) + read[0] * read[0], zero))
-        value = value + sigma * rgb.dtype(standard_normal(seeds[b], index))
-    if steps > 0 and not wp.isnan(value):
-        levels = rgb.dtype(steps)
-        w = white[0]
-        value = wp.floor(wp.clamp(value, zero, w) / w * levels + rgb.dtype(0.5)) / levels * w
+        value = value + noise_sigma(value, shot[0], read[0]) * rgb.dtype(standard_normal(seeds[b], index))
+    if steps > 0:
+        value = quantize_value(value, white[0], rgb.dtype(steps))
     out[b, 0, y, x] = value
 
 
@@ -87,42 +77,30 @@ def sensor_backward(
     sx = site % tile
     height = rgb.shape[2]
     width = rgb.shape[3]
-    rows = (height - sy + tile - 1) / tile
-    cols = (width - sx + tile - 1) / tile
-    per_image = rows * cols
+    cols, per_image = site_pixel_count(height, width, tile, sy, sx)
     total = rgb.shape[0] * per_image
     zero = rgb.dtype(0.0)
-    two = rgb.dtype(2.0)
     acc0 = zero
     acc1 = zero
     acc2 = zero
     acc_shot = zero
     acc_read = zero
     for m in range(lane, total, lanes):
-        b = m / per_image
-        r = m - b * per_image
-        y = sy + (r / cols) * tile
-        x = sx + (r % cols) * tile
+        b, y, x = site_pixel(m, sy, sx, tile, cols, per_image)
         g = grad_out[b, 0, y, x]
-        value = capture_signal(rgb, phi, b, y, x)
+        value = mosaic_value(rgb, phi, b, y, x)
         grad_value = g
         if noisy != 0:
-            positive = wp.max(value, zero)
-            sigma = wp.sqrt(wp.max(shot[0] * positive + read[0] * read[0], zero))
+            sigma = noise_sigma(value, shot[0], read[0])
             eps = zero
-            if sigma > zero:
+            if sigma > zero:  # regenerate eps only where it matters
                 eps = rgb.dtype(standard_normal(seeds[b], b * height * width * image_stride + y * width + x))
-            noisy_value = value + sigma * eps
-            if steps > 0 and not (noisy_value >= zero and noisy_value <= white[0]):
+            if steps > 0 and not passes_gradient(value + sigma * eps, white[0]):
                 g = zero
-            grad_value = g
-            if sigma > zero:
-                d_variance = g * eps / (two * sigma)
-                if value > zero:
-                    grad_value = g + d_variance * shot[0]
-                acc_shot += d_variance * positive
-                acc_read += d_variance * two * read[0]
-        elif steps > 0 and not (value >= zero and value <= white[0]):
+            grad_value, grad_shot, grad_read = noise_adjoint(value, shot[0], read[0], sigma, eps, g)
+            acc_shot += grad_shot
+            acc_read += grad_read
+        elif steps > 0 and not passes_gradient(value, white[0]):
             grad_value = zero
         acc0 += grad_value * rgb[b, 0, y, x]
         acc1 += grad_value * rgb[b, 1, y, x]

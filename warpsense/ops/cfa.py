@@ -8,6 +8,15 @@ from warpsense.kernels import cfa as kernels
 from warpsense.ops._warp import launch, prepare, reduction_lanes
 
 
+def site_reduction_buffers(rgb: torch.Tensor, tile: int, want_rgb: bool, sums: int):
+    """Outputs of a per-site backward kernel (thread = (CFA site, lane)): grad_rgb (a 1-element stand-in when it is
+    not wanted) and partials [T * T, lanes, sums], with enough lanes to fill the device."""
+    batch, _, height, width = rgb.shape
+    lanes = reduction_lanes(batch * (-(-height // tile)) * (-(-width // tile)), rgb.device)
+    grad_rgb = torch.empty_like(rgb) if want_rgb else rgb.new_empty(1, 3, 1, 1)
+    return grad_rgb, rgb.new_empty(tile * tile, lanes, sums)
+
+
 class CFAMosaic(torch.autograd.Function):
     @staticmethod
     def forward(ctx, rgb: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
@@ -23,17 +32,10 @@ class CFAMosaic(torch.autograd.Function):
         rgb, phi = ctx.saved_tensors
         grad_raw = grad_raw.to(rgb.dtype).contiguous()
         tile = phi.shape[0]
-        batch, _, height, width = rgb.shape
-        lanes = reduction_lanes(batch * (-(-height // tile)) * (-(-width // tile)), rgb.device)
         want_rgb = ctx.needs_input_grad[0]
-        grad_rgb = torch.empty_like(rgb) if want_rgb else rgb.new_empty(1, 3, 1, 1)
-        partials = rgb.new_empty(tile * tile, lanes, 3)
-        launch(
-            kernels.cfa_backward,
-            (tile * tile, lanes),
-            [rgb, phi, grad_raw, int(want_rgb), grad_rgb, partials],
-            rgb.device,
-        )
+        grad_rgb, partials = site_reduction_buffers(rgb, tile, want_rgb, 3)
+        launch(kernels.cfa_backward, tuple(partials.shape[:2]), [rgb, phi, grad_raw, int(want_rgb), grad_rgb, partials],
+               rgb.device)
         grad_phi = partials.sum(dim=1).reshape(tile, tile, 3) if ctx.needs_input_grad[1] else None
         return (grad_rgb if want_rgb else None), grad_phi
 

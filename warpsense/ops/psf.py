@@ -166,9 +166,9 @@ _FASTEST: dict = {}
 def _fastest_invariant(image: torch.Tensor, psf: torch.Tensor) -> str:
     """The faster exact method for one PSF at this shape: measured once per (shape, K, dtype) on CUDA (forward +
     backward, 3 repeats after a warm-up) and cached; conv2d on the CPU, where the Warp backend runs serially."""
-    if image.device.type != "cuda" or torch.cuda.is_current_stream_capturing():
-        return _FASTEST.get((tuple(image.shape), psf.shape[-1], image.dtype, image.device), "conv2d")
     key = (tuple(image.shape), psf.shape[-1], image.dtype, image.device)
+    if image.device.type != "cuda" or torch.cuda.is_current_stream_capturing():
+        return _FASTEST.get(key, "conv2d")
     if key not in _FASTEST:
         probe = torch.rand_like(image).requires_grad_()
         kernel = psf.detach().clone().requires_grad_()

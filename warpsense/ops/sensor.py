@@ -6,7 +6,8 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import sensor as kernels
-from warpsense.ops._warp import launch, prepare, reduction_lanes, scalar_tensor
+from warpsense.ops._warp import launch, prepare, scalar_tensor
+from warpsense.ops.cfa import site_reduction_buffers
 from warpsense.ops.noise import noise_seeds
 from warpsense.ops.quantize import check_quantize_arguments
 
@@ -29,12 +30,9 @@ class SensorCapture(torch.autograd.Function):
         image_stride, noisy, steps = ctx.flags
         grad_raw = grad_raw.to(rgb.dtype).contiguous()
         tile = phi.shape[0]
-        batch, _, height, width = rgb.shape
-        lanes = reduction_lanes(batch * (-(-height // tile)) * (-(-width // tile)), rgb.device)
         want_rgb = ctx.needs_input_grad[0]
-        grad_rgb = torch.empty_like(rgb) if want_rgb else rgb.new_empty(1, 3, 1, 1)
-        partials = rgb.new_empty(tile * tile, lanes, 5)
-        launch(kernels.sensor_backward, (tile * tile, lanes),
+        grad_rgb, partials = site_reduction_buffers(rgb, tile, want_rgb, 5)
+        launch(kernels.sensor_backward, tuple(partials.shape[:2]),
                [rgb, phi, shot, read, seeds, image_stride, noisy, steps, white, grad_raw, int(want_rgb), grad_rgb,
                 partials], rgb.device)
         sums = partials.sum(dim=1)
