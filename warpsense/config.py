@@ -137,6 +137,7 @@ class TrainConfig:
     camera_lr_scale: float = 0.1
     camera_grad_clip: float = 0.1
     amp: bool = True
+    compile: str = field(default="off", metadata=_choices("off", "default", "reduce-overhead", "max-autotune"))
     max_steps_per_epoch: int = 0
     time_budget_minutes: float = 0.0
     eval_every: int = 1

@@ -64,7 +64,7 @@ def test_double_backward_is_a_clear_error(name):
         "psf": (psf_conv, rgb, torch.rand(3, 2, 2, 3, 3, dtype=torch.float64, requires_grad=True)),
     }
     function, *inputs = cases[name]
-    with pytest.raises(RuntimeError, match="once_differentiable|does not require grad|differentiable"):
+    with pytest.raises(RuntimeError, match="no autograd formula"):
         _double_backward(function, *inputs)
 
 

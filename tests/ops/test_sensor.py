@@ -70,5 +70,5 @@ def test_double_backward_raises():
     rgb = torch.rand(1, 3, 4, 4, dtype=torch.float64, requires_grad=True)
     out = sensor_capture(rgb, torch.rand(2, 2, 3, dtype=torch.float64), 0.01, 0.01, 1, 10)
     (grad,) = torch.autograd.grad(out.sum(), rgb, create_graph=True)
-    with pytest.raises(RuntimeError, match="once_differentiable|does not require grad|twice"):
+    with pytest.raises(RuntimeError, match="no autograd formula"):
         grad.sum().backward()

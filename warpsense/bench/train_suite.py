@@ -23,7 +23,7 @@ from warpsense.models import build_model
 from warpsense.ops import psf_conv
 from warpsense.ops.reference import (cfa_mosaic_reference, poisson_gaussian_reference, psf_conv_reference,
                                      quantize_reference)
-from warpsense.train.losses import segmentation_loss
+from warpsense.train.step import TrainingStep
 
 
 def gaussian_psf(size: int = 7, sigma: float = 1.2, channels: int = 3) -> torch.Tensor:
@@ -73,34 +73,42 @@ def build(method: str, camera_name: str, device) -> tuple[nn.Module, nn.Module]:
     return camera.to(device), network.to(device)
 
 
-def training_throughput(method, camera_name, loss_name, device, batch, height, width, steps, warmup) -> float:
-    """Images per second of full training steps (sensor + network forward, loss, backward, AdamW step)."""
+class System(nn.Module):
+    """Camera -> network with the `SensingModel` interface (images, amp) -> (logits, sensed) that `TrainingStep`
+    takes."""
+
+    def __init__(self, camera: nn.Module, network: nn.Module):
+        super().__init__()
+        self.camera = camera
+        self.network = network
+
+    def forward(self, images, amp):
+        sensed = self.camera(srgb_to_linear(images))
+        with torch.autocast(sensed.device.type, dtype=torch.bfloat16, enabled=amp):
+            return self.network(sensed), sensed
+
+
+def training_throughput(method, camera_name, loss_name, device, batch, height, width, steps, warmup,
+                        compile_mode: str = "off") -> float:
+    """Images per second of full training steps (the training engine's `TrainingStep`: sensor + network forward,
+    loss, backward, fused AdamW on CUDA), after ``warmup`` steps (which include any compilation)."""
     torch.manual_seed(0)
-    camera, network = build(method, camera_name, device)
-    camera.train(), network.train()
-    parameters = [p for p in list(camera.parameters()) + list(network.parameters()) if p.requires_grad]
-    optimizer = torch.optim.AdamW(parameters, lr=1e-3)
+    system = System(*build(method, camera_name, device)).train()
+    parameters = [p for p in system.parameters() if p.requires_grad]
+    cuda = torch.device(device).type == "cuda"
+    optimizer = torch.optim.AdamW(parameters, lr=1e-3, fused=cuda)
     loss_config = load_config(None, [] if loss_name == "full" else
                               ["loss.ohem_fraction=1.0", "loss.lovasz_weight=0.0", "loss.smooth_weight=0.0"]).loss
-    amp = torch.device(device).type == "cuda"
+    torch._dynamo.reset()
+    step = TrainingStep(loss_config, optimizer, [], steps + warmup, amp=cuda, compile_mode=compile_mode)
     images = torch.randint(0, 256, (batch, 3, height, width), dtype=torch.uint8, device=device)
     labels = torch.randint(0, 11, (batch, height, width), device=device)
-
-    def step():
-        sensed = camera(srgb_to_linear(images))
-        with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=amp):
-            logits = network(sensed)
-        loss, _ = segmentation_loss(logits, labels, sensed, loss_config)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-
-    for _ in range(warmup):
-        step()
+    for index in range(warmup):
+        step(system, images, labels, index, joint=True)
     _sync(device)
     start = time.perf_counter()
-    for _ in range(steps):
-        step()
+    for index in range(steps):
+        step(system, images, labels, warmup + index, joint=True)
     _sync(device)
     return steps * batch / (time.perf_counter() - start)
 
@@ -134,14 +142,17 @@ def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
         figure = (f"{record['images_per_s']:8.1f} img/s" if "images_per_s" in record
                   else f"{record['median_ms']:8.3f} ms")
         print(f"train-suite {record['method']:>15s} {record['camera']:>9s} {record.get('loss', record.get('mode')):>6s}"
-              f" {figure}", flush=True)
+              f" {record.get('compile', ''):>8s} {figure}", flush=True)
 
     cases = [("torch_baseline", "simple"), ("warpsense", "simple"), ("warpsense", "codesign")]
+    # torch.compile (inductor) of forward + loss: on CUDA only (minutes of C++ compilation on a CPU), full loss only
+    runs = [(loss_name, "off") for loss_name in ("ce", "full")] + ([("full", "default")] if device == "cuda" else [])
     for method, camera_name in cases:
-        for loss_name in ("ce", "full"):
-            rate = training_throughput(method, camera_name, loss_name, device, batch, height, width, steps, warmup)
-            add({"method": method, "camera": camera_name, "loss": loss_name, "images_per_s": rate,
-                 "shape": [batch, 3, height, width]})
+        for loss_name, compile_mode in runs:
+            rate = training_throughput(method, camera_name, loss_name, device, batch, height, width, steps,
+                                       warmup + (5 if compile_mode != "off" else 0), compile_mode)
+            add({"method": method, "camera": camera_name, "loss": loss_name, "compile": compile_mode,
+                 "images_per_s": rate, "shape": [batch, 3, height, width]})
     for method, camera_name in cases:
         for graph in ((False, True) if device == "cuda" else (False,)):
             timing = latency(method, camera_name, device, height, width, graph)

@@ -6,6 +6,10 @@
 - Kernels launch on torch's current CUDA stream, so they order correctly with the surrounding torch work and can be
   captured in a CUDA graph. Launches are recorded once per signature and replayed (`launch`).
 - Kernels run in float32 or float64: float16/bfloat16 inputs (e.g. under autocast) are computed in float32.
+- Every op is a `torch.library` custom op (`warp_op`): a fake (meta) implementation gives output shapes without
+  running a kernel, the backward is registered with `register_autograd` and is itself a custom op, so
+  `torch.compile` and CUDA-graph capture take the ops without graph breaks. Backward ops have no autograd formula
+  of their own: double backward raises a clear error.
 """
 
 from __future__ import annotations
@@ -70,6 +74,31 @@ def scalar_tensor(value: float | torch.Tensor, like: torch.Tensor) -> torch.Tens
         return value.reshape(1).to(device=like.device, dtype=like.dtype)
     # a fill kernel, not a host-to-device copy: capturable in a CUDA graph
     return torch.full((1,), float(value), device=like.device, dtype=like.dtype)
+
+
+OP_NAMESPACE = "warpsense"
+
+
+def warp_op(name: str, fake, backward=None, setup_context=None):
+    """Decorator: register ``function`` (type-annotated, returns new tensors) as the custom op
+    ``warpsense::<name>`` with the fake implementation ``fake`` and, optionally, its autograd formula
+    (``backward(ctx, *grads)`` and ``setup_context(ctx, inputs, output)``, as for `torch.library.register_autograd`)."""
+
+    def register(function):
+        op = torch.library.custom_op(f"{OP_NAMESPACE}::{name}", function, mutates_args=())
+        op.register_fake(fake)
+        if backward is not None:
+            op.register_autograd(backward, setup_context=setup_context)
+        return op
+
+    return register
+
+
+def save_inputs(ctx, inputs, output) -> None:
+    """``setup_context`` of ops whose backward needs exactly their tensor inputs (non-tensors kept in
+    ``ctx.arguments``)."""
+    ctx.save_for_backward(*(x for x in inputs if isinstance(x, torch.Tensor)))
+    ctx.arguments = tuple(x for x in inputs if not isinstance(x, torch.Tensor))
 
 
 _LAUNCH_CACHE: "collections.OrderedDict" = collections.OrderedDict()

@@ -1,11 +1,11 @@
-"""CFA mosaic op: Warp kernel registered into torch autograd."""
+"""CFA mosaic op: Warp kernels as the custom ops warpsense::cfa_mosaic and its backward."""
 
 from __future__ import annotations
 
 import torch
 
 from warpsense.kernels import cfa as kernels
-from warpsense.ops._warp import launch, prepare, reduction_lanes
+from warpsense.ops._warp import launch, prepare, reduction_lanes, save_inputs, warp_op
 
 
 def site_reduction_buffers(rgb: torch.Tensor, tile: int, want_rgb: bool, sums: int):
@@ -17,27 +17,38 @@ def site_reduction_buffers(rgb: torch.Tensor, tile: int, want_rgb: bool, sums: i
     return grad_rgb, rgb.new_empty(tile * tile, lanes, sums)
 
 
-class CFAMosaic(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, rgb: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
-        batch, _, height, width = rgb.shape
-        raw = rgb.new_empty(batch, 1, height, width)
-        launch(kernels.cfa_forward, (batch, height, width), [rgb, phi, raw], rgb.device)
-        ctx.save_for_backward(rgb, phi)
-        return raw
+def rgb_gradient_fake(rgb: torch.Tensor, want_rgb: bool) -> torch.Tensor:
+    """Fake of the grad_rgb that `site_reduction_buffers` allocates."""
+    return torch.empty_like(rgb) if want_rgb else rgb.new_empty(1, 3, 1, 1)
 
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_raw: torch.Tensor):
-        rgb, phi = ctx.saved_tensors
-        grad_raw = grad_raw.to(rgb.dtype).contiguous()
-        tile = phi.shape[0]
-        want_rgb = ctx.needs_input_grad[0]
-        grad_rgb, partials = site_reduction_buffers(rgb, tile, want_rgb, 3)
-        launch(kernels.cfa_backward, tuple(partials.shape[:2]), [rgb, phi, grad_raw, int(want_rgb), grad_rgb, partials],
-               rgb.device)
-        grad_phi = partials.sum(dim=1).reshape(tile, tile, 3) if ctx.needs_input_grad[1] else None
-        return (grad_rgb if want_rgb else None), grad_phi
+
+def _cfa_backward_fake(rgb, phi, grad_raw, want_rgb):
+    return rgb_gradient_fake(rgb, want_rgb), torch.empty_like(phi)
+
+
+@warp_op("cfa_mosaic_backward", _cfa_backward_fake)
+def _cfa_mosaic_backward(rgb: torch.Tensor, phi: torch.Tensor, grad_raw: torch.Tensor,
+                         want_rgb: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    grad_raw = grad_raw.to(rgb.dtype).contiguous()
+    tile = phi.shape[0]
+    grad_rgb, partials = site_reduction_buffers(rgb, tile, want_rgb, 3)
+    launch(kernels.cfa_backward, tuple(partials.shape[:2]), [rgb, phi, grad_raw, int(want_rgb), grad_rgb, partials],
+           rgb.device)
+    return grad_rgb, partials.sum(dim=1).reshape(tile, tile, 3)
+
+
+def _cfa_backward(ctx, grad_raw):
+    rgb, phi = ctx.saved_tensors
+    grad_rgb, grad_phi = _cfa_mosaic_backward(rgb, phi, grad_raw, ctx.needs_input_grad[0])
+    return (grad_rgb if ctx.needs_input_grad[0] else None), (grad_phi if ctx.needs_input_grad[1] else None)
+
+
+@warp_op("cfa_mosaic", lambda rgb, phi: rgb.new_empty(rgb.shape[0], 1, *rgb.shape[2:]), _cfa_backward, save_inputs)
+def _cfa_mosaic(rgb: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+    batch, _, height, width = rgb.shape
+    raw = rgb.new_empty(batch, 1, height, width)
+    launch(kernels.cfa_forward, (batch, height, width), [rgb, phi, raw], rgb.device)
+    return raw
 
 
 def cfa_mosaic(rgb: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
@@ -56,4 +67,4 @@ def cfa_mosaic(rgb: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
     if phi.dim() != 3 or phi.shape[0] != phi.shape[1] or phi.shape[2] != 3 or phi.shape[0] < 1:
         raise ValueError(f"cfa_mosaic: phi must be [T, T, 3] with T >= 1, got {tuple(phi.shape)}")
     rgb, phi = prepare(rgb, phi)
-    return CFAMosaic.apply(rgb, phi)
+    return _cfa_mosaic(rgb, phi)

@@ -1,11 +1,12 @@
-"""Poisson-Gaussian noise op: Warp kernel registered into torch autograd."""
+"""Poisson-Gaussian noise ops: Warp kernels as the custom ops warpsense::poisson_gaussian (with its backward) and
+warpsense::poisson_gaussian_exact."""
 
 from __future__ import annotations
 
 import torch
 
 from warpsense.kernels import noise as kernels
-from warpsense.ops._warp import launch, prepare, reduction_lanes, scalar_tensor, seed_int32
+from warpsense.ops._warp import launch, prepare, reduction_lanes, save_inputs, scalar_tensor, seed_int32, warp_op
 
 POISSON_NORMAL_LIMIT = float(kernels.POISSON_NORMAL_LIMIT)
 
@@ -24,35 +25,49 @@ def noise_seeds(seed: int | torch.Tensor, batch: int, device: torch.device) -> t
     return torch.full((batch,), seed_int32(seed), dtype=torch.int32, device=device), 1
 
 
-class PoissonGaussian(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, raw: torch.Tensor, shot: torch.Tensor, read: torch.Tensor, seeds: torch.Tensor,
-                image_stride: int) -> torch.Tensor:
-        out = torch.empty_like(raw)
-        per_image = raw.numel() // seeds.numel()
-        launch(kernels.noise_forward, raw.numel(),
-               [raw.view(-1), shot, read, seeds, per_image, image_stride, out.view(-1)], raw.device)
-        ctx.save_for_backward(raw, shot, read, seeds)
-        ctx.image_stride = image_stride
-        return out
+def _noise_backward_fake(raw, shot, read, seeds, image_stride, grad_out):
+    return torch.empty_like(raw), torch.empty_like(shot), torch.empty_like(read)
 
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_out: torch.Tensor):
-        raw, shot, read, seeds = ctx.saved_tensors
-        grad_out = grad_out.to(raw.dtype).contiguous()
-        lanes = reduction_lanes(raw.numel(), raw.device)
-        grad_raw = torch.empty_like(raw)
-        partials = raw.new_empty(lanes, 2)
-        launch(
-            kernels.noise_backward,
-            lanes,
-            [raw.view(-1), shot, read, seeds, raw.numel() // seeds.numel(), ctx.image_stride, grad_out.view(-1),
-             grad_raw.view(-1), partials],
-            raw.device,
-        )
-        sums = partials.sum(dim=0)
-        return grad_raw, sums[0:1], sums[1:2], None, None
+
+@warp_op("poisson_gaussian_backward", _noise_backward_fake)
+def _poisson_gaussian_backward(raw: torch.Tensor, shot: torch.Tensor, read: torch.Tensor, seeds: torch.Tensor,
+                               image_stride: int, grad_out: torch.Tensor
+                               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    grad_out = grad_out.to(raw.dtype).contiguous()
+    lanes = reduction_lanes(raw.numel(), raw.device)
+    grad_raw = torch.empty_like(raw)
+    partials = raw.new_empty(lanes, 2)
+    launch(kernels.noise_backward, lanes,
+           [raw.view(-1), shot, read, seeds, raw.numel() // seeds.numel(), image_stride, grad_out.view(-1),
+            grad_raw.view(-1), partials], raw.device)
+    sums = partials.sum(dim=0)
+    return grad_raw, sums[0:1].clone(), sums[1:2].clone()
+
+
+def _noise_backward(ctx, grad_out):
+    raw, shot, read, seeds = ctx.saved_tensors
+    (image_stride,) = ctx.arguments
+    grad_raw, grad_shot, grad_read = _poisson_gaussian_backward(raw, shot, read, seeds, image_stride, grad_out)
+    return grad_raw, grad_shot, grad_read, None, None
+
+
+@warp_op("poisson_gaussian", lambda raw, shot, read, seeds, image_stride: torch.empty_like(raw), _noise_backward,
+         save_inputs)
+def _poisson_gaussian(raw: torch.Tensor, shot: torch.Tensor, read: torch.Tensor, seeds: torch.Tensor,
+                      image_stride: int) -> torch.Tensor:
+    out = torch.empty_like(raw)
+    launch(kernels.noise_forward, raw.numel(),
+           [raw.view(-1), shot, read, seeds, raw.numel() // seeds.numel(), image_stride, out.view(-1)], raw.device)
+    return out
+
+
+@warp_op("poisson_gaussian_exact", lambda raw, shot, read, seeds, image_stride: torch.empty_like(raw))
+def _poisson_gaussian_exact(raw: torch.Tensor, shot: torch.Tensor, read: torch.Tensor, seeds: torch.Tensor,
+                            image_stride: int) -> torch.Tensor:
+    out = torch.empty_like(raw)
+    launch(kernels.poisson_sample, raw.numel(),
+           [raw.view(-1), shot, read, seeds, raw.numel() // seeds.numel(), image_stride, out.view(-1)], raw.device)
+    return out
 
 
 def _noise_inputs(raw, shot, read, seed, name):
@@ -96,7 +111,7 @@ def poisson_gaussian(
     """
     out_shape = raw.shape if isinstance(raw, torch.Tensor) else None
     raw, shot_t, read_t, seeds, image_stride = _noise_inputs(raw, shot, read, seed, "poisson_gaussian")
-    return PoissonGaussian.apply(raw, shot_t, read_t, seeds, image_stride).view(out_shape)
+    return _poisson_gaussian(raw, shot_t, read_t, seeds, image_stride).view(out_shape)
 
 
 @torch.no_grad()
@@ -110,8 +125,4 @@ def poisson_gaussian_exact(raw: torch.Tensor, shot: float | torch.Tensor, read: 
     """
     out_shape = raw.shape if isinstance(raw, torch.Tensor) else None
     raw, shot_t, read_t, seeds, image_stride = _noise_inputs(raw, shot, read, seed, "poisson_gaussian_exact")
-    out = torch.empty_like(raw)
-    launch(kernels.poisson_sample, raw.numel(),
-           [raw.view(-1), shot_t, read_t, seeds, raw.numel() // seeds.numel(), image_stride, out.view(-1)],
-           raw.device)
-    return out.view(out_shape)
+    return _poisson_gaussian_exact(raw, shot_t, read_t, seeds, image_stride).view(out_shape)

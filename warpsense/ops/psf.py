@@ -1,4 +1,5 @@
-"""Spatially varying PSF convolution op (Warp kernels in torch autograd) and its alternative methods.
+"""Spatially varying PSF convolution (Warp kernels as the custom ops warpsense::psf_conv and its two adjoints) and
+its alternative methods.
 
 PSF grid convention (one place: `node_axis`): the Gy x Gx nodes cover the whole field, corners included. Along an
 axis of ``size`` pixels, node n sits at the normalised position n / (G - 1) of the field (0 and 1 are the image
@@ -14,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from warpsense.kernels import psf as kernels
-from warpsense.ops._warp import Vectors, launch, prepare
+from warpsense.ops._warp import Vectors, launch, prepare, save_inputs, warp_op
 
 PSF_METHODS = ("auto", "direct", "conv2d", "fft", "patch")
 INVARIANT_METHODS = ("direct", "conv2d", "fft")
@@ -54,53 +55,62 @@ def node_cells(psf: torch.Tensor) -> torch.Tensor:
     return cells.reshape(channels, -1, size, size, 4).contiguous()
 
 
-class PSFConv(torch.autograd.Function):
+def _grid_axes(image: torch.Tensor, grid_y: int, grid_x: int):
+    return node_axis(image.shape[2], grid_y, image.dtype, image.device), \
+        node_axis(image.shape[3], grid_x, image.dtype, image.device)
+
+
+@warp_op("psf_conv_backward_image", lambda grad_out, cells, grid_y, grid_x: torch.empty_like(grad_out))
+def _psf_backward_image(grad_out: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_x: int) -> torch.Tensor:
+    """The image adjoint: a gather with the flipped PSF interpolated at each output pixel."""
+    batch, channels, height, width = grad_out.shape
+    rows, cols = _grid_axes(grad_out, grid_y, grid_x)
+    grad_planes = grad_out.to(cells.dtype).contiguous().view(batch * channels, height, width)
+    grad_image = torch.empty_like(grad_planes)
+    launch(kernels.psf_backward_image, (batch * channels, height, width),
+           [grad_planes, Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1], grad_image],
+           grad_out.device)
+    return grad_image.view(batch, channels, height, width)
+
+
+@warp_op("psf_conv_backward_cells", lambda image, grad_out, cells, grid_y, grid_x: torch.empty_like(cells))
+def _psf_backward_cells(image: torch.Tensor, grad_out: torch.Tensor, cells: torch.Tensor, grid_y: int,
+                        grid_x: int) -> torch.Tensor:
+    """The PSF adjoint: per (tap, image, cell, row chunk) partial sums, then one deterministic sum."""
+    batch, channels, height, width = image.shape
+    size = cells.shape[2]
+    cells_y, cells_x = max(grid_y - 1, 1), max(grid_x - 1, 1)
+    rows, cols = _grid_axes(image, grid_y, grid_x)
+    taps = channels * size * size
+    lanes = batch * cells_y * cells_x
+    # split each cell's rows into chunks until the launch fills the device
+    row_chunks = max(1, min(height, -(-_THREADS_TARGET.get(image.device.type, 1) // (taps * lanes))))
+    partials = image.new_empty(batch * row_chunks, channels, cells_y * cells_x, size * size, 4)
+    launch(kernels.psf_backward_cells, (taps, lanes * row_chunks),
+           [image.view(batch * channels, height, width),
+            grad_out.to(image.dtype).contiguous().view(batch * channels, height, width), rows[2], rows[1], cols[2],
+            cols[1], size, channels, cells_y, cells_x, row_chunks, Vectors(partials)], image.device)
+    return partials.sum(dim=0).view_as(cells)
+
+
+def _psf_backward(ctx, grad_out):
+    image, cells = ctx.saved_tensors
+    grid_y, grid_x = ctx.arguments
+    grad_image = _psf_backward_image(grad_out, cells, grid_y, grid_x) if ctx.needs_input_grad[0] else None
+    grad_cells = _psf_backward_cells(image, grad_out, cells, grid_y, grid_x) if ctx.needs_input_grad[1] else None
+    return grad_image, grad_cells, None, None
+
+
+@warp_op("psf_conv", lambda image, cells, grid_y, grid_x: torch.empty_like(image), _psf_backward, save_inputs)
+def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_x: int) -> torch.Tensor:
     """Exact varying convolution with the PSF given per grid cell (`node_cells`)."""
-
-    @staticmethod
-    def forward(ctx, image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_x: int) -> torch.Tensor:
-        batch, channels, height, width = image.shape
-        rows = node_axis(height, grid_y, image.dtype, image.device)
-        cols = node_axis(width, grid_x, image.dtype, image.device)
-        cells_x = max(grid_x - 1, 1)
-        planes = image.view(batch * channels, height, width)
-        out = torch.empty_like(planes)
-        launch(kernels.psf_forward, (batch * channels, height, width),
-               [planes, Vectors(cells), cells_x, rows[0], rows[1], cols[0], cols[1], out], image.device)
-        ctx.save_for_backward(image, cells)
-        ctx.grid = (grid_y, grid_x)
-        return out.view(batch, channels, height, width)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_out: torch.Tensor):
-        image, cells = ctx.saved_tensors
-        grid_y, grid_x = ctx.grid
-        batch, channels, height, width = image.shape
-        size = cells.shape[2]
-        cells_y, cells_x = max(grid_y - 1, 1), max(grid_x - 1, 1)
-        rows = node_axis(height, grid_y, image.dtype, image.device)
-        cols = node_axis(width, grid_x, image.dtype, image.device)
-        grad_planes = grad_out.to(image.dtype).contiguous().view(batch * channels, height, width)
-        planes = image.view(batch * channels, height, width)
-        grad_image = grad_cells = None
-        if ctx.needs_input_grad[0]:
-            grad_image = torch.empty_like(planes)
-            launch(kernels.psf_backward_image, (batch * channels, height, width),
-                   [grad_planes, Vectors(cells), cells_x, rows[0], rows[1], cols[0], cols[1], grad_image],
-                   image.device)
-            grad_image = grad_image.view_as(image)
-        if ctx.needs_input_grad[1]:
-            taps = channels * size * size
-            lanes = batch * cells_y * cells_x
-            # split each cell's rows into chunks until the launch fills the device
-            row_chunks = max(1, min(height, -(-_THREADS_TARGET.get(image.device.type, 1) // (taps * lanes))))
-            partials = image.new_empty(batch * row_chunks, channels, cells_y * cells_x, size * size, 4)
-            launch(kernels.psf_backward_cells, (taps, lanes * row_chunks),
-                   [planes, grad_planes, rows[2], rows[1], cols[2], cols[1], size, channels, cells_y, cells_x,
-                    row_chunks, Vectors(partials)], image.device)
-            grad_cells = partials.sum(dim=0).view_as(cells)
-        return grad_image, grad_cells, None, None
+    batch, channels, height, width = image.shape
+    rows, cols = _grid_axes(image, grid_y, grid_x)
+    out = torch.empty_like(image)
+    launch(kernels.psf_forward, (batch * channels, height, width),
+           [image.view(batch * channels, height, width), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1],
+            cols[0], cols[1], out.view(batch * channels, height, width)], image.device)
+    return out
 
 
 def _check(image: torch.Tensor, psf: torch.Tensor, method: str) -> None:
@@ -152,7 +162,7 @@ def psf_conv(image: torch.Tensor, psf: torch.Tensor, method: str = "auto") -> to
             method = _fastest_invariant(image, psf) if invariant else "direct"
         if method == "direct":
             image, psf = prepare(image, psf)
-            return PSFConv.apply(image, node_cells(psf), psf.shape[1], psf.shape[2])
+            return _psf_conv_cells(image, node_cells(psf), psf.shape[1], psf.shape[2])
         if method == "conv2d":
             return psf_conv_conv2d(image, psf[:, 0, 0])
         if method == "fft":
@@ -167,7 +177,8 @@ def _fastest_invariant(image: torch.Tensor, psf: torch.Tensor) -> str:
     """The faster exact method for one PSF at this shape: measured once per (shape, K, dtype) on CUDA (forward +
     backward, 3 repeats after a warm-up) and cached; conv2d on the CPU, where the Warp backend runs serially."""
     key = (tuple(image.shape), psf.shape[-1], image.dtype, image.device)
-    if image.device.type != "cuda" or torch.cuda.is_current_stream_capturing():
+    if (image.device.type != "cuda" or torch.compiler.is_compiling()
+            or torch.cuda.is_current_stream_capturing()):
         return _FASTEST.get(key, "conv2d")
     if key not in _FASTEST:
         probe = torch.rand_like(image).requires_grad_()

@@ -1,11 +1,12 @@
-"""ADC quantization op with a clipped straight-through gradient: Warp kernel registered into torch autograd."""
+"""ADC quantization with a clipped straight-through gradient: Warp kernels as the custom ops warpsense::quantize_ste
+and its backward."""
 
 from __future__ import annotations
 
 import torch
 
 from warpsense.kernels import quantize as kernels
-from warpsense.ops._warp import launch, prepare
+from warpsense.ops._warp import launch, prepare, save_inputs, warp_op
 
 QUANTIZE_MODES = ("full_well", "max")
 
@@ -30,22 +31,24 @@ def check_quantize_arguments(bits, white_level, mode: str, name: str) -> None:
                          f"({low:.3g} .. {high:.3g}), got {white_level!r}")
 
 
-class QuantizeSTE(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, rows: torch.Tensor, white: torch.Tensor, steps: int) -> torch.Tensor:
-        out = torch.empty_like(rows)
-        launch(kernels.quantize_forward, tuple(rows.shape), [rows, white, steps, out], rows.device)
-        ctx.save_for_backward(rows, white)
-        return out
+@warp_op("quantize_ste_backward", lambda rows, white, grad_out: torch.empty_like(rows))
+def _quantize_ste_backward(rows: torch.Tensor, white: torch.Tensor, grad_out: torch.Tensor) -> torch.Tensor:
+    grad_out = grad_out.to(rows.dtype).contiguous()
+    grad_rows = torch.empty_like(rows)
+    launch(kernels.quantize_backward, tuple(rows.shape), [rows, white, grad_out, grad_rows], rows.device)
+    return grad_rows
 
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_out: torch.Tensor):
-        rows, white = ctx.saved_tensors
-        grad_out = grad_out.to(rows.dtype).contiguous()
-        grad_rows = torch.empty_like(rows)
-        launch(kernels.quantize_backward, tuple(rows.shape), [rows, white, grad_out, grad_rows], rows.device)
-        return grad_rows, None, None
+
+def _quantize_backward(ctx, grad_out):
+    rows, white = ctx.saved_tensors
+    return _quantize_ste_backward(rows, white, grad_out), None, None
+
+
+@warp_op("quantize_ste", lambda rows, white, steps: torch.empty_like(rows), _quantize_backward, save_inputs)
+def _quantize_ste(rows: torch.Tensor, white: torch.Tensor, steps: int) -> torch.Tensor:
+    out = torch.empty_like(rows)
+    launch(kernels.quantize_forward, tuple(rows.shape), [rows, white, steps, out], rows.device)
+    return out
 
 
 def white_levels(rows: torch.Tensor, white_level: float, mode: str) -> torch.Tensor:
@@ -85,4 +88,4 @@ def quantize_ste(raw: torch.Tensor, bits: int, white_level: float = 1.0, mode: s
         raw_c = raw_c.double()
     rows = raw_c.reshape(raw.shape[0] if raw.dim() else 1, -1)
     white = white_levels(rows, white_level, mode)
-    return QuantizeSTE.apply(rows, white, (1 << bits) - 1).to(out_dtype).view(raw.shape)
+    return _quantize_ste(rows, white, (1 << bits) - 1).to(out_dtype).view(raw.shape)

@@ -1,44 +1,55 @@
 """The fused sensor op: CFA mosaic -> Poisson-Gaussian noise -> quantization in one Warp kernel (forward and
-backward), equal to the chain `cfa_mosaic` -> `poisson_gaussian` -> `quantize_ste` (full-well mode)."""
+backward; the custom ops warpsense::sensor_capture and its backward), equal to the chain `cfa_mosaic` ->
+`poisson_gaussian` -> `quantize_ste` (full-well mode)."""
 
 from __future__ import annotations
 
 import torch
 
 from warpsense.kernels import sensor as kernels
-from warpsense.ops._warp import launch, prepare, scalar_tensor
-from warpsense.ops.cfa import site_reduction_buffers
+from warpsense.ops._warp import launch, prepare, save_inputs, scalar_tensor, warp_op
+from warpsense.ops.cfa import rgb_gradient_fake, site_reduction_buffers
 from warpsense.ops.noise import noise_seeds
 from warpsense.ops.quantize import check_quantize_arguments
 
 
-class SensorCapture(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, rgb, phi, shot, read, white, seeds, image_stride: int, noisy: int, steps: int):
-        batch, _, height, width = rgb.shape
-        raw = rgb.new_empty(batch, 1, height, width)
-        arguments = [rgb, phi, shot, read, seeds, image_stride, noisy, steps, white]
-        launch(kernels.sensor_forward, (batch, height, width), [*arguments, raw], rgb.device)
-        ctx.save_for_backward(rgb, phi, shot, read, white, seeds)
-        ctx.flags = (image_stride, noisy, steps)
-        return raw
+def _sensor_backward_fake(rgb, phi, shot, read, white, seeds, image_stride, noisy, steps, grad_raw, want_rgb):
+    return rgb_gradient_fake(rgb, want_rgb), torch.empty_like(phi), torch.empty_like(shot), torch.empty_like(read)
 
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_raw):
-        rgb, phi, shot, read, white, seeds = ctx.saved_tensors
-        image_stride, noisy, steps = ctx.flags
-        grad_raw = grad_raw.to(rgb.dtype).contiguous()
-        tile = phi.shape[0]
-        want_rgb = ctx.needs_input_grad[0]
-        grad_rgb, partials = site_reduction_buffers(rgb, tile, want_rgb, 5)
-        launch(kernels.sensor_backward, tuple(partials.shape[:2]),
-               [rgb, phi, shot, read, seeds, image_stride, noisy, steps, white, grad_raw, int(want_rgb), grad_rgb,
-                partials], rgb.device)
-        sums = partials.sum(dim=1)
-        grad_phi = sums[:, :3].reshape(tile, tile, 3)
-        levels = sums[:, 3:].sum(dim=0)
-        return (grad_rgb if want_rgb else None), grad_phi, levels[0:1], levels[1:2], None, None, None, None, None
+
+@warp_op("sensor_capture_backward", _sensor_backward_fake)
+def _sensor_capture_backward(rgb: torch.Tensor, phi: torch.Tensor, shot: torch.Tensor, read: torch.Tensor,
+                             white: torch.Tensor, seeds: torch.Tensor, image_stride: int, noisy: int, steps: int,
+                             grad_raw: torch.Tensor, want_rgb: bool
+                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    grad_raw = grad_raw.to(rgb.dtype).contiguous()
+    tile = phi.shape[0]
+    grad_rgb, partials = site_reduction_buffers(rgb, tile, want_rgb, 5)
+    launch(kernels.sensor_backward, tuple(partials.shape[:2]),
+           [rgb, phi, shot, read, seeds, image_stride, noisy, steps, white, grad_raw, int(want_rgb), grad_rgb,
+            partials], rgb.device)
+    sums = partials.sum(dim=1)
+    levels = sums[:, 3:].sum(dim=0)
+    return grad_rgb, sums[:, :3].reshape(tile, tile, 3), levels[0:1].clone(), levels[1:2].clone()
+
+
+def _sensor_backward(ctx, grad_raw):
+    rgb, phi, shot, read, white, seeds = ctx.saved_tensors
+    want_rgb = ctx.needs_input_grad[0]
+    grad_rgb, grad_phi, grad_shot, grad_read = _sensor_capture_backward(rgb, phi, shot, read, white, seeds,
+                                                                        *ctx.arguments, grad_raw, want_rgb)
+    return (grad_rgb if want_rgb else None), grad_phi, grad_shot, grad_read, None, None, None, None, None
+
+
+@warp_op("sensor_capture", lambda rgb, *rest: rgb.new_empty(rgb.shape[0], 1, *rgb.shape[2:]), _sensor_backward,
+         save_inputs)
+def _sensor_capture(rgb: torch.Tensor, phi: torch.Tensor, shot: torch.Tensor, read: torch.Tensor, white: torch.Tensor,
+                    seeds: torch.Tensor, image_stride: int, noisy: int, steps: int) -> torch.Tensor:
+    batch, _, height, width = rgb.shape
+    raw = rgb.new_empty(batch, 1, height, width)
+    launch(kernels.sensor_forward, (batch, height, width),
+           [rgb, phi, shot, read, seeds, image_stride, noisy, steps, white, raw], rgb.device)
+    return raw
 
 
 def sensor_capture(rgb: torch.Tensor, phi: torch.Tensor, shot: float | torch.Tensor | None = None,
@@ -76,4 +87,4 @@ def sensor_capture(rgb: torch.Tensor, phi: torch.Tensor, shot: float | torch.Ten
     read_t = scalar_tensor(read if noisy else 0.0, rgb)
     white = scalar_tensor(white_level, rgb)
     steps = (1 << bits) - 1 if bits is not None else 0
-    return SensorCapture.apply(rgb, phi, shot_t, read_t, white, seeds, image_stride, int(noisy), steps)
+    return _sensor_capture(rgb, phi, shot_t, read_t, white, seeds, image_stride, int(noisy), steps)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import math
 import time
 from pathlib import Path
 
@@ -21,7 +20,7 @@ from warpsense.models import count_parameters
 from warpsense.train.checkpoint import read_checkpoint, restore, save_checkpoint
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.evaluate import evaluate
-from warpsense.train.losses import segmentation_loss
+from warpsense.train.step import TrainingStep
 from warpsense.train.system import build_system, camera_parameters, mark_learnable, set_camera_trainable
 
 LAST = "checkpoint_last.safetensors"
@@ -88,6 +87,17 @@ def _fit_time_budget(config, epoch_seconds: float, context) -> None:
         config.train.epochs = epochs
 
 
+def _check_finite(model, statistics: dict, epoch: int, run_dir: Path) -> None:
+    """Stop a diverged run before it writes a checkpoint: a non-finite loss or parameter raises."""
+    bad = [name for name, p in model.named_parameters() if not torch.isfinite(p).all()]
+    if statistics.get("nonfinite_steps", 0) or bad:
+        where = f"{statistics.get('nonfinite_steps', 0)} step(s) with a non-finite loss" if \
+            statistics.get("nonfinite_steps") else f"non-finite parameters ({', '.join(bad[:3])})"
+        raise FloatingPointError(f"training diverged in epoch {epoch + 1}: {where}; stopped without saving this epoch "
+                                 f"(the last checkpoint in {run_dir} is from before it); lower train.lr or check "
+                                 f"the inputs")
+
+
 def build_train_batches(config, train_set, context, progress: bool = True):
     """The training batches: on the GPU (`DeviceBatches`) when ``data.on_device`` allows and the decoded set fits
     in ``data.on_device_max_mb``, else a DataLoader (workers decode and augment on the CPU). Both have
@@ -138,8 +148,7 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
     optimizer = torch.optim.AdamW([
         {"params": network_params, "lr": config.train.lr, "weight_decay": config.train.weight_decay},
         {"params": camera_params, "lr": config.train.lr * config.train.camera_lr_scale, "weight_decay": 0.0},
-    ])
-    base_lrs = [group["lr"] for group in optimizer.param_groups]
+    ], fused=device.type == "cuda")
     if config.data.batch_size % context.world_size:
         raise ValueError(f"data.batch_size={config.data.batch_size} must be divisible by {context.world_size} ranks")
     loader = build_train_batches(config, train_set, context, progress)
@@ -172,18 +181,22 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
               f"{sum(p.numel() for p in camera_params):,}; device: {device}; ranks: {context.world_size}")
 
+    training_step = TrainingStep(config.loss, optimizer, camera_params, total_steps, amp,
+                                 config.train.camera_grad_clip, config.train.compile)
+    wrapped, wrapped_phase = model, None
     for epoch in itertools.count(start_epoch):
         if epoch >= config.train.epochs:  # re-read each epoch: the time budget may shorten the run
             break
         joint = epoch >= config.train.warmup_epochs
         set_camera_trainable(model, joint)
+        if context.enabled and wrapped_phase != joint:  # DDP buckets the parameters that take gradients
+            wrapped = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
+                                              broadcast_buffers=False)
+            wrapped_phase = joint
         if model.camera.cfa is not None:
             model.camera.cfa.set_temperature(temperature_at(epoch, config))
-        wrapped = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
-                                          broadcast_buffers=False) if context.enabled else model
         loader.set_epoch(epoch)
         model.train()
-        sums = torch.zeros(5, device=device, dtype=torch.float64)  # loss, ohem, lovasz, smooth, steps
         started = time.perf_counter()
         bar = tqdm(total=steps_per_epoch, desc=f"epoch {epoch + 1}/{config.train.epochs} ({'joint' if joint else 'warm-up'})",
                    disable=not (progress and context.is_main), leave=False)
@@ -192,35 +205,21 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
                 break
             images = images.to(device, non_blocking=True)
             labels = labels.to(device, non_blocking=True)
-            logits, sensed = wrapped(images, amp)
-            loss, parts = segmentation_loss(logits, labels, sensed, config.loss)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            if joint and config.train.camera_grad_clip > 0:
-                trainable = [p for p in camera_params if p.grad is not None]
-                if trainable:
-                    torch.nn.utils.clip_grad_norm_(trainable, config.train.camera_grad_clip)
-            scale = 0.5 * (1 + math.cos(math.pi * step / total_steps))
-            for group, base_lr in zip(optimizer.param_groups, base_lrs):
-                group["lr"] = base_lr * scale
-            optimizer.step()
+            training_step(wrapped, images, labels, step, joint)
             step += 1
-            sums += torch.stack([loss.detach().double(), *(parts.get(k, loss.new_zeros(())).double()
-                                 for k in ("ohem", "lovasz", "smooth")), loss.new_ones((), dtype=torch.float64)])
             bar.update(1)
         bar.close()
-        context.all_reduce_sum(sums)
+        statistics = training_step.epoch_statistics(context)
         elapsed = time.perf_counter() - started
+        _check_finite(model, statistics, epoch, run_dir)
         if epoch == 0 and config.train.time_budget_minutes > 0:
             _fit_time_budget(config, elapsed, context)
-            total_steps = config.train.epochs * steps_per_epoch
+            training_step.total_steps = config.train.epochs * steps_per_epoch
             if context.is_main:
                 config.save(run_dir / "config.json")
         record = {
             "epoch": epoch, "step": step, "phase": "joint" if joint else "warmup",
-            "lr": optimizer.param_groups[0]["lr"], "train_loss": float(sums[0] / sums[4]),
-            "train_ohem": float(sums[1] / sums[4]), "train_lovasz": float(sums[2] / sums[4]),
-            "train_smooth": float(sums[3] / sums[4]),
+            "lr": optimizer.param_groups[0]["lr"], **statistics,
             "images_per_s": steps_per_epoch * config.data.batch_size / elapsed, "epoch_time_s": elapsed,
         }
         if model.camera.cfa is not None:

@@ -1,0 +1,86 @@
+"""The training step: device-side statistics, the cosine schedule, camera gradient clipping, and a diverged run
+stopped before it saves a checkpoint."""
+
+import math
+
+import pytest
+import torch
+
+from warpsense.config import load_config
+from warpsense.train import engine
+from warpsense.train.distributed import DistributedContext
+from warpsense.train.engine import train
+from warpsense.train.step import TrainingStep, cosine_scale
+from warpsense.train.system import build_system, camera_parameters
+
+from tests.train.test_training import TINY
+
+
+def _step_and_batch(overrides=()):
+    config = load_config(None, ["noise.enabled=false", *overrides])
+    torch.manual_seed(0)
+    model = build_system(config, 11)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3)
+    images = torch.randint(0, 256, (2, 3, 16, 24), dtype=torch.uint8)
+    labels = torch.randint(0, 11, (2, 16, 24))
+    return config, model, optimizer, images, labels
+
+
+def test_cosine_scale():
+    assert cosine_scale(0, 10) == 1.0 and cosine_scale(10, 10) == pytest.approx(0.0)
+    assert cosine_scale(5, 10) == pytest.approx(0.5) and cosine_scale(20, 10) == pytest.approx(0.0)
+
+
+def test_statistics_are_the_mean_of_the_step_losses():
+    config, model, optimizer, images, labels = _step_and_batch()
+    step = TrainingStep(config.loss, optimizer, camera_parameters(model), total_steps=4, amp=False)
+    losses = []
+    for index in range(3):
+        before = [p.detach().clone() for p in model.network.parameters()]
+        step(model, images, labels, index, joint=False)
+        losses.append(float(step.totals["loss"]) - sum(losses))
+        assert any(not torch.equal(a, b) for a, b in zip(before, model.network.parameters()))
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(1e-3 * cosine_scale(2, 4))
+    statistics = step.epoch_statistics(DistributedContext())
+    assert statistics["train_loss"] == pytest.approx(sum(losses) / 3) and statistics["nonfinite_steps"] == 0
+    assert set(statistics) == {"train_loss", "train_ohem", "train_lovasz", "train_smooth", "nonfinite_steps"}
+    assert step.epoch_statistics(DistributedContext()) == {}  # reset after reading
+
+
+def test_camera_gradient_is_clipped_in_the_joint_phase():
+    config, model, optimizer, images, labels = _step_and_batch()
+    clip = 1e-4
+    step = TrainingStep(config.loss, optimizer, camera_parameters(model), 4, False, camera_grad_clip=clip)
+    step(model, images, labels, 0, joint=True)
+    norm = math.sqrt(sum(float(p.grad.square().sum()) for p in camera_parameters(model) if p.grad is not None))
+    assert norm == pytest.approx(clip, rel=1e-4)
+
+
+def test_non_finite_loss_is_counted():
+    config, model, optimizer, images, labels = _step_and_batch()
+    step = TrainingStep(config.loss, optimizer, camera_parameters(model), 4, False)
+    with torch.no_grad():
+        next(model.network.parameters()).fill_(float("nan"))
+    step(model, images, labels, 0, joint=False)
+    statistics = step.epoch_statistics(DistributedContext())
+    assert statistics["nonfinite_steps"] == 1 and math.isfinite(statistics["train_loss"])
+
+
+def test_diverged_run_stops_before_saving(tmp_path, monkeypatch):
+    """A NaN parameter after warm-up (as an infinite learning rate or a NaN lens coefficient gives) stops the run
+    with a one-line error; the checkpoints on disk are from the last finite epoch."""
+    config = load_config(None, TINY + ["train.epochs=3", "train.warmup_epochs=1", f"run.output_dir={tmp_path}"])
+    original = TrainingStep.__call__
+
+    def poisoned(self, model, images, labels, step, joint):
+        if joint:
+            with torch.no_grad():
+                model.camera.exposure.gain_logit.fill_(float("nan"))
+        return original(self, model, images, labels, step, joint)
+
+    monkeypatch.setattr(TrainingStep, "__call__", poisoned)
+    with pytest.raises(FloatingPointError, match="epoch 2"):
+        train(config, progress=False)
+    run = tmp_path / "default"
+    state = engine.read_checkpoint(run / engine.LAST)[1]["state"]
+    assert state["epoch"] == 0 and math.isfinite(state["best_miou"])
