@@ -34,19 +34,39 @@ CASES = {
     "psf_conv": (psf._psf_conv_cells, lambda: (_rand(2, 3, 6, 7), psf.node_cells(_rand(3, 3, 2, 3, 3)).detach()
                                                .requires_grad_(), 3, 2)),
 }
+# the backward ops, with the forward inputs (no grad) and a gradient of the forward output's shape
+BACKWARD_CASES = {
+    "cfa_mosaic_backward": (cfa._cfa_mosaic_backward,
+                            lambda: (_rand(2, 3, 5, 6), _rand(2, 2, 3), _rand(2, 1, 5, 6), True)),
+    "poisson_gaussian_backward": (noise._poisson_gaussian_backward,
+                                  lambda: (_rand(2, 1, 4, 5), _rand(1), _rand(1), _seeds(2), 0, _rand(2, 1, 4, 5))),
+    "quantize_ste_backward": (quantize._quantize_ste_backward,
+                              lambda: (_rand(2, 12), torch.ones(2, **DOUBLE), _rand(2, 12))),
+    "sensor_capture_backward": (sensor._sensor_capture_backward,
+                                lambda: (_rand(2, 3, 4, 6), _rand(2, 2, 3), _rand(1), _rand(1),
+                                         torch.ones(1, **DOUBLE), _seeds(2), 0, 1, 1023, _rand(2, 1, 4, 6), True)),
+    "psf_conv_backward_image": (psf._psf_backward_image,
+                                lambda: (_rand(2, 3, 6, 7), psf.node_cells(_rand(3, 3, 2, 3, 3)), 3, 2)),
+    "psf_conv_backward_cells": (psf._psf_backward_cells,
+                                lambda: (_rand(2, 3, 6, 7), _rand(2, 3, 6, 7), psf.node_cells(_rand(3, 3, 2, 3, 3)),
+                                         3, 2)),
+}
 
 
 def _to(value, device):
     if isinstance(value, torch.Tensor):
-        return value.detach().to(device).requires_grad_(value.requires_grad)
+        return value.detach().to(device).requires_grad_(value.requires_grad and value.is_leaf)
     return value
 
 
 @pytest.mark.parametrize("device", device_params())
-@pytest.mark.parametrize("name", sorted(CASES))
+@pytest.mark.parametrize("name", sorted(CASES) + sorted(BACKWARD_CASES))
 def test_opcheck(name, device):
-    op, make_inputs = CASES[name]
-    results = torch.library.opcheck(op, [_to(x, device) for x in make_inputs()])
+    op, make_inputs = {**CASES, **BACKWARD_CASES}[name]
+    inputs = [_to(x, device) for x in make_inputs()]
+    if name in BACKWARD_CASES:  # backward ops are once differentiable: no inputs that take gradients
+        inputs = [x.detach() if isinstance(x, torch.Tensor) else x for x in inputs]
+    results = torch.library.opcheck(op, inputs)
     assert set(results.values()) == {"SUCCESS"}, results
 
 

@@ -30,7 +30,7 @@ def _sensor_capture_backward(rgb: torch.Tensor, phi: torch.Tensor, shot: torch.T
             partials], rgb.device)
     sums = partials.sum(dim=1)
     levels = sums[:, 3:].sum(dim=0)
-    return grad_rgb, sums[:, :3].reshape(tile, tile, 3), levels[0:1].clone(), levels[1:2].clone()
+    return grad_rgb, sums[:, :3].reshape(tile, tile, 3).contiguous(), levels[0:1].clone(), levels[1:2].clone()
 
 
 def _sensor_backward(ctx, grad_raw):

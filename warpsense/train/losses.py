@@ -30,6 +30,9 @@ def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: flo
     return (ranked * kept).sum() / keep
 
 
+# run eagerly under torch.compile: inductor (torch 2.11) fails to generate the split scan of a cumsum over a gather
+# of this length (InductorError in SplitScan codegen); its input has no gradient, so the island costs nothing else
+@torch.compiler.disable
 def lovasz_grad(sorted_labels: torch.Tensor) -> torch.Tensor:
     """Gradient of the Lovasz extension of the Jaccard loss w.r.t. sorted errors (Berman et al. 2018, alg. 1).
 
