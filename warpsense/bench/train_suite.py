@@ -140,7 +140,7 @@ def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
         record.update({"suite": "train", "device": device, "device_name": metadata.get("device_name")})
         records.append(record)
         figure = (f"{record['images_per_s']:8.1f} img/s" if "images_per_s" in record
-                  else f"{record['median_ms']:8.3f} ms")
+                  else f"{record['median_ms']:8.3f} ms" if "median_ms" in record else f"failed: {record['error']}")
         print(f"train-suite {record['method']:>15s} {record['camera']:>9s} {record.get('loss', record.get('mode')):>6s}"
               f" {record.get('compile', ''):>8s} {figure}", flush=True)
 
@@ -149,10 +149,17 @@ def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
     runs = [(loss_name, "off") for loss_name in ("ce", "full")] + ([("full", "default")] if device == "cuda" else [])
     for method, camera_name in cases:
         for loss_name, compile_mode in runs:
-            rate = training_throughput(method, camera_name, loss_name, device, batch, height, width, steps,
-                                       warmup + (5 if compile_mode != "off" else 0), compile_mode)
-            add({"method": method, "camera": camera_name, "loss": loss_name, "compile": compile_mode,
-                 "images_per_s": rate, "shape": [batch, 3, height, width]})
+            record = {"method": method, "camera": camera_name, "loss": loss_name, "compile": compile_mode,
+                      "shape": [batch, 3, height, width]}
+            try:
+                record["images_per_s"] = training_throughput(method, camera_name, loss_name, device, batch, height,
+                                                             width, steps, warmup + (5 if compile_mode != "off" else 0),
+                                                             compile_mode)
+            except Exception as error:  # a compiler failure is a result to report, not the end of the suite
+                if compile_mode == "off":
+                    raise
+                record["error"] = f"{type(error).__name__}: {str(error).splitlines()[0][:300]}"
+            add(record)
     for method, camera_name in cases:
         for graph in ((False, True) if device == "cuda" else (False,)):
             timing = latency(method, camera_name, device, height, width, graph)

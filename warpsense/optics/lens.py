@@ -234,6 +234,9 @@ class Lens(nn.Module):
         """Same as `psf_at` (so `torch.func.functional_call` can swap the coefficients)."""
         return self.psf_at(field_height, azimuth, **options)
 
+    # rendered eagerly under torch.compile: inductor (torch 2.11) cannot lower its complex pupil FFTs; the grid is
+    # small (a few ms per step), the image-sized work is in psf_conv
+    @torch.compiler.disable
     def psf_grid(self, grid: tuple[int, int] | None = None) -> torch.Tensor:
         """[3, Gy, Gx, K, K] PSFs at the grid nodes (corners included, `field_points`), each summing to 1 (float64)."""
         grid_y, grid_x = grid or self.spec.psf_grid
