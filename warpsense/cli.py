@@ -30,7 +30,7 @@ def _eval(args) -> int:
 
     height, width = (int(v) for v in args.latency_size.lower().split("x"))
     run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
-             (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot)
+             (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot, args.flip_tta)
     return 0
 
 
@@ -79,6 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--split", default="val", help="split name (e.g. val)")
     evaluate.add_argument("--json", metavar="OUT", help="write metrics JSON (miou, per_class_iou, pixel_accuracy, num_images)")
     evaluate.add_argument("--sweep", action="store_true", help="robustness sweeps: extra blur, noise scale, bit depth")
+    evaluate.add_argument("--flip-tta", action="store_true",
+                          help="average with the prediction on the mirrored capture (keeps the CFA phase)")
     evaluate.add_argument("--plot", metavar="OUT.png", help="with --sweep: plot the sweeps")
     evaluate.add_argument("--latency", action="store_true", help="time sensor simulation + network and network alone")
     evaluate.add_argument("--latency-size", default="192x640", metavar="HxW", help="input size for --latency")

@@ -50,6 +50,7 @@ class DataConfig:
     hflip: bool = True
     batch_size: int = 8
     num_workers: int = 0
+    holdout_prefix: str = ""
     on_device: str = field(default="auto", metadata=_choices("auto", "always", "never"))
     on_device_max_mb: int = 2048
     max_train_images: int = 0

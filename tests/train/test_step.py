@@ -84,3 +84,59 @@ def test_diverged_run_stops_before_saving(tmp_path, monkeypatch):
     run = tmp_path / "default"
     state = engine.read_checkpoint(run / engine.LAST)[1]["state"]
     assert state["epoch"] == 0 and math.isfinite(state["best_miou"])
+
+
+def test_cfa_flip_keeps_every_pixel_on_its_site():
+    """A scene of one colour captured through RGGB: the raw depends only on the site, so a phase-keeping mirror of it
+    is itself (a plain flip of an even-width frame swaps R and G columns)."""
+    from warpsense.ops import cfa_mosaic
+    from warpsense.train.system import cfa_flip, cfa_unflip
+
+    phi = torch.tensor([[[1.0, 0, 0], [0, 1, 0]], [[0, 1, 0], [0, 0, 1]]])
+    for width in (8, 9):
+        raw = cfa_mosaic(torch.tensor([0.9, 0.5, 0.1]).view(1, 3, 1, 1).expand(1, 3, 4, width).contiguous(), phi)
+        mirrored, shift = cfa_flip(raw, 2)
+        assert shift == (1 if width % 2 == 0 else 0)
+        assert torch.equal(mirrored[..., shift:], raw[..., shift:])  # the repeated edge column aside
+        assert not torch.equal(raw.flip(-1), raw) or width % 2
+        ramp = torch.arange(width, dtype=torch.float32).expand(1, 1, 4, width)
+        restored = cfa_unflip(cfa_flip(ramp, 2)[0], shift)  # an identity network
+        assert torch.equal(restored[..., shift:], ramp[..., shift:])
+    with pytest.raises(ValueError, match="2x2"):
+        cfa_flip(raw, 3)
+
+
+def test_flip_tta_eval_runs(tmp_path):
+    config = load_config(None, TINY + ["train.epochs=1", "train.warmup_epochs=0", f"run.output_dir={tmp_path}"])
+    run, model = train(config, progress=False, return_model=True)
+    from warpsense.data import build_dataset
+    from warpsense.train.evaluate import evaluate
+    from warpsense.train.system import cfa_flip, cfa_unflip
+
+    dataset = build_dataset(config.data, "val", train=False)
+    assert evaluate(model, dataset, "cpu", flip=True)["num_images"] == len(dataset)
+    model.eval()
+    images = torch.stack([dataset[i][0] for i in range(2)])
+    index = torch.arange(2)
+    plain = model.probabilities(images, image_index=index)
+    averaged = model.probabilities(images, image_index=index, flip=True)
+    logits, sensed = model(images, image_index=index)
+    mirrored, shift = cfa_flip(sensed, model.camera.tile)
+    expected = 0.5 * (plain + cfa_unflip(torch.softmax(model.network(mirrored), dim=1), shift))
+    torch.testing.assert_close(averaged, expected)
+    assert not torch.allclose(averaged, plain)
+
+
+def test_holdout_prefix_selects_on_a_sequence_training_never_sees(shared_data, tmp_path):
+    from warpsense.data import build_dataset
+
+    config = load_config("camvid_codesign", TINY + [f"data.root={shared_data / 'camvid'}", "data.holdout_prefix=0006R0",
+                                                    "optics.enabled=false"])
+    rest = build_dataset(config.data, "train", train=True, part="rest")
+    held = build_dataset(config.data, "train", train=False, part="holdout")
+    assert len(rest) + len(held) == 367 and len(held) == 101
+    assert all(p[0].name.startswith("0006R0") for p in held.pairs)
+    assert not any(p[0].name.startswith("0006R0") for p in rest.dataset.pairs)
+    with pytest.raises(Exception, match="holdout prefix"):
+        build_dataset(load_config(None, ["data.dataset=camvid", f"data.root={shared_data / 'camvid'}",
+                                         "data.holdout_prefix=XYZ"]).data, "train", False, part="holdout")

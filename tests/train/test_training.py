@@ -13,7 +13,7 @@ from warpsense.train.losses import segmentation_loss
 from warpsense.train.system import build_system
 
 TINY = ["data.scenes_train=16", "data.scenes_val=4", "data.batch_size=4", "data.scene_height=32",
-        "data.scene_width=48", "data.crop_height=32", "data.crop_width=48", "train.plots=false"]
+        "data.scene_width=48", "data.crop_height=32", "data.crop_width=48", "train.plots=false", "train.compile=off"]
 
 
 def test_model_parameter_budget():
@@ -62,6 +62,10 @@ def test_train_on_real_camvid_crops(shared_data, tmp_path):
     run = train(config, progress=False)
     record = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
     assert 0.0 <= record["val_miou"] <= 1.0 and record["train_loss"] > 0
+    # model selection on the held-out sequence (0006R0), reported beside val
+    assert 0.0 <= record["selection_miou"] <= 1.0
+    state = json.loads((run / "checkpoint_best.json").read_text())["state"]
+    assert state["best_miou"] == record["selection_miou"]
 
 
 def test_resume_continues_interrupted_run(tmp_path):

@@ -9,8 +9,11 @@ from warpsense.data.transforms import Augmented
 DATASETS = {"camvid": CamVid, "cityscapes": Cityscapes, "kitti360": KITTI360, "scenes": StreetScenes}
 
 
-def build_dataset(data_config, split: str, train: bool, seed: int = 0):
-    """The dataset named by ``data_config.dataset`` for ``split``; training splits are augmented."""
+def build_dataset(data_config, split: str, train: bool, seed: int = 0, part: str = "all"):
+    """The dataset named by ``data_config.dataset`` for ``split``; training splits are augmented.
+
+    ``part``: "all", or with ``data_config.holdout_prefix`` set, "rest" (the images outside the held-out prefix)
+    or "holdout" (those inside it, never augmented: the model-selection set)."""
     name = data_config.dataset
     if name not in DATASETS:
         raise KeyError(f"unknown dataset {name!r}; valid datasets: {', '.join(DATASETS)}")
@@ -22,7 +25,18 @@ def build_dataset(data_config, split: str, train: bool, seed: int = 0):
         if not data_config.root:
             raise DatasetError(f"data.root is empty: set it to the {name} folder (--set data.root=PATH)")
         limit = data_config.max_train_images if train else data_config.max_val_images
-        dataset = DATASETS[name](data_config.root, split, limit=limit)
+        dataset = DATASETS[name](data_config.root, split, limit=limit if part == "all" else 0)
+    if part != "all":
+        if not data_config.holdout_prefix or not hasattr(dataset, "split_by_prefix"):
+            raise DatasetError(f"data.holdout_prefix: a held-out part needs a prefix and a file-based dataset, "
+                               f"got {data_config.holdout_prefix!r} for {name}")
+        rest, held = dataset.split_by_prefix(data_config.holdout_prefix)
+        # the limits apply after the split: max_train_images to the rest, max_val_images to the held-out part
+        held.pairs = held.pairs[:data_config.max_val_images or None]
+        if part == "holdout":
+            return held
+        dataset = rest
+        dataset.pairs = dataset.pairs[:data_config.max_train_images or None]
     if train:
         crop = (data_config.crop_height, data_config.crop_width)
         return Augmented(dataset, crop, (data_config.scale_min, data_config.scale_max), data_config.hflip, seed)

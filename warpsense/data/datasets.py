@@ -6,6 +6,7 @@ sRGB -> radiance conversion happen later (`warpsense.data.transforms`, `warpsens
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +55,18 @@ class PairDataset(Dataset):
 
     def __len__(self) -> int:
         return len(self.pairs)
+
+    def split_by_prefix(self, prefix: str) -> tuple["PairDataset", "PairDataset"]:
+        """(pairs whose image file name does not start with ``prefix``, those that do): e.g. a CamVid sequence
+        ("0006R0") held out of training for model selection."""
+        inside = [pair for pair in self.pairs if pair[0].name.startswith(prefix)]
+        outside = [pair for pair in self.pairs if not pair[0].name.startswith(prefix)]
+        if not inside or not outside:
+            raise DatasetError(f"holdout prefix {prefix!r} matches {len(inside)} of {len(self.pairs)} images: it must "
+                               f"select some but not all")
+        rest, held = copy.copy(self), copy.copy(self)
+        rest.pairs, held.pairs = outside, inside
+        return rest, held
 
     def __getitem__(self, index: int):
         image_path, label_path = self.pairs[index]

@@ -1,7 +1,7 @@
 """A training set held on the GPU: decoded once as uint8, augmented there in batches with fixed output shapes.
 
-Same augmentation as `warpsense.data.transforms.scale_crop_flip` (random rescale, crop padded with 0 / the ignore
-label, horizontal flip), drawn per batch from a device generator, so a training step needs no host work and no
+Same augmentation as `warpsense.data.transforms.scale_crop_flip` (random rescale raised where needed to cover
+the crop, crop, horizontal flip), drawn per batch from a device generator, so a training step needs no host work and no
 host-device copy.
 """
 
@@ -72,10 +72,12 @@ class DeviceBatches:
         crop_h, crop_w = self.crop
         low, high = self.scale_range
         draws = torch.rand(batch, 4, generator=generator, device=self.device)
-        scale = low + (high - low) * draws[:, 0]
         size = self.sizes[indices]  # [B, 2] source height, width
+        # raised where needed so the scaled image covers the crop (as in scale_crop_flip: no padding)
+        cover = torch.maximum(crop_h / size[:, 0], crop_w / size[:, 1]) * (1 + 1e-6)
+        scale = torch.maximum(low + (high - low) * draws[:, 0], cover)
         scaled_h, scaled_w = size[:, 0] * scale, size[:, 1] * scale
-        # top-left corner of the crop in the scaled image (the crop may hang over when the scaled image is smaller)
+        # top-left corner of the crop in the scaled image
         top = (draws[:, 1] * (scaled_h - crop_h).clamp_min(0)).floor()
         left = (draws[:, 2] * (scaled_w - crop_w).clamp_min(0)).floor()
         flip = (draws[:, 3] < 0.5) if self.hflip else torch.zeros(batch, dtype=torch.bool, device=self.device)

@@ -6,26 +6,23 @@ import torch
 from torch.nn import functional as F
 from torch.utils.data import Dataset, Sampler
 
-from warpsense.data.labels import IGNORE_INDEX
 
 
 def scale_crop_flip(image: torch.Tensor, label: torch.Tensor, crop: tuple[int, int], scale_range: tuple[float, float],
                     hflip: bool, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """uint8 [3, H, W], int64 [H, W] -> a random (crop_h, crop_w) window after a random rescale and flip.
 
-    Images shorter than the crop are padded (image with 0, label with the ignore index)."""
+    The scale is raised where needed so the rescaled image covers the crop: padding would enter the camera (its
+    mean normalisation, paper 4.4) and the network as black pixels that no eval frame has."""
     low, high = scale_range
+    crop_h, crop_w = crop
     scale = low + (high - low) * float(torch.rand((), generator=generator))
+    scale = max(scale, crop_h / image.shape[1], crop_w / image.shape[2])
     if abs(scale - 1.0) > 1e-6:
-        size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[2] * scale)))
+        size = (max(crop_h, round(image.shape[1] * scale)), max(crop_w, round(image.shape[2] * scale)))
         image = F.interpolate(image[None].float(), size=size, mode="bilinear", align_corners=False)[0]
         image = image.round().clamp(0, 255).to(torch.uint8)
         label = F.interpolate(label[None, None].float(), size=size, mode="nearest")[0, 0].long()
-    crop_h, crop_w = crop
-    pad_h, pad_w = max(0, crop_h - image.shape[1]), max(0, crop_w - image.shape[2])
-    if pad_h or pad_w:
-        image = F.pad(image, (0, pad_w, 0, pad_h))
-        label = F.pad(label, (0, pad_w, 0, pad_h), value=IGNORE_INDEX)
     top = int(torch.randint(0, image.shape[1] - crop_h + 1, (), generator=generator))
     left = int(torch.randint(0, image.shape[2] - crop_w + 1, (), generator=generator))
     image = image[:, top : top + crop_h, left : left + crop_w]

@@ -54,7 +54,7 @@ class DSUNet(nn.Module):
     neighbourhood, so thin structures keep full-resolution detail) and, in parallel, as a T x T pixel-unshuffle
     (the CFA tile's sites as channels) concatenated at half resolution. Encoder: 1, 1/2, 1/4, 1/8, 1/16 with widths
     w, 2w, 4w, 6w, 8w; decoder: bilinear upsampling + skip concatenation + separable blocks; head at full
-    resolution. width=16 gives about 0.3M parameters.
+    resolution. width=16 gives 0.18M parameters, width=24 0.40M (the camvid presets).
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 16, tile: int = 2):

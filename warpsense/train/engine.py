@@ -135,8 +135,12 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
     context = DistributedContext.from_environment(config.run.device)
     device = context.device
     torch.manual_seed(config.run.seed)
-    train_set = build_dataset(config.data, config.data.train_split, train=True, seed=config.run.seed)
+    holdout = "rest" if config.data.holdout_prefix else "all"
+    train_set = build_dataset(config.data, config.data.train_split, train=True, seed=config.run.seed, part=holdout)
     val_set = build_dataset(config.data, config.data.val_split, train=False, seed=config.run.seed)
+    # model selection on training images held out by prefix (a sequence the training never sees), else on val
+    selection_set = build_dataset(config.data, config.data.train_split, train=False, seed=config.run.seed,
+                                  part="holdout") if config.data.holdout_prefix else None
     num_classes = config.model.num_classes or len(train_set.classes)
     model = build_system(config, num_classes).to(device)
     mark_learnable(model)
@@ -226,13 +230,19 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
             record["temperature"] = float(model.camera.cfa.temperature)
         last_epoch = epoch == config.train.epochs - 1
         if (epoch + 1) % config.train.eval_every == 0 or last_epoch:
-            metrics = evaluate(model, val_set, device, batch_size=max(1, config.data.batch_size // 2),
-                               context=context, class_names=train_set.classes, amp=amp)
+            evaluation = dict(device=device, batch_size=max(1, config.data.batch_size // 2), context=context,
+                              class_names=train_set.classes, amp=amp)
+            metrics = evaluate(model, val_set, **evaluation)
             record.update({"val_miou": metrics["miou"], "val_pixel_accuracy": metrics["pixel_accuracy"],
                            "val_per_class_iou": metrics["per_class_iou"]})
+            if selection_set is not None:
+                selection = evaluate(model, selection_set, **evaluation)
+                record.update({"selection_miou": selection["miou"],
+                               "selection_per_class_iou": selection["per_class_iou"]})
         record.update(camera_summary(model))
-        is_best = record.get("val_miou", -1.0) > best_miou
-        best_miou = max(best_miou, record.get("val_miou", -1.0))
+        score = record.get("selection_miou", record.get("val_miou", -1.0))
+        is_best = score > best_miou
+        best_miou = max(best_miou, score)
         if context.is_main:
             with open(run_dir / "metrics.jsonl", "a") as log:
                 log.write(json.dumps(record) + "\n")
@@ -242,6 +252,8 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
                 save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
             save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state())
             miou = f"{record['val_miou']:.4f}" if "val_miou" in record else "-"
+            if "selection_miou" in record:
+                miou += f" (held-out {config.data.holdout_prefix}: {record['selection_miou']:.4f})"
             print(f"epoch {epoch + 1}/{config.train.epochs} {record['phase']}: loss {record['train_loss']:.4f} "
                   f"val mIoU {miou} ({record['images_per_s']:.1f} img/s)", flush=True)
         context.barrier()

@@ -18,11 +18,12 @@ from warpsense.train.system import build_system
 
 @torch.no_grad()
 def evaluate(model, dataset, device, batch_size: int = 4, context=None, class_names=None, amp: bool = False,
-             progress: bool = False, blur_sigma: float = 0.0) -> dict:
+             progress: bool = False, blur_sigma: float = 0.0, flip: bool = False) -> dict:
     """Metrics of ``model`` on ``dataset`` (full images, eval-mode camera: noise seeded by each image's index).
 
     With a distributed ``context`` each rank takes every world_size-th image and the confusion matrices are summed.
     ``blur_sigma`` > 0 adds a Gaussian blur (pixels) to the radiance before the camera (robustness sweep).
+    ``flip``: CFA-phase-preserving horizontal-flip test-time augmentation (`SensingModel.probabilities`).
     """
     was_training = model.training
     model.eval()
@@ -39,8 +40,7 @@ def evaluate(model, dataset, device, batch_size: int = 4, context=None, class_na
         if blur_sigma > 0:
             images = gaussian_blur(model.radiance(images), blur_sigma)
         image_index = indices[batch * batch_size : batch * batch_size + images.shape[0]]
-        logits, _ = model(images, amp, image_index)
-        confusion.update(logits.argmax(dim=1), labels)
+        confusion.update(model.probabilities(images, amp, image_index, flip).argmax(dim=1), labels)
     if context is not None and context.enabled:
         context.all_reduce_sum(confusion.matrix)
         images_seen = torch.tensor([confusion.images], device=device)
@@ -114,7 +114,7 @@ def measure_latency(model, device, height: int, width: int, batch: int, repeats:
 def run_eval(checkpoint: str, data: str, data_root: str, split: str, json_out: str | None = None,
              sweep: bool = False, latency: bool = False, latency_size: tuple[int, int] = (192, 640),
              latency_batch: int = 1, device: str = "auto", batch_size: int = 4, limit: int = 0,
-             plot_out: str | None = None) -> dict:
+             plot_out: str | None = None, flip: bool = False) -> dict:
     """The `warpsense eval` command as a function; returns the JSON payload."""
     from warpsense.data import build_dataset
 
@@ -128,9 +128,10 @@ def run_eval(checkpoint: str, data: str, data_root: str, split: str, json_out: s
     dataset = build_dataset(config.data, split, train=False, seed=config.run.seed)
     class_names = state.get("class_names") or list(dataset.classes)
     amp = torch_device.type == "cuda" and config.train.amp
-    metrics = evaluate(model, dataset, torch_device, batch_size, class_names=class_names, amp=amp, progress=True)
+    metrics = evaluate(model, dataset, torch_device, batch_size, class_names=class_names, amp=amp, progress=True,
+                       flip=flip)
     payload = dict(metrics)
-    payload.update({"checkpoint": str(checkpoint), "dataset": data, "split": split})
+    payload.update({"checkpoint": str(checkpoint), "dataset": data, "split": split, "flip_tta": flip})
     print(f"mIoU {metrics['miou']:.4f}  pixel accuracy {metrics['pixel_accuracy']:.4f}  images {metrics['num_images']}")
     for name, iou in metrics["per_class_iou"].items():
         print(f"  {name:>14s}  {'-' if iou is None else f'{iou:.4f}'}")

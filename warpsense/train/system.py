@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from torch.nn import functional as F
+
 from warpsense.camera import Camera
 from warpsense.camera.isp import FixedISP
 from warpsense.camera.cfa import layout_letters
@@ -40,6 +42,44 @@ class SensingModel(nn.Module):
         with torch.autocast(device_type=sensed.device.type, dtype=torch.bfloat16, enabled=amp):
             logits = self.network(sensed)
         return logits, sensed
+
+    @torch.no_grad()
+    def probabilities(self, image: torch.Tensor, amp: bool = False, image_index: torch.Tensor | None = None,
+                      flip: bool = False) -> torch.Tensor:
+        """Class probabilities [B, K, H, W]; ``flip``: averaged with the prediction on the horizontally flipped
+        capture (test-time augmentation that keeps the CFA phase, `cfa_flip`: one capture, no second exposure)."""
+        logits, sensed = self(image, amp, image_index)
+        probabilities = torch.softmax(logits.float(), dim=1)
+        if flip:
+            tile = self.camera.tile if self.isp is None else 1
+            flipped, shift = cfa_flip(sensed, tile)
+            with torch.autocast(device_type=sensed.device.type, dtype=torch.bfloat16, enabled=amp):
+                flipped_logits = self.network(flipped)
+            probabilities = 0.5 * (probabilities + cfa_unflip(torch.softmax(flipped_logits.float(), dim=1), shift))
+        return probabilities
+
+
+def cfa_flip(sensed: torch.Tensor, tile: int) -> tuple[torch.Tensor, int]:
+    """Mirror a capture [B, C, H, W] left-right so that every pixel keeps its CFA site.
+
+    A plain flip moves column x to W - 1 - x, whose site differs when W is even (2x2 tiles); shifting the mirrored
+    frame by ``shift`` = (W - 1) mod 2 columns (edge column repeated) restores the phase. Tiles wider than 2 have no
+    such shift. Returns (mirrored capture, shift) for `cfa_unflip`."""
+    if tile > 2:
+        raise ValueError(f"flip test-time augmentation keeps the CFA phase only for 1x1 and 2x2 tiles, got {tile}x{tile}")
+    width = sensed.shape[-1]
+    shift = (width - 1) % 2 if tile == 2 else 0
+    mirrored = sensed.flip(-1)
+    if shift:
+        mirrored = F.pad(mirrored, (shift, 0, 0, 0), mode="replicate")[..., :width]
+    return mirrored, shift
+
+
+def cfa_unflip(prediction: torch.Tensor, shift: int) -> torch.Tensor:
+    """Map a prediction on `cfa_flip`'s capture back to the original columns (the ``shift`` edge columns it cannot
+    see repeat their neighbour)."""
+    restored = prediction[..., shift:].flip(-1)
+    return F.pad(restored, (shift, 0, 0, 0), mode="replicate") if shift else restored
 
 
 def build_system(config, num_classes: int) -> SensingModel:
