@@ -1,6 +1,9 @@
-"""Checkpoints: safetensors (no pickle) + a JSON sidecar with the resolved config and training state.
+"""Checkpoints: one safetensors file (no pickle) holding the tensors and, in its metadata, the resolved config and
+training state; a JSON copy of that metadata is written beside it for people to read.
 
-Both files are written to temporary names and renamed, so an interrupted write never leaves a partial checkpoint.
+The checkpoint is one file, written to a temporary name and renamed: a kill at any moment leaves either the old
+checkpoint or the new one, never a mix (a sidecar replaced before its tensors once resumed from mismatched state).
+Reading takes the metadata inside the file; the sidecar is consulted only for checkpoints written before this.
 """
 
 from __future__ import annotations
@@ -10,7 +13,14 @@ import os
 from pathlib import Path
 
 import torch
+from safetensors import safe_open
 from safetensors.torch import load_file, save_file
+
+METADATA_KEY = "warpsense"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be read or does not describe a warpsense run (message names the file)."""
 
 
 def _atomic_json(path: Path, payload: dict) -> None:
@@ -21,7 +31,7 @@ def _atomic_json(path: Path, payload: dict) -> None:
 
 def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict, state: dict,
                     optimizer: torch.optim.Optimizer | None = None, rng_state: torch.Tensor | None = None) -> None:
-    """Write ``path`` (.safetensors) and ``path.with_suffix('.json')``.
+    """Write ``path`` (.safetensors, atomically) and a readable copy of its metadata at ``path.with_suffix('.json')``.
 
     Tensors: ``model.*`` (state dict), ``optimizer.<param index>.<key>`` (AdamW moments and step), ``rng`` (torch
     CPU generator state). JSON: {"config": ..., "state": ...} with the epoch, step, best mIoU, CFA layout etc.
@@ -34,21 +44,41 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict,
                 tensors[f"optimizer.{index}.{key}"] = torch.as_tensor(value).detach().contiguous().cpu()
     if rng_state is not None:
         tensors["rng"] = rng_state
+    payload = {"config": config_dict, "state": state}
     tmp = path.with_name(path.name + ".tmp")
-    save_file(tensors, str(tmp))
-    _atomic_json(path.with_suffix(".json"), {"config": config_dict, "state": state})
+    save_file(tensors, str(tmp), metadata={METADATA_KEY: json.dumps(payload, sort_keys=True)})
     os.replace(tmp, path)
+    _atomic_json(path.with_suffix(".json"), payload)
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
-    """(tensors, {"config": ..., "state": ...}); errors name the file."""
+    """(tensors, {"config": ..., "state": ...}); every failure is a one-line `CheckpointError` naming the file."""
     path = Path(path)
-    sidecar = path.with_suffix(".json")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: checkpoint not found")
-    if not sidecar.is_file():
-        raise FileNotFoundError(f"{sidecar}: checkpoint config (JSON sidecar) not found")
-    return load_file(str(path)), json.loads(sidecar.read_text())
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            metadata = handle.metadata() or {}
+        tensors = load_file(str(path))
+    except Exception as error:  # safetensors raises several types for zero-byte, truncated or foreign files
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({reason})") from None
+    if METADATA_KEY in metadata:
+        text, source = metadata[METADATA_KEY], f"{path} metadata"
+    else:
+        sidecar = path.with_suffix(".json")
+        if not sidecar.is_file():
+            raise CheckpointError(f"{path}: no run metadata inside and no {sidecar.name} beside it")
+        text, source = sidecar.read_text(), str(sidecar)
+    try:
+        meta = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise CheckpointError(f"{source}: invalid JSON ({error})") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict) or not isinstance(meta.get("state"), dict):
+        raise CheckpointError(f"{source}: expected an object with 'config' and 'state' objects")
+    if not any(name.startswith("model.") for name in tensors):
+        raise CheckpointError(f"{path}: holds no model tensors")
+    return tensors, meta
 
 
 def restore(tensors: dict, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None = None) -> None:
