@@ -20,6 +20,18 @@ def mosaic_value(rgb: wp.array4d(dtype=Any), phi: wp.array3d(dtype=Any), b: int,
 
 
 @wp.func
+def mosaic_adjoint(rgb: wp.array4d(dtype=Any), phi: wp.array3d(dtype=Any), b: int, y: int, x: int, site_y: int,
+                   site_x: int, g: Any, want_grad_rgb: int, grad_rgb: wp.array4d(dtype=Any)):
+    """Adjoint of `mosaic_value` at pixel (y, x) of image b (CFA site (site_y, site_x)) for output gradient g:
+    writes d/drgb there (when wanted) and returns the pixel's three terms of d/dphi[site]."""
+    if want_grad_rgb != 0:
+        grad_rgb[b, 0, y, x] = g * phi[site_y, site_x, 0]
+        grad_rgb[b, 1, y, x] = g * phi[site_y, site_x, 1]
+        grad_rgb[b, 2, y, x] = g * phi[site_y, site_x, 2]
+    return g * rgb[b, 0, y, x], g * rgb[b, 1, y, x], g * rgb[b, 2, y, x]
+
+
+@wp.func
 def site_pixel_count(height: int, width: int, tile: int, site_y: int, site_x: int):
     """(columns, pixels per image) of CFA site (site_y, site_x): the pixels p with p mod T equal to the site."""
     rows = (height - site_y + tile - 1) / tile
@@ -65,14 +77,10 @@ def cfa_backward(
     acc2 = rgb.dtype(0.0)
     for m in range(lane, total, lanes):
         b, y, x = site_pixel(m, sy, sx, tile, cols, per_image)
-        g = grad_raw[b, 0, y, x]
-        acc0 += g * rgb[b, 0, y, x]
-        acc1 += g * rgb[b, 1, y, x]
-        acc2 += g * rgb[b, 2, y, x]
-        if want_grad_rgb != 0:
-            grad_rgb[b, 0, y, x] = g * phi[sy, sx, 0]
-            grad_rgb[b, 1, y, x] = g * phi[sy, sx, 1]
-            grad_rgb[b, 2, y, x] = g * phi[sy, sx, 2]
+        d0, d1, d2 = mosaic_adjoint(rgb, phi, b, y, x, sy, sx, grad_raw[b, 0, y, x], want_grad_rgb, grad_rgb)
+        acc0 += d0
+        acc1 += d1
+        acc2 += d2
     phi_partials[site, lane, 0] = acc0
     phi_partials[site, lane, 1] = acc1
     phi_partials[site, lane, 2] = acc2

@@ -15,8 +15,8 @@ from typing import Any
 
 import warp as wp
 
-from warpsense.kernels.cfa import mosaic_value, site_pixel, site_pixel_count
-from warpsense.kernels.noise import noise_adjoint, noise_sigma, standard_normal
+from warpsense.kernels.cfa import mosaic_adjoint, mosaic_value, site_pixel, site_pixel_count
+from warpsense.kernels.noise import noise_adjoint, noise_key, noise_sigma, standard_normal
 from warpsense.kernels.quantize import passes_gradient, quantize_value
 
 wp.set_module_options({"enable_backward": False})
@@ -40,8 +40,8 @@ def sensor_forward(
     width = rgb.shape[3]
     value = mosaic_value(rgb, phi, b, y, x)
     if noisy != 0:
-        index = b * height * width * image_stride + y * width + x
-        value = value + noise_sigma(value, shot[0], read[0]) * rgb.dtype(standard_normal(seeds[b], index))
+        key = noise_key((b * height + y) * width + x, height * width, image_stride)
+        value = value + noise_sigma(value, shot[0], read[0]) * rgb.dtype(standard_normal(seeds[b], key))
     if steps > 0:
         value = quantize_value(value, white[0], rgb.dtype(steps))
     out[b, 0, y, x] = value
@@ -94,7 +94,8 @@ def sensor_backward(
             sigma = noise_sigma(value, shot[0], read[0])
             eps = zero
             if sigma > zero:  # regenerate eps only where it matters
-                eps = rgb.dtype(standard_normal(seeds[b], b * height * width * image_stride + y * width + x))
+                key = noise_key((b * height + y) * width + x, height * width, image_stride)
+                eps = rgb.dtype(standard_normal(seeds[b], key))
             if steps > 0 and not passes_gradient(value + sigma * eps, white[0]):
                 g = zero
             grad_value, grad_shot, grad_read = noise_adjoint(value, shot[0], read[0], sigma, eps, g)
@@ -102,13 +103,10 @@ def sensor_backward(
             acc_read += grad_read
         elif steps > 0 and not passes_gradient(value, white[0]):
             grad_value = zero
-        acc0 += grad_value * rgb[b, 0, y, x]
-        acc1 += grad_value * rgb[b, 1, y, x]
-        acc2 += grad_value * rgb[b, 2, y, x]
-        if want_grad_rgb != 0:
-            grad_rgb[b, 0, y, x] = grad_value * phi[sy, sx, 0]
-            grad_rgb[b, 1, y, x] = grad_value * phi[sy, sx, 1]
-            grad_rgb[b, 2, y, x] = grad_value * phi[sy, sx, 2]
+        d0, d1, d2 = mosaic_adjoint(rgb, phi, b, y, x, sy, sx, grad_value, want_grad_rgb, grad_rgb)
+        acc0 += d0
+        acc1 += d1
+        acc2 += d2
     partials[site, lane, 0] = acc0
     partials[site, lane, 1] = acc1
     partials[site, lane, 2] = acc2

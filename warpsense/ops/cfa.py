@@ -13,17 +13,17 @@ def site_reduction_buffers(rgb: torch.Tensor, tile: int, want_rgb: bool, sums: i
     not wanted) and partials [T * T, lanes, sums], with enough lanes to fill the device."""
     batch, _, height, width = rgb.shape
     lanes = reduction_lanes(batch * (-(-height // tile)) * (-(-width // tile)), rgb.device)
-    grad_rgb = torch.empty_like(rgb) if want_rgb else rgb.new_empty(1, 3, 1, 1)
-    return grad_rgb, rgb.new_empty(tile * tile, lanes, sums)
+    return rgb_gradient_buffer(rgb, want_rgb), rgb.new_empty(tile * tile, lanes, sums)
 
 
-def rgb_gradient_fake(rgb: torch.Tensor, want_rgb: bool) -> torch.Tensor:
-    """Fake of the grad_rgb that `site_reduction_buffers` allocates."""
+def rgb_gradient_buffer(rgb: torch.Tensor, want_rgb: bool) -> torch.Tensor:
+    """grad_rgb of a per-site backward kernel: rgb's shape, or a 1-element stand-in when it is not wanted (also the
+    ops' fake implementation of that output)."""
     return torch.empty_like(rgb) if want_rgb else rgb.new_empty(1, 3, 1, 1)
 
 
 def _cfa_backward_fake(rgb, phi, grad_raw, want_rgb):
-    return rgb_gradient_fake(rgb, want_rgb), torch.empty_like(phi)
+    return rgb_gradient_buffer(rgb, want_rgb), torch.empty_like(phi)
 
 
 @warp_op("cfa_mosaic_backward", _cfa_backward_fake)

@@ -25,6 +25,14 @@ def noise_seeds(seed: int | torch.Tensor, batch: int, device: torch.device) -> t
     return torch.full((batch,), seed_int32(seed), dtype=torch.int32, device=device), 1
 
 
+def _sample(kernel, raw, shot, read, seeds, image_stride: int) -> torch.Tensor:
+    """One thread per element of raw: a noisy sample of it (``kernel``: the Gaussian model or exact Poisson)."""
+    out = torch.empty_like(raw)
+    launch(kernel, raw.numel(),
+           [raw.view(-1), shot, read, seeds, raw.numel() // seeds.numel(), image_stride, out.view(-1)], raw.device)
+    return out
+
+
 def _noise_backward_fake(raw, shot, read, seeds, image_stride, grad_out):
     return torch.empty_like(raw), torch.empty_like(shot), torch.empty_like(read)
 
@@ -55,19 +63,13 @@ def _noise_backward(ctx, grad_out):
          save_inputs)
 def _poisson_gaussian(raw: torch.Tensor, shot: torch.Tensor, read: torch.Tensor, seeds: torch.Tensor,
                       image_stride: int) -> torch.Tensor:
-    out = torch.empty_like(raw)
-    launch(kernels.noise_forward, raw.numel(),
-           [raw.view(-1), shot, read, seeds, raw.numel() // seeds.numel(), image_stride, out.view(-1)], raw.device)
-    return out
+    return _sample(kernels.noise_forward, raw, shot, read, seeds, image_stride)
 
 
 @warp_op("poisson_gaussian_exact", lambda raw, shot, read, seeds, image_stride: torch.empty_like(raw))
 def _poisson_gaussian_exact(raw: torch.Tensor, shot: torch.Tensor, read: torch.Tensor, seeds: torch.Tensor,
                             image_stride: int) -> torch.Tensor:
-    out = torch.empty_like(raw)
-    launch(kernels.poisson_sample, raw.numel(),
-           [raw.view(-1), shot, read, seeds, raw.numel() // seeds.numel(), image_stride, out.view(-1)], raw.device)
-    return out
+    return _sample(kernels.poisson_sample, raw, shot, read, seeds, image_stride)
 
 
 def _noise_inputs(raw, shot, read, seed, name):

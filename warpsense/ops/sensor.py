@@ -8,13 +8,13 @@ import torch
 
 from warpsense.kernels import sensor as kernels
 from warpsense.ops._warp import launch, prepare, save_inputs, scalar_tensor, warp_op
-from warpsense.ops.cfa import rgb_gradient_fake, site_reduction_buffers
+from warpsense.ops.cfa import rgb_gradient_buffer, site_reduction_buffers
 from warpsense.ops.noise import noise_seeds
 from warpsense.ops.quantize import check_quantize_arguments
 
 
 def _sensor_backward_fake(rgb, phi, shot, read, white, seeds, image_stride, noisy, steps, grad_raw, want_rgb):
-    return rgb_gradient_fake(rgb, want_rgb), torch.empty_like(phi), torch.empty_like(shot), torch.empty_like(read)
+    return rgb_gradient_buffer(rgb, want_rgb), torch.empty_like(phi), torch.empty_like(shot), torch.empty_like(read)
 
 
 @warp_op("sensor_capture_backward", _sensor_backward_fake)
