@@ -24,6 +24,7 @@ from warpsense.ops import psf_conv
 from warpsense.ops.reference import (cfa_mosaic_reference, poisson_gaussian_reference, psf_conv_reference,
                                      quantize_reference)
 from warpsense.train.step import TrainingStep
+from warpsense.train.system import SensingModel
 
 
 def gaussian_psf(size: int = 7, sigma: float = 1.2, channels: int = 3) -> torch.Tensor:
@@ -42,7 +43,7 @@ class BaselineCamera(nn.Module):
         self.gain_logit = nn.Parameter(torch.tensor(-1.3863))
         self.logits = nn.Parameter(torch.nn.functional.one_hot(torch.tensor([[0, 1], [1, 2]]), 3).float() * 4)
 
-    def forward(self, radiance):
+    def forward(self, radiance, image_index=None):
         image = psf_conv_reference(radiance, self.psf)
         phi = torch.softmax(self.logits, dim=-1) * (0.25 + 3.75 * torch.sigmoid(self.gain_logit))
         raw = cfa_mosaic_reference(image, phi)
@@ -58,8 +59,8 @@ class SimpleCamera(nn.Module):
         self.register_buffer("psf", gaussian_psf())
         self.camera = Camera.from_config(load_config(None, ["cfa.mode=softmax"]))
 
-    def forward(self, radiance):
-        return self.camera(psf_conv(radiance, self.psf))
+    def forward(self, radiance, image_index=None):
+        return self.camera(psf_conv(radiance, self.psf), image_index)
 
 
 def build(method: str, camera_name: str, device) -> tuple[nn.Module, nn.Module]:
@@ -73,27 +74,12 @@ def build(method: str, camera_name: str, device) -> tuple[nn.Module, nn.Module]:
     return camera.to(device), network.to(device)
 
 
-class System(nn.Module):
-    """Camera -> network with the `SensingModel` interface (images, amp) -> (logits, sensed) that `TrainingStep`
-    takes."""
-
-    def __init__(self, camera: nn.Module, network: nn.Module):
-        super().__init__()
-        self.camera = camera
-        self.network = network
-
-    def forward(self, images, amp):
-        sensed = self.camera(srgb_to_linear(images))
-        with torch.autocast(sensed.device.type, dtype=torch.bfloat16, enabled=amp):
-            return self.network(sensed), sensed
-
-
 def training_throughput(method, camera_name, loss_name, device, batch, height, width, steps, warmup,
                         compile_mode: str = "off") -> float:
     """Images per second of full training steps (the training engine's `TrainingStep`: sensor + network forward,
     loss, backward, fused AdamW on CUDA), after ``warmup`` steps (which include any compilation)."""
     torch.manual_seed(0)
-    system = System(*build(method, camera_name, device)).train()
+    system = SensingModel(*build(method, camera_name, device)).train()
     parameters = [p for p in system.parameters() if p.requires_grad]
     cuda = torch.device(device).type == "cuda"
     optimizer = torch.optim.AdamW(parameters, lr=1e-3, fused=cuda)

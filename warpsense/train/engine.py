@@ -89,10 +89,13 @@ def _fit_time_budget(config, epoch_seconds: float, context) -> None:
 
 def _check_finite(model, statistics: dict, epoch: int, run_dir: Path) -> None:
     """Stop a diverged run before it writes a checkpoint: a non-finite loss or parameter raises."""
-    bad = [name for name, p in model.named_parameters() if not torch.isfinite(p).all()]
-    if statistics.get("nonfinite_steps", 0) or bad:
-        where = f"{statistics.get('nonfinite_steps', 0)} step(s) with a non-finite loss" if \
-            statistics.get("nonfinite_steps") else f"non-finite parameters ({', '.join(bad[:3])})"
+    names, parameters = zip(*model.named_parameters())
+    finite = torch.stack([torch.isfinite(p).all() for p in parameters]).tolist()  # one host sync
+    bad = [name for name, ok in zip(names, finite) if not ok]
+    nonfinite_steps = statistics.get("nonfinite_steps", 0)
+    if nonfinite_steps or bad:
+        where = f"{nonfinite_steps} step(s) with a non-finite loss" if nonfinite_steps else \
+            f"non-finite parameters ({', '.join(bad[:3])})"
         raise FloatingPointError(f"training diverged in epoch {epoch + 1}: {where}; stopped without saving this epoch "
                                  f"(the last checkpoint in {run_dir} is from before it); lower train.lr or check "
                                  f"the inputs")

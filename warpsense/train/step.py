@@ -11,6 +11,7 @@ from warpsense.train.losses import segmentation_loss
 
 COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
 LOSS_PARTS = ("ohem", "lovasz", "smooth")
+STATISTICS = ("loss", *LOSS_PARTS, "steps", "nonfinite_steps")
 
 
 def cosine_scale(step: int, total_steps: int) -> float:
@@ -45,7 +46,7 @@ class TrainingStep:
         self.base_lrs = [group["lr"] for group in optimizer.param_groups]
         self.forward_loss = self._forward_loss if compile_mode == "off" else \
             torch.compile(self._forward_loss, mode=None if compile_mode == "default" else compile_mode)
-        self.totals: dict[str, torch.Tensor] = {}
+        self._sums: torch.Tensor | None = None  # float64 [len(STATISTICS)] on the device
 
     def _forward_loss(self, model, images, labels):
         logits, sensed = model(images, self.amp)
@@ -67,25 +68,26 @@ class TrainingStep:
         self.optimizer.step()
         self._accumulate(loss.detach(), parts)
 
+    @property
+    def totals(self) -> dict[str, torch.Tensor]:
+        """Sums since the last `epoch_statistics`, by name (``STATISTICS``)."""
+        return dict(zip(STATISTICS, self._sums)) if self._sums is not None else {}
+
     def _accumulate(self, loss: torch.Tensor, parts: dict) -> None:
-        values = {"loss": loss, "steps": torch.ones_like(loss), "nonfinite_steps": (~torch.isfinite(loss)).float(),
-                  **{name: parts.get(name, torch.zeros_like(loss)) for name in LOSS_PARTS}}
-        for name, value in values.items():
-            value = value.detach().double()
-            # a non-finite loss is counted, not summed: the epoch's mean stays readable
-            if name in ("loss", *LOSS_PARTS):
-                value = torch.nan_to_num(value, nan=0.0, posinf=0.0, neginf=0.0)
-            self.totals[name] = self.totals[name] + value if name in self.totals else value
+        values = torch.stack([loss, *(parts.get(name, torch.zeros_like(loss)) for name in LOSS_PARTS)]).double()
+        nonfinite = (~torch.isfinite(loss)).double()
+        # a non-finite loss is counted, not summed: the epoch's mean stays readable
+        step = torch.cat([torch.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0),
+                          torch.ones_like(nonfinite).view(1), nonfinite.view(1)])
+        self._sums = step if self._sums is None else self._sums + step
 
     def epoch_statistics(self, context) -> dict[str, float]:
         """Mean loss and parts over the steps since the last call (all ranks), and the count of non-finite losses;
         one host synchronisation."""
-        names = sorted(self.totals)
-        if not names:
+        if self._sums is None:
             return {}
-        stacked = context.all_reduce_sum(torch.stack([self.totals[name] for name in names]))
-        totals = dict(zip(names, stacked.tolist()))
-        self.totals = {}
+        totals = dict(zip(STATISTICS, context.all_reduce_sum(self._sums).tolist()))
+        self._sums = None
         steps = max(totals.pop("steps"), 1.0)
         nonfinite = int(totals.pop("nonfinite_steps"))
         finite_steps = max(steps - nonfinite, 1.0)
