@@ -33,6 +33,7 @@ CASES = {
                                 torch.ones(1, **DOUBLE), _seeds(2), 0, 1, 1023)),
     "psf_conv": (psf._psf_conv_cells, lambda: (_rand(2, 3, 6, 7), psf.node_cells(_rand(3, 3, 2, 3, 3)).detach()
                                                .requires_grad_(), 3, 2)),
+    "psf_conv_cudnn": (psf._psf_conv_cudnn, lambda: (_rand(2, 3, 6, 7), _rand(3, 3, 3))),
 }
 # the backward ops, with the forward inputs (no grad) and a gradient of the forward output's shape
 BACKWARD_CASES = {

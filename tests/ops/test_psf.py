@@ -218,11 +218,28 @@ def test_gradients_match_reference_dense_grid(device):
 
 
 def test_psf_gradient_rows_split_into_chunks(monkeypatch):
-    """The GPU launch splits each cell's rows over several lanes; force that split on the CPU."""
+    """The GPU launch splits each cell's rows and columns over several lanes; force that split on the CPU."""
     from warpsense.ops import psf as psf_module
 
     monkeypatch.setitem(psf_module._THREADS_TARGET, "cpu", 10_000)
+    chunks = psf_module._chunks
+    monkeypatch.setattr(psf_module, "_chunks", lambda wanted, rows, cols: chunks(wanted, rows, cols, min_cols=2))
+    assert psf_module._chunks(10, 5, 9) == (5, 2)  # rows and columns both split
     image = torch.rand(2, 2, 13, 10, dtype=torch.float64, requires_grad=True)
     psf = random_psf(2, 3, 2, 5).requires_grad_()
     grad = torch.rand(2, 2, 13, 10, dtype=torch.float64)
     assert_matches_reference(psf_conv, psf_conv_reference, (image, psf), grad)
+
+
+@pytest.mark.parametrize("device", device_params())
+def test_gradcheck_cudnn_invariant_with_warp_psf_gradient(device):
+    """The CUDA conv2d path (cuDNN forward and image gradient, the Warp kernel for the PSF gradient), called
+    directly so that the CPU suite checks it too: float64 gradcheck and equal to the reference."""
+    from warpsense.ops.psf import _psf_conv_cudnn
+
+    image = torch.rand(2, 2, 7, 9, dtype=torch.float64, device=device, requires_grad=True)
+    kernel = random_psf(2, 1, 1, 5, device=device)[:, 0, 0].requires_grad_()
+    assert torch.autograd.gradcheck(_psf_conv_cudnn, (image, kernel))
+    grad = torch.rand(2, 2, 7, 9, dtype=torch.float64, device=device)
+    assert_matches_reference(_psf_conv_cudnn, lambda x, k: psf_conv_reference(x, k[:, None, None]), (image, kernel),
+                             grad)

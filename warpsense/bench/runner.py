@@ -163,6 +163,7 @@ def _kernel_suite(device: str, quick: bool) -> list[dict]:
         shape = (batch, 3, height, width)
         bench.case("psf_conv_invariant", "warp", shape, lambda x, p: psf_conv(x, p, "direct"), [image, invariant])
         bench.case("psf_conv_invariant", "auto", shape, psf_conv, [image, invariant])
+        bench.case("psf_conv_invariant", "conv2d", shape, lambda x, p: psf_conv(x, p, "conv2d"), [image, invariant])
         bench.case("psf_conv_invariant", "cudnn_conv2d" if device == "cuda" else "torch_conv2d", shape,
                    lambda x, p: F.conv2d(F.pad(x, (size // 2,) * 4, mode="replicate"),
                                          p[:, 0, 0].flip(-1, -2).unsqueeze(1), groups=3), [image, invariant])

@@ -55,41 +55,103 @@ def node_cells(psf: torch.Tensor) -> torch.Tensor:
     return cells.reshape(channels, -1, size, size, 4).contiguous()
 
 
-def _grid_axes(image: torch.Tensor, grid_y: int, grid_x: int):
-    return node_axis(image.shape[2], grid_y, image.dtype, image.device), \
-        node_axis(image.shape[3], grid_x, image.dtype, image.device)
+@functools.lru_cache(maxsize=64)
+def _source_axis_cached(size: int, nodes: int, radius: int, extra: int, dtype: torch.dtype, device: torch.device):
+    cell, fraction, bounds = _node_axis_cached(size, nodes, dtype, torch.device("cpu"))
+    clamped = (torch.arange(size + 2 * radius + extra) - radius).clamp(0, size - 1)
+    padded_bounds = bounds + radius
+    padded_bounds[0], padded_bounds[-1] = 0, size + 2 * radius
+    return cell[clamped].to(device), fraction[clamped].to(device), padded_bounds.to(device)
+
+
+def source_axis(size: int, nodes: int, radius: int, extra: int, dtype=torch.float64, device="cpu"):
+    """`node_axis` over the padded source coordinates the kernels use: source s of an axis padded by ``radius``
+    (plus ``extra`` at the end) is pixel clamp(s - radius). Returns (cell, fraction) per padded source and each
+    cell's first padded source (the first cell starts at 0 and the last ends at size + 2 * radius: border
+    copies belong to the border cells)."""
+    return _source_axis_cached(int(size), int(nodes), int(radius), int(extra), dtype, torch.device(device))
+
+
+def _source_tables(image: torch.Tensor, grid_y: int, grid_x: int, radius: int):
+    height, width = image.shape[-2:]
+    rows = source_axis(height, grid_y, radius, kernels.ROWS - 1, image.dtype, image.device)
+    cols = source_axis(width, grid_x, radius, 0, image.dtype, image.device)
+    return rows, cols
+
+
+def _padded_source(image: torch.Tensor, radius: int) -> torch.Tensor:
+    """[B, C, H, W] -> [B*C, H + 2r + ROWS - 1, W + 2r], edge-replicated (the kernels' clamp-to-edge borders)."""
+    batch, channels = image.shape[:2]
+    padded = F.pad(image, (radius, radius, radius, radius + kernels.ROWS - 1), mode="replicate")
+    return padded.reshape(batch * channels, *padded.shape[-2:])
+
+
+def _padded_gradient(grad_out: torch.Tensor, radius: int, dtype: torch.dtype) -> torch.Tensor:
+    """[B, C, H, W] -> [B*C, H + 4r + ROWS - 1, W + 4r + TAPS - 1], zero-padded: the outputs beyond the image
+    a source would reach contribute nothing."""
+    batch, channels = grad_out.shape[:2]
+    pad = 2 * radius
+    padded = F.pad(grad_out.to(dtype), (pad, pad + kernels.TAPS - 1, pad, pad + kernels.ROWS - 1))
+    return padded.reshape(batch * channels, *padded.shape[-2:])
+
+
+def _fold_padding(grad_source: torch.Tensor, radius: int) -> torch.Tensor:
+    """Adjoint of edge-replicate padding: [N, H + 2r, W + 2r] -> [N, H, W], each border pixel collecting the
+    gradient of its copies (slices and sums: deterministic)."""
+    if radius == 0:
+        return grad_source
+    columns = grad_source[..., radius:-radius].clone()
+    columns[..., 0] += grad_source[..., :radius].sum(-1)
+    columns[..., -1] += grad_source[..., -radius:].sum(-1)
+    rows = columns[:, radius:-radius].clone()
+    rows[:, 0] += columns[:, :radius].sum(1)
+    rows[:, -1] += columns[:, -radius:].sum(1)
+    return rows
 
 
 @warp_op("psf_conv_backward_image", lambda grad_out, cells, grid_y, grid_x: torch.empty_like(grad_out))
 def _psf_backward_image(grad_out: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_x: int) -> torch.Tensor:
-    """The image adjoint: a gather with the flipped PSF interpolated at each output pixel."""
+    """The image adjoint: every padded source gathers the outputs it reached through its own PSF, then the
+    padding folds back onto the border pixels."""
     batch, channels, height, width = grad_out.shape
-    rows, cols = _grid_axes(grad_out, grid_y, grid_x)
-    grad_planes = grad_out.to(cells.dtype).contiguous().view(batch * channels, height, width)
-    grad_image = torch.empty_like(grad_planes)
-    launch(kernels.psf_backward_image, (batch * channels, height, width),
-           [grad_planes, Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1], grad_image],
+    radius = cells.shape[2] // 2
+    rows, cols = _source_tables(grad_out, grid_y, grid_x, radius)
+    padded_grad = _padded_gradient(grad_out, radius, cells.dtype)
+    grad_source = padded_grad.new_empty(batch * channels, height + 2 * radius, width + 2 * radius)
+    launch(kernels.psf_backward_source,
+           (batch * channels, -(-(height + 2 * radius) // kernels.ROWS), width + 2 * radius),
+           [padded_grad, Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1], grad_source],
            grad_out.device)
-    return grad_image.view(batch, channels, height, width)
+    return _fold_padding(grad_source, radius).view(batch, channels, height, width)
+
+
+def _chunks(wanted: int, rows: int, cols: int, min_cols: int = 32) -> tuple[int, int]:
+    """Split a cell of about rows x cols sources into row and column chunks, about ``wanted`` in all, so that the
+    PSF-gradient launch fills the device: rows first (whole rows keep the sliding window long), then columns in
+    runs of at least ``min_cols``."""
+    row_chunks = max(1, min(rows, wanted))
+    col_chunks = max(1, min(-(-wanted // row_chunks), cols // min_cols))
+    return row_chunks, col_chunks
 
 
 @warp_op("psf_conv_backward_cells", lambda image, grad_out, cells, grid_y, grid_x: torch.empty_like(cells))
 def _psf_backward_cells(image: torch.Tensor, grad_out: torch.Tensor, cells: torch.Tensor, grid_y: int,
                         grid_x: int) -> torch.Tensor:
-    """The PSF adjoint: per (tap, image, cell, row chunk) partial sums, then one deterministic sum."""
+    """The PSF adjoint: per (tap group, image, cell, row chunk) partial sums, then one deterministic sum."""
     batch, channels, height, width = image.shape
     size = cells.shape[2]
+    radius = size // 2
     cells_y, cells_x = max(grid_y - 1, 1), max(grid_x - 1, 1)
-    rows, cols = _grid_axes(image, grid_y, grid_x)
-    taps = channels * size * size
+    rows, cols = _source_tables(image, grid_y, grid_x, radius)
+    tap_groups = channels * size * -(-size // kernels.TAPS)
     lanes = batch * cells_y * cells_x
-    # split each cell's rows into chunks until the launch fills the device
-    row_chunks = max(1, min(height, -(-_THREADS_TARGET.get(image.device.type, 1) // (taps * lanes))))
-    partials = image.new_empty(batch * row_chunks, channels, cells_y * cells_x, size * size, 4)
-    launch(kernels.psf_backward_cells, (taps, lanes * row_chunks),
-           [image.view(batch * channels, height, width),
-            grad_out.to(image.dtype).contiguous().view(batch * channels, height, width), rows[2], rows[1], cols[2],
-            cols[1], size, channels, cells_y, cells_x, row_chunks, Vectors(partials)], image.device)
+    row_chunks, col_chunks = _chunks(-(-_THREADS_TARGET.get(image.device.type, 1) // (tap_groups * lanes)),
+                                     -(-(height + 2 * radius) // cells_y), -(-(width + 2 * radius) // cells_x))
+    partials = image.new_empty(batch * row_chunks * col_chunks, channels, cells_y * cells_x, size * size, 4)
+    launch(kernels.psf_backward_cells, (lanes * row_chunks * col_chunks, tap_groups),
+           [_padded_source(image, radius), _padded_gradient(grad_out, radius, image.dtype), rows[2], rows[1],
+            cols[2], cols[1], size, channels, cells_y, cells_x, row_chunks, col_chunks, Vectors(partials)],
+           image.device)
     return partials.sum(dim=0).view_as(cells)
 
 
@@ -105,11 +167,12 @@ def _psf_backward(ctx, grad_out):
 def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_x: int) -> torch.Tensor:
     """Exact varying convolution with the PSF given per grid cell (`node_cells`)."""
     batch, channels, height, width = image.shape
-    rows, cols = _grid_axes(image, grid_y, grid_x)
+    radius = cells.shape[2] // 2
+    rows, cols = _source_tables(image, grid_y, grid_x, radius)
     out = torch.empty_like(image)
-    launch(kernels.psf_forward, (batch * channels, height, width),
-           [image.view(batch * channels, height, width), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1],
-            cols[0], cols[1], out.view(batch * channels, height, width)], image.device)
+    launch(kernels.psf_forward, (batch * channels, -(-height // kernels.ROWS), width),
+           [_padded_source(image, radius), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1],
+            out.view(batch * channels, height, width)], image.device)
     return out
 
 
@@ -175,7 +238,7 @@ _FASTEST: dict = {}
 
 def _fastest_invariant(image: torch.Tensor, psf: torch.Tensor) -> str:
     """The faster exact method for one PSF at this shape: measured once per (shape, K, dtype) on CUDA (forward +
-    backward, 3 repeats after a warm-up) and cached; conv2d on the CPU, where the Warp backend runs serially."""
+    backward, 10 repeats after a warm-up) and cached; conv2d on the CPU, where the Warp backend runs serially."""
     key = (tuple(image.shape), psf.shape[-1], image.dtype, image.device)
     if (image.device.type != "cuda" or torch.compiler.is_compiling()
             or torch.cuda.is_current_stream_capturing()):
@@ -192,7 +255,7 @@ def _fastest_invariant(image: torch.Tensor, psf: torch.Tensor) -> str:
 
 def _time_methods(probe: torch.Tensor, kernel: torch.Tensor, timings: dict) -> None:
     for method in ("conv2d", "direct"):
-        for repeat in range(4):
+        for repeat in range(11):
             if repeat == 1:
                 torch.cuda.synchronize()
                 start = time.perf_counter()
@@ -201,8 +264,35 @@ def _time_methods(probe: torch.Tensor, kernel: torch.Tensor, timings: dict) -> N
         timings[method] = time.perf_counter() - start
 
 
+def _cudnn_backward(ctx, grad_out):
+    image, kernel = ctx.saved_tensors
+    channels, size = kernel.shape[0], kernel.shape[-1]
+    grad_image = grad_kernel = None
+    if ctx.needs_input_grad[0]:
+        grad_padded = F.conv_transpose2d(grad_out, kernel.flip(-1, -2).unsqueeze(1), groups=channels)
+        grad_image = _fold_padding(grad_padded.flatten(0, 1), size // 2).view_as(image)
+    if ctx.needs_input_grad[1]:
+        cells = kernel[:, None, :, :, None].expand(channels, 1, size, size, 4).contiguous()
+        # one node: its bilinear weight is 1 on the first corner and 0 on the others
+        grad_kernel = _psf_backward_cells(image, grad_out, cells, 1, 1)[:, 0, :, :, 0]
+    return grad_image, grad_kernel
+
+
+@warp_op("psf_conv_cudnn", lambda image, kernel: torch.empty_like(image), _cudnn_backward, save_inputs)
+def _psf_conv_cudnn(image: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
+    """One PSF by cuDNN: forward and image gradient as depthwise convolutions, the PSF gradient by the Warp
+    kernel (cuDNN's depthwise weight gradient is several times slower than both)."""
+    radius = kernel.shape[-1] // 2
+    padded = F.pad(image, (radius,) * 4, mode="replicate")
+    return F.conv2d(padded, kernel.flip(-1, -2).unsqueeze(1), groups=image.shape[1])
+
+
 def psf_conv_conv2d(image: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
-    """Spatially invariant convolution with kernel [C, K, K] by depthwise conv2d (cuDNN) on the edge-padded image."""
+    """Spatially invariant convolution with kernel [C, K, K] by depthwise conv2d on the edge-padded image: cuDNN
+    (with the Warp PSF gradient) on CUDA, torch's convolution on the CPU."""
+    if image.device.type == "cuda":
+        image, kernel = prepare(image, kernel)
+        return _psf_conv_cudnn(image, kernel)
     radius = kernel.shape[-1] // 2
     padded = F.pad(image, (radius,) * 4, mode="replicate")
     return F.conv2d(padded, kernel.flip(-1, -2).unsqueeze(1).to(image.dtype), groups=image.shape[1])
