@@ -135,6 +135,9 @@ LENS = {
     ({"wavelengths_um": [0.5]}, "wavelengths_um must be 3"),
     ({"zernike_waves": {"4": {"cubic": 1.0}}}, "zernike_waves.4"),
     ({"zernike_waves": {"x": {"constant": 1.0}}}, "Noll indices"),
+    ({"reference_wavelength_um": 550}, "reference_wavelength_um must be a wavelength in um"),
+    ({"lateral_color": [0.001, 0.0]}, "lateral_color must be 3 numbers"),
+    ({"axial_color_waves": [0.1, "x", 0.0]}, "axial_color_waves must be 3 numbers"),
 ])
 def test_malformed_lens_file_errors_name_file_and_key(tmp_path, change, message):
     data = dict(LENS)
@@ -157,3 +160,75 @@ def test_invalid_json_and_unknown_name(tmp_path):
         Lens.from_json(path)
     with pytest.raises(LensFileError, match="packaged: phone_68deg, phone_80deg"):
         Lens.from_json("no_such_lens")
+
+
+def _small(name="phone_80deg", **spec):
+    lens = Lens.from_json(name)
+    lens.spec.pupil_samples = 32  # coarse pupil: these tests compare the lens with itself
+    for key, value in spec.items():
+        setattr(lens.spec, key, value)
+    return lens
+
+
+def test_coefficients_are_an_optical_path_shared_by_wavelengths():
+    """Waves at the reference wavelength scale by lambda_ref / lambda; axial colour adds defocus per channel."""
+    lens = _small(axial_color_waves=(0.1, 0.0, -0.2))
+    height = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    reference = lens.field_coefficients(height)
+    defocus = lens.noll.index(4)
+    for channel, wavelength in enumerate(lens.spec.wavelengths_um):
+        waves, noll = lens.wavelength_coefficients(reference, height, channel)
+        scale = 0.55 / wavelength
+        assert noll == lens.noll
+        expected = reference * scale
+        expected[:, defocus] += lens.spec.axial_color_waves[channel] * scale
+        torch.testing.assert_close(waves, expected)
+    # the same lens stated at the blue wavelength (coefficients in blue waves) renders the same PSFs
+    azimuth = torch.zeros(2, dtype=torch.float64)
+    restated = _small(reference_wavelength_um=0.465, axial_color_waves=tuple(a * 0.55 / 0.465 for a in
+                                                                            lens.spec.axial_color_waves))
+    with torch.no_grad():
+        restated.base_coefficients.mul_(0.55 / 0.465)
+    torch.testing.assert_close(restated.psf_at(height, azimuth), lens.psf_at(height, azimuth))
+    assert not torch.allclose(lens.psf_at(height, azimuth)[:, 1], _small().psf_at(height, azimuth)[:, 1])
+
+
+def test_lateral_color_moves_the_psf_radially_by_the_magnification_difference():
+    lens = Lens.from_json("phone_68deg")
+    lens.spec.lateral_color = (0.001, 0.0, -0.001)
+    lens.base_coefficients.zero_()  # diffraction-limited: only the tilt moves the centroid
+    height = torch.tensor([0.0, 0.6], dtype=torch.float64)
+    psf = lens.psf_at(height, torch.zeros(2, dtype=torch.float64), kernel_size=31)
+    offsets = torch.arange(31, dtype=torch.float64) - 15
+    centroid_x = (psf.sum(dim=-2) * offsets).sum(-1)  # [3, 2], pixels; azimuth 0 is the +x direction
+    expected = 0.001 * lens.spec.sensor_diagonal_mm * 500 * 0.6 / lens.spec.pixel_pitch_um  # ~1.2 px
+    assert centroid_x[:, 0].abs().max() < 1e-9  # on axis nothing moves
+    assert centroid_x[1, 1].abs() < 1e-9
+    assert centroid_x[0, 1].item() == pytest.approx(expected, rel=0.1)
+    assert centroid_x[2, 1].item() == pytest.approx(-expected, rel=0.1)
+
+
+def test_energy_outside_kernel_accounts_for_the_cropped_tail():
+    lens = _small()
+    outside = lens.energy_outside(grid=(3, 3), reference_size=31)
+    wide = lens.psf_grid((3, 3), kernel_size=31)
+    kernel = lens.psf_grid((3, 3))
+    window = wide[..., 8:23, 8:23]
+    # the K x K kernel is the wide rendering's centre window, renormalised: the tail moved into the core
+    torch.testing.assert_close(kernel, window / window.sum(dim=(-2, -1), keepdim=True))
+    torch.testing.assert_close(outside, 1 - window.sum(dim=(-2, -1)))
+    assert outside[:, 0, 0].min() > 2 * outside[:, 1, 1].max()  # the 80 deg corner spills far more than the centre
+    size = lens.kernel_size_for(0.05, grid=(3, 3), max_size=31)
+    assert size > 15 and size % 2 == 1
+    assert (lens.energy_outside(size, (3, 3), 31) <= 0.05).all()
+    assert not (lens.energy_outside(size - 2, (3, 3), 31) <= 0.05).all()
+
+
+@pytest.mark.parametrize("name", ["phone_68deg", "phone_80deg"])
+def test_pixel_integration_meets_the_stated_tolerance(name):
+    """Packaged lenses integrate each pixel with enough samples for 1% L1 against 15 x 15 samples (docs/optics)."""
+    lens = Lens.from_json(name)
+    lens.spec.psf_kernel_size = 9
+    error = lens.pixel_integration_error(lens.spec.oversampling, grid=(2, 2))
+    coarse = lens.pixel_integration_error(3, grid=(2, 2))
+    assert error < 0.01 < coarse

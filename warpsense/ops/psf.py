@@ -205,8 +205,9 @@ def psf_conv(image: torch.Tensor, psf: torch.Tensor, method: str = "auto") -> to
         image: [B, C, H, W] linear irradiance (float32 or float64; half types compute in float32).
         psf: [C, Gy, Gx, K, K] node PSFs (K odd) on a corner-aligned grid (`node_axis`), bilinear in between. Each
             PSF should sum to 1. Cast to the image's float type.
-        method: "auto" (default: the fastest exact method; the Warp kernel for a varying grid, for one PSF the
-            faster of cuDNN conv2d and the Warp kernel, measured once per shape on CUDA), "direct" (Warp kernel),
+        method: "auto" (default: the fastest exact method; the Warp kernel for a varying grid; for one PSF the
+            fastest of cuDNN conv2d, cuDNN conv2d with the Warp PSF gradient, and the Warp kernel, measured once
+            per shape and gradient need on CUDA; FFT is left out for its precision), "direct" (Warp kernel),
             "conv2d" (cuDNN on the edge-padded image; one PSF only), "fft" (torch.fft; one PSF only; NaN stays
             local, but float32 rounding is relative to the image maximum: dark pixels beside 1e9 brighter ones
             lose their precision) or "patch" (each node's region convolved with that node's PSF, no blending:
@@ -223,45 +224,60 @@ def psf_conv(image: torch.Tensor, psf: torch.Tensor, method: str = "auto") -> to
         invariant = psf.shape[1] == psf.shape[2] == 1
         if method == "auto":
             method = _fastest_invariant(image, psf) if invariant else "direct"
-        if method == "direct":
-            image, psf = prepare(image, psf)
-            return _psf_conv_cells(image, node_cells(psf), psf.shape[1], psf.shape[2])
-        if method == "conv2d":
-            return psf_conv_conv2d(image, psf[:, 0, 0])
+        if method in _EXACT_PATHS:
+            return _EXACT_PATHS[method](image, psf)
         if method == "fft":
             return psf_conv_fft(image, psf[:, 0, 0])
         return psf_conv_patch(image, psf)
 
 
+def _direct(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
+    image, psf = prepare(image, psf)
+    return _psf_conv_cells(image, node_cells(psf), psf.shape[1], psf.shape[2])
+
+
+def _conv2d_warp_gradient(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
+    image, kernel = prepare(image, psf[:, 0, 0])
+    return _psf_conv_cudnn(image, kernel)
+
+
+# exact paths by name; "conv2d_warp_gradient" is one of auto's candidates, not a public method
+_EXACT_PATHS = {
+    "direct": _direct,
+    "conv2d": lambda image, psf: psf_conv_conv2d(image, psf[:, 0, 0]),
+    "conv2d_warp_gradient": _conv2d_warp_gradient,
+}
 _FASTEST: dict = {}
 
 
 def _fastest_invariant(image: torch.Tensor, psf: torch.Tensor) -> str:
-    """The faster exact method for one PSF at this shape: measured once per (shape, K, dtype) on CUDA (forward +
-    backward, 10 repeats after a warm-up) and cached; conv2d on the CPU, where the Warp backend runs serially."""
-    key = (tuple(image.shape), psf.shape[-1], image.dtype, image.device)
+    """The fastest exact path for one PSF at this shape and gradient need: measured once per (shape, K, dtype,
+    which inputs need gradients) on CUDA (forward + backward where a gradient is needed, 10 repeats after a
+    warm-up) and cached; conv2d on the CPU, where the Warp backend runs serially."""
+    needs = (image.requires_grad and torch.is_grad_enabled(), psf.requires_grad and torch.is_grad_enabled())
+    key = (tuple(image.shape), psf.shape[-1], image.dtype, image.device, needs)
     if (image.device.type != "cuda" or torch.compiler.is_compiling()
             or torch.cuda.is_current_stream_capturing()):
         return _FASTEST.get(key, "conv2d")
     if key not in _FASTEST:
-        probe = torch.rand_like(image).requires_grad_()
-        kernel = psf.detach().clone().requires_grad_()
-        timings = {}
-        with torch.enable_grad():
-            _time_methods(probe, kernel, timings)
+        probe = torch.rand_like(image).requires_grad_(needs[0])
+        kernel = psf.detach().clone().requires_grad_(needs[1])
+        with torch.enable_grad() if any(needs) else torch.no_grad():
+            timings = {name: _time_path(path, probe, kernel) for name, path in _EXACT_PATHS.items()}
         _FASTEST[key] = min(timings, key=timings.get)
     return _FASTEST[key]
 
 
-def _time_methods(probe: torch.Tensor, kernel: torch.Tensor, timings: dict) -> None:
-    for method in ("conv2d", "direct"):
-        for repeat in range(11):
-            if repeat == 1:
-                torch.cuda.synchronize()
-                start = time.perf_counter()
-            psf_conv(probe, kernel, method).sum().backward()
-        torch.cuda.synchronize()
-        timings[method] = time.perf_counter() - start
+def _time_path(path, probe: torch.Tensor, kernel: torch.Tensor, repeats: int = 10) -> float:
+    for repeat in range(repeats + 1):
+        if repeat == 1:  # the first call compiles, tunes and allocates
+            torch.cuda.synchronize()
+            start = time.perf_counter()
+        out = path(probe, kernel)
+        if out.requires_grad:
+            out.sum().backward()
+    torch.cuda.synchronize()
+    return time.perf_counter() - start
 
 
 def _cudnn_backward(ctx, grad_out):
@@ -288,11 +304,7 @@ def _psf_conv_cudnn(image: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
 
 
 def psf_conv_conv2d(image: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
-    """Spatially invariant convolution with kernel [C, K, K] by depthwise conv2d on the edge-padded image: cuDNN
-    (with the Warp PSF gradient) on CUDA, torch's convolution on the CPU."""
-    if image.device.type == "cuda":
-        image, kernel = prepare(image, kernel)
-        return _psf_conv_cudnn(image, kernel)
+    """Spatially invariant convolution with kernel [C, K, K] by depthwise conv2d (cuDNN) on the edge-padded image."""
     radius = kernel.shape[-1] // 2
     padded = F.pad(image, (radius,) * 4, mode="replicate")
     return F.conv2d(padded, kernel.flip(-1, -2).unsqueeze(1).to(image.dtype), groups=image.shape[1])

@@ -1,10 +1,17 @@
 """Lens files (JSON) and the pupil-FFT PSF model (SPEC section 2).
 
 A lens file gives first-order data (focal length, f-number, field of view, pixel pitch), three wavelengths, the
-PSF kernel size and grid, and Zernike coefficients (waves, Noll index) each with a field dependence
+PSF kernel size and grid, and Zernike coefficients (Noll index) each with a field dependence
 c_j(h) = constant + linear * h + quadratic * h^2 in the normalised field height h in [0, 1] (0 on axis, 1 at the
 image corner). Coefficients are given in the meridional frame of each field point (the pupil frame is rotated by
 the field azimuth), as for a rotationally symmetric lens: coma points radially, astigmatism is sagittal/tangential.
+
+Chromatic behaviour (issue 12): the coefficients are waves at ``reference_wavelength_um`` (default: the middle,
+green wavelength), i.e. an optical path difference OPD = c * lambda_ref that every wavelength shares; at wavelength
+lambda the phase is OPD / lambda waves. ``axial_color_waves`` adds per-channel defocus (Noll 4, waves at the
+reference wavelength: longitudinal chromatic aberration) and ``lateral_color`` a per-channel relative
+magnification (0.001: that channel's image is 0.1% larger, its PSF moves outward by 0.001 x the image height; a
+radial tilt, Noll 2, at that wavelength).
 """
 
 from __future__ import annotations
@@ -26,7 +33,8 @@ REQUIRED_KEYS = {
 }
 OPTIONAL_KEYS = {
     "description": (str, ""), "aspect_ratio": (float, 4.0 / 3.0), "oversampling": (int, 5),
-    "pupil_samples": (int, 64), "learnable_bound_waves": (float, 0.25),
+    "pupil_samples": (int, 64), "learnable_bound_waves": (float, 0.25), "reference_wavelength_um": (float, None),
+    "axial_color_waves": (list, [0.0, 0.0, 0.0]), "lateral_color": (list, [0.0, 0.0, 0.0]),
 }
 FIELD_TERMS = ("constant", "linear", "quadratic")
 
@@ -51,6 +59,13 @@ class LensSpec:
     oversampling: int = 5
     pupil_samples: int = 64
     learnable_bound_waves: float = 0.25
+    reference_wavelength_um: float | None = None
+    axial_color_waves: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    lateral_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        if self.reference_wavelength_um is None:
+            self.reference_wavelength_um = self.wavelengths_um[1]
 
     @property
     def sensor_diagonal_mm(self) -> float:
@@ -79,7 +94,8 @@ def parse_lens(data: dict, source: str) -> LensSpec:
             raise LensFileError(f"{source}: missing required key {key!r}")
         values[key] = _typed(data[key], expected, f"{source}: {key}")
     for key, (expected, default) in OPTIONAL_KEYS.items():
-        values[key] = _typed(data.get(key, default), expected, f"{source}: {key}")
+        if data.get(key, default) is not None:
+            values[key] = _typed(data.get(key, default), expected, f"{source}: {key}")
     for key in ("focal_length_mm", "f_number", "pixel_pitch_um", "aspect_ratio"):
         if not values[key] > 0:
             raise LensFileError(f"{source}: {key} must be > 0, got {values[key]}")
@@ -89,6 +105,15 @@ def parse_lens(data: dict, source: str) -> LensSpec:
     if len(wavelengths) != 3 or not all(isinstance(w, (int, float)) and 0.2 < w < 2.0 for w in wavelengths):
         raise LensFileError(f"{source}: wavelengths_um must be 3 wavelengths (R, G, B) in um, got {wavelengths}")
     values["wavelengths_um"] = tuple(float(w) for w in wavelengths)
+    reference = values.get("reference_wavelength_um")
+    if reference is not None and not 0.2 < reference < 2.0:
+        raise LensFileError(f"{source}: reference_wavelength_um must be a wavelength in um, got {reference}")
+    for key, limit in (("axial_color_waves", 5.0), ("lateral_color", 0.05)):
+        triple = values[key]
+        if len(triple) != 3 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and abs(v) <= limit
+                                       for v in triple):
+            raise LensFileError(f"{source}: {key} must be 3 numbers (R, G, B) of magnitude <= {limit}, got {triple}")
+        values[key] = tuple(float(v) for v in triple)
     size = values["psf_kernel_size"]
     if size < 1 or size % 2 == 0:
         raise LensFileError(f"{source}: psf_kernel_size must be a positive odd int, got {size}")
@@ -209,6 +234,67 @@ class Lens(nn.Module):
         powers = torch.stack([torch.ones_like(field_height), field_height, field_height**2], dim=1)
         return powers.to(self.coefficients().dtype) @ self.coefficients().T
 
+    def wavelength_coefficients(self, coefficients: torch.Tensor, field_height: torch.Tensor,
+                                channel: int) -> tuple[torch.Tensor, list[int]]:
+        """Zernike coefficients [N, J'] in waves at the channel's wavelength, and their Noll indices: the reference
+        coefficients scaled by lambda_ref / lambda, plus the channel's axial colour (Noll 4) and lateral colour
+        (Noll 2: a radial tilt of 4 a lambda F# um for a coefficient of a waves)."""
+        spec = self.spec
+        wavelength = spec.wavelengths_um[channel]
+        scale = spec.reference_wavelength_um / wavelength
+        waves, noll = coefficients * scale, list(self.noll)
+        half_diagonal_um = spec.sensor_diagonal_mm * 500.0
+        extra = {4: spec.axial_color_waves[channel] * scale * torch.ones_like(field_height),
+                 2: spec.lateral_color[channel] * half_diagonal_um * field_height / (4 * wavelength * spec.f_number)}
+        for index, column in extra.items():
+            if not bool((column != 0).any()):
+                continue
+            column = column.to(waves.dtype)[:, None]
+            if index in noll:
+                position = noll.index(index)
+                waves = torch.cat([waves[:, :position], waves[:, position : position + 1] + column,
+                                   waves[:, position + 1 :]], dim=1)
+            else:
+                waves, noll = torch.cat([waves, column], dim=1), noll + [index]
+        return waves, noll
+
+    def energy_outside(self, kernel_size: int | None = None, grid: tuple[int, int] | None = None,
+                       reference_size: int | None = None) -> torch.Tensor:
+        """[3, Gy, Gx] fraction of each node PSF's energy that falls outside the K x K kernel (K = ``kernel_size``,
+        default the lens's), measured on a rendering ``reference_size`` pixels wide (default 4 K + 1). psf_grid
+        renormalises the K window, so this is the light the kernel moves from the tail into the core."""
+        size = kernel_size or self.spec.psf_kernel_size
+        wide = reference_size or 4 * size + 1
+        start = (wide - size) // 2
+        with torch.no_grad():
+            psf = self.psf_grid(grid, kernel_size=wide)
+        inside = psf[..., start : start + size, start : start + size].sum(dim=(-2, -1))
+        return 1 - inside / psf.sum(dim=(-2, -1))
+
+    def kernel_size_for(self, energy_outside: float, grid: tuple[int, int] | None = None,
+                        max_size: int = 63) -> int:
+        """The smallest odd K whose window leaves at most ``energy_outside`` of every node's energy outside
+        (rendered once at ``max_size``); ``max_size`` if none does."""
+        with torch.no_grad():
+            psf = self.psf_grid(grid, kernel_size=max_size)
+        total = psf.sum(dim=(-2, -1))
+        for size in range(1, max_size + 1, 2):
+            start = (max_size - size) // 2
+            inside = psf[..., start : start + size, start : start + size].sum(dim=(-2, -1))
+            if bool((1 - inside / total <= energy_outside).all()):
+                return size
+        return max_size
+
+    def pixel_integration_error(self, oversampling: int, reference: int = 15,
+                                grid: tuple[int, int] | None = None) -> float:
+        """Largest L1 distance (a fraction of the unit energy) between node PSFs integrated over each pixel with
+        ``oversampling`` x ``oversampling`` samples and with ``reference`` x ``reference`` (the midpoint rule
+        converges as O(1 / oversampling^2))."""
+        with torch.no_grad():
+            coarse = self.psf_grid(grid, oversampling=oversampling)
+            fine = self.psf_grid(grid, oversampling=reference)
+        return float((coarse - fine).abs().sum(dim=(-2, -1)).max())
+
     def psf_at(
         self, field_height: torch.Tensor, azimuth: torch.Tensor, sample_pitch_um: float | None = None,
         kernel_size: int | None = None, oversampling: int | None = None,
@@ -221,11 +307,12 @@ class Lens(nn.Module):
         factor = oversampling or spec.oversampling
         coefficients = self.field_coefficients(field_height)
         per_wavelength = []
-        for wavelength in spec.wavelengths_um:
+        for channel, wavelength in enumerate(spec.wavelengths_um):
             # sample spacing lambda F# / Q = pitch / factor  ->  Q = lambda F# factor / pitch
             padding = wavelength * spec.f_number * factor / pitch
             padding = max(padding, (size * factor + 2) / spec.pupil_samples)
-            fine = pupil_psf(coefficients, self.noll, azimuth, spec.pupil_samples, padding)
+            waves, noll = self.wavelength_coefficients(coefficients, field_height, channel)
+            fine = pupil_psf(waves, noll, azimuth, spec.pupil_samples, padding)
             per_wavelength.append(integrate_pixels(fine, size, factor))
         psf = torch.stack(per_wavelength)
         return psf / psf.sum(dim=(-2, -1), keepdim=True)
@@ -237,11 +324,12 @@ class Lens(nn.Module):
     # rendered eagerly under torch.compile: inductor (torch 2.11) cannot lower its complex pupil FFTs; the grid is
     # small (a few ms per step), the image-sized work is in psf_conv
     @torch.compiler.disable
-    def psf_grid(self, grid: tuple[int, int] | None = None) -> torch.Tensor:
-        """[3, Gy, Gx, K, K] PSFs at the grid nodes (corners included, `field_points`), each summing to 1 (float64)."""
+    def psf_grid(self, grid: tuple[int, int] | None = None, **options) -> torch.Tensor:
+        """[3, Gy, Gx, K, K] PSFs at the grid nodes (corners included, `field_points`), each summing to 1 (float64).
+        ``options`` (kernel_size, oversampling, sample_pitch_um) go to `psf_at`."""
         grid_y, grid_x = grid or self.spec.psf_grid
         height, azimuth = self.field_points((grid_y, grid_x))
-        psf = self.psf_at(height, azimuth)
+        psf = self.psf_at(height, azimuth, **options)
         size = psf.shape[-1]
         return psf.reshape(3, grid_y, grid_x, size, size)
 
