@@ -17,11 +17,24 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
 
 def _train(args) -> int:
     from warpsense.config import load_config
-    from warpsense.train.engine import train
+    from warpsense.train.engine import TrainingInterrupted, train
+    from warpsense.train.run_dir import newest_run
 
+    # overrides of run.output_dir / run.name only say where the run to resume is
+    locating = ("run.output_dir=", "run.name=")
+    asked = args.config is not None or any(not text.startswith(locating) for text in args.overrides)
     config = load_config(args.config, args.overrides)
     resume = args.resume_dir or args.resume
-    train(config, resume=resume, progress=not args.no_progress)
+    if args.resume and not args.resume_dir:  # the newest run of the config's name
+        resume = newest_run(config.run.output_dir, config.run.name)
+    try:
+        # without --config/--set a resumed run continues with its own saved config
+        train(config if asked or not resume else None, resume=resume, progress=not args.no_progress,
+              allow_config_change=args.allow_config_change)
+    except TrainingInterrupted as interrupted:
+        print(f"warpsense train: interrupted; continue with: warpsense train --resume-dir {interrupted.run_dir}",
+              file=sys.stderr)
+        return 130
     return 0
 
 
@@ -78,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(train)
     train.add_argument("--resume", action="store_true", help="continue the run <output_dir>/<name> from its last checkpoint")
     train.add_argument("--resume-dir", metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint")
+    train.add_argument("--allow-config-change", action="store_true",
+                       help="with --resume/--resume-dir: continue with the given --config/--set even where it differs "
+                            "from the run's saved config (refused otherwise)")
     train.add_argument("--no-progress", action="store_true", help="hide progress bars")
     train.set_defaults(handler=_train)
 

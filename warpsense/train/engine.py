@@ -20,10 +20,10 @@ from warpsense.models import count_parameters
 from warpsense.train.checkpoint import read_checkpoint, restore, save_checkpoint
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.evaluate import evaluate
+from warpsense.train.run_dir import LAST, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
 from warpsense.train.step import TrainingStep
 from warpsense.train.system import build_system, camera_parameters, mark_learnable, set_camera_trainable
 
-LAST = "checkpoint_last.safetensors"
 BEST = "checkpoint_best.safetensors"
 
 
@@ -52,22 +52,6 @@ def camera_summary(model) -> dict:
     if camera.optics is not None and camera.optics.learnable:
         summary["zernike_waves"] = camera.optics.lens.coefficients().detach().cpu().tolist()
     return summary
-
-
-def _fresh_run_dir(base: Path) -> Path:
-    if not (base / LAST).exists():
-        return base
-    suffix = 2
-    while (base.parent / f"{base.name}-{suffix}" / LAST).exists():
-        suffix += 1
-    return base.parent / f"{base.name}-{suffix}"
-
-
-def _read_metrics(path: Path, up_to_epoch: int) -> list[dict]:
-    if not path.exists():
-        return []
-    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return [r for r in records if r["epoch"] <= up_to_epoch]
 
 
 def _fit_time_budget(config, epoch_seconds: float, context) -> None:
@@ -124,18 +108,54 @@ def build_train_batches(config, train_set, context, progress: bool = True):
     return loader
 
 
-def train(config, resume: str | Path | bool = False, progress: bool = True, return_model: bool = False):
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C during training; ``run_dir`` holds the last completed epoch's checkpoint."""
+
+    def __init__(self, run_dir: Path):
+        super().__init__(str(run_dir))
+        self.run_dir = run_dir
+
+
+def train(config, resume: str | Path | bool = False, progress: bool = True, return_model: bool = False,
+          allow_config_change: bool = False):
     """Train ``config`` and return the run directory.
 
     Args:
-        config: a resolved `warpsense.config.Config`.
-        resume: False for a new run (a fresh directory <output_dir>/<name>[-N]); True to continue
-            <output_dir>/<name>; or a run directory path. Resuming restores weights, optimizer, RNG and epoch from
-            the last checkpoint (written atomically at every epoch end), so at most the interrupted epoch is redone.
+        config: a resolved `warpsense.config.Config`; None when resuming to continue with the run's own config.
+        resume: False for a new run (a fresh directory <output_dir>/<name>[-N]); True to continue the newest run
+            <output_dir>/<name>[-N]; or a run directory path. Resuming restores the run's config (config.json),
+            weights, optimizer, RNG and epoch from the last checkpoint (written atomically at every epoch end), so
+            at most the interrupted epoch is redone. A ``config`` that differs from the run's is refused unless
+            ``allow_config_change``.
         progress: show tqdm progress bars (rank 0 only).
         return_model: also return the trained SensingModel (this rank's copy): (run_dir, model).
+
+    Raises:
+        TrainingInterrupted: on Ctrl-C, naming the run directory to resume.
     """
+    if resume:
+        run_dir = Path(resume) if not isinstance(resume, bool) else newest_run(config.run.output_dir, config.run.name)
+        if not (run_dir / LAST).is_file():
+            raise FileNotFoundError(f"{run_dir}: no {LAST} to resume from")
+        config = resumed_config(run_dir, config, allow_config_change)
+    elif config is None:
+        raise ValueError("train: a config is needed for a new run")
+    else:
+        run_dir = fresh_run_dir(Path(config.run.output_dir) / config.run.name)
     context = DistributedContext.from_environment(config.run.device)
+    lock = RunLock(run_dir)
+    if context.is_main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        lock.__enter__()
+    try:
+        return _train(config, run_dir, bool(resume), context, progress, return_model)
+    except KeyboardInterrupt:
+        raise TrainingInterrupted(run_dir) from None
+    finally:
+        lock.__exit__()
+
+
+def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_model: bool):
     device = context.device
     torch.manual_seed(config.run.seed)
     holdout = "rest" if config.data.holdout_prefix else "all"
@@ -168,20 +188,19 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
     amp = config.train.amp and device.type == "cuda"
 
     if resume:
-        run_dir = Path(resume) if not isinstance(resume, bool) else Path(config.run.output_dir) / config.run.name
         tensors, meta = read_checkpoint(run_dir / LAST)
         restore(tensors, model, optimizer)
         state = meta["state"]
         start_epoch, step, best_miou = state["epoch"] + 1, state["step"], state["best_miou"]
         torch.set_rng_state(tensors["rng"])
-        history = _read_metrics(run_dir / "metrics.jsonl", state["epoch"])
+        history = read_metrics(run_dir / "metrics.jsonl", state["epoch"])
+        if context.is_main:
+            print(f"resuming {run_dir} from epoch {start_epoch + 1}/{config.train.epochs}")
     else:
-        run_dir = _fresh_run_dir(Path(config.run.output_dir) / config.run.name)
         start_epoch, step, best_miou, history = 0, 0, -1.0, []
         # each rank draws its own noise seeds from here on (parameters stay identical: DDP syncs gradients)
         torch.manual_seed(config.run.seed * 1000 + context.rank + 1)
     if context.is_main:
-        run_dir.mkdir(parents=True, exist_ok=True)
         config.save(run_dir / "config.json")
         (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in history))
         print(f"run directory: {run_dir}")

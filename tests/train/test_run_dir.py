@@ -1,0 +1,87 @@
+"""Run directories (issue 14, items 2, 9, 10): which run --resume means, the config a resumed run keeps, a torn
+metrics line, the run lock, and Ctrl-C."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from tests.train.test_training import TINY
+from warpsense.cli import main
+from warpsense.config import ConfigError, load_config
+from warpsense.train import engine
+from warpsense.train.run_dir import LAST, RunLock, newest_run, read_metrics, resumed_config
+
+
+def _run(tmp_path, name="tiny", extra=()):
+    config = load_config(None, TINY + ["train.epochs=1", "train.warmup_epochs=0", f"run.output_dir={tmp_path}",
+                                       f"run.name={name}", *extra])
+    return config, engine.train(config, progress=False)
+
+
+def test_newest_run_is_the_highest_suffix(tmp_path):
+    for name in ("cam", "cam-2", "cam-10", "camera", "cam-3"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / LAST).write_bytes(b"x")
+    (tmp_path / "cam-11").mkdir()  # no checkpoint: not a run to resume
+    assert newest_run(tmp_path, "cam") == tmp_path / "cam-10"
+    with pytest.raises(FileNotFoundError, match="no run named 'other'"):
+        newest_run(tmp_path, "other")
+
+
+def test_resumed_config_is_the_runs_own_and_changes_are_refused(tmp_path):
+    config, run = _run(tmp_path)
+    assert resumed_config(run, None) == config
+    moved = load_config(None, TINY + ["train.epochs=1", "train.warmup_epochs=0", "run.output_dir=elsewhere",
+                                      "run.name=tiny"])
+    assert resumed_config(run, moved).run.output_dir == str(tmp_path)  # where the run lives is not a change
+    changed = load_config(None, TINY + ["train.epochs=5", "train.warmup_epochs=0", f"run.output_dir={tmp_path}",
+                                        "run.name=tiny"])
+    with pytest.raises(ConfigError, match=r"train.epochs: 1 -> 5.*--allow-config-change"):
+        resumed_config(run, changed)
+    assert resumed_config(run, changed, allow_change=True).train.epochs == 5
+
+
+def test_resume_dir_alone_continues_with_the_runs_config(tmp_path, capsys):
+    config, run = _run(tmp_path, extra=["train.epochs=2"])
+    (run / "metrics.jsonl").write_text((run / "metrics.jsonl").read_text() + '{"epoch": 2, "trai')  # torn by a kill
+    state = json.loads((run / "checkpoint_last.json").read_text())["state"]
+    assert state["epoch"] == 1
+    assert main(["train", "--resume-dir", str(run), "--no-progress"]) == 0
+    assert f"resuming {run} from epoch 3/2" in capsys.readouterr().out
+    assert [r["epoch"] for r in read_metrics(run / "metrics.jsonl", 10)] == [0, 1]
+    # --resume finds the newest run of the name; a changed --set is refused before anything is written
+    assert main(["train", "--resume", "--set", f"run.output_dir={tmp_path}", "--set", "run.name=tiny",
+                 "--set", "train.epochs=3"]) == 2
+    assert "train.epochs: 2 -> 3" in capsys.readouterr().err
+
+
+def test_torn_metrics_line_in_the_middle_is_an_error(tmp_path):
+    path = tmp_path / "metrics.jsonl"
+    path.write_text('{"epoch": 0}\n{"epo\n{"epoch": 1}\n')
+    with pytest.raises(ValueError, match=r"metrics.jsonl:2: not a JSON record"):
+        read_metrics(path, 5)
+
+
+def test_run_lock_refuses_a_second_training_and_takes_over_a_stale_lock(tmp_path):
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    with RunLock(tmp_path):
+        with pytest.raises(RuntimeError, match="in use by process"):
+            RunLock(tmp_path).__enter__()
+    assert not (tmp_path / "train.lock").exists()
+    (tmp_path / "train.lock").write_text(dead.stdout.strip())  # left by a process that has exited
+    with RunLock(tmp_path):
+        assert (tmp_path / "train.lock").read_text() == str(os.getpid())
+
+
+def test_ctrl_c_prints_the_resume_command_and_releases_the_lock(tmp_path, monkeypatch, capsys):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(engine, "_train", interrupted)
+    code = main(["train", "--set", f"run.output_dir={tmp_path}", "--set", "run.name=cut", "--no-progress"])
+    assert code == 130
+    assert f"continue with: warpsense train --resume-dir {tmp_path / 'cut'}" in capsys.readouterr().err
+    assert not (tmp_path / "cut" / "train.lock").exists()

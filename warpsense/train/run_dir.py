@@ -1,0 +1,147 @@
+"""A training run's directory: where a new run goes, which run `--resume` means, the config a resumed run keeps,
+its metrics log, and a lock so that two trainings never write into one run (issue 14, items 2 and 9)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+
+from warpsense.config import Config, ConfigError, config_from_dict
+
+LAST = "checkpoint_last.safetensors"
+LOCK = "train.lock"
+# keys a resumed run may change without asking: where the run is found and which device it runs on
+RELOCATABLE_KEYS = ("run.output_dir", "run.name", "run.device")
+
+
+def fresh_run_dir(base: Path) -> Path:
+    """``base`` if it holds no run yet, else the first free ``base-N`` (N = 2, 3, ...)."""
+    if not (base / LAST).exists():
+        return base
+    suffix = 2
+    while (base.parent / f"{base.name}-{suffix}" / LAST).exists():
+        suffix += 1
+    return base.parent / f"{base.name}-{suffix}"
+
+
+def newest_run(output_dir: str | Path, name: str) -> Path:
+    """The run `--resume` continues: of <output_dir>/<name> and <output_dir>/<name>-N that hold a last checkpoint,
+    the one with the highest N (the most recently started)."""
+    output_dir = Path(output_dir)
+    pattern = re.compile(rf"^{re.escape(name)}(?:-(\d+))?$")
+    runs = []
+    if output_dir.is_dir():
+        for entry in output_dir.iterdir():
+            match = pattern.match(entry.name)
+            if match and (entry / LAST).is_file():
+                runs.append((int(match.group(1) or 1), entry))
+    if not runs:
+        raise FileNotFoundError(f"no run named {name!r} with a checkpoint in {output_dir} to resume")
+    return max(runs)[1]
+
+
+def _flatten(data: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def config_changes(saved: Config, requested: Config) -> list[str]:
+    """``section.key: saved -> requested`` for every key that differs, relocatable keys left out."""
+    before, after = _flatten(saved.to_dict()), _flatten(requested.to_dict())
+    return [f"{key}: {before.get(key)!r} -> {after.get(key)!r}" for key in sorted(set(before) | set(after))
+            if key not in RELOCATABLE_KEYS and before.get(key) != after.get(key)]
+
+
+def resumed_config(run_dir: Path, requested: Config | None, allow_change: bool = False) -> Config:
+    """The config a resumed run trains with: its own config.json. A ``requested`` config that differs from it (other
+    than `RELOCATABLE_KEYS`) is refused with the differing keys named, unless ``allow_change``; then it is used."""
+    path = run_dir / "config.json"
+    try:
+        saved = config_from_dict(json.loads(path.read_text()), str(path))
+    except OSError as error:
+        raise ConfigError(f"{path}: cannot read the run's config: {error.strerror}") from None
+    except json.JSONDecodeError as error:
+        raise ConfigError(f"{path}: invalid JSON: {error}") from None
+    if requested is None:
+        return saved
+    changes = config_changes(saved, requested)
+    if changes and not allow_change:
+        raise ConfigError(f"resuming {run_dir} with a config that differs from the run's ({'; '.join(changes)}); "
+                          "drop --config/--set to continue as it was, or pass --allow-config-change")
+    if not changes:
+        saved.run.device = requested.run.device  # the device may change; where the run lives stays the run's
+        return saved
+    return requested
+
+
+def read_metrics(path: Path, up_to_epoch: int) -> list[dict]:
+    """The records of metrics.jsonl up to ``up_to_epoch``; a torn (unparsable) last line, left by a kill while it was
+    written, is dropped. A torn line elsewhere is an error naming the file and line."""
+    if not path.exists():
+        return []
+    lines = [line for line in path.read_text().splitlines() if line.strip()]
+    records = []
+    for number, line in enumerate(lines, start=1):
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            if number == len(lines):
+                break
+            raise ValueError(f"{path}:{number}: not a JSON record") from None
+    return [r for r in records if isinstance(r, dict) and r.get("epoch", up_to_epoch + 1) <= up_to_epoch]
+
+
+class RunLock:
+    """An exclusive lock on a run directory (a file holding the owner's pid, created atomically). A lock left by a
+    process that no longer runs is taken over."""
+
+    def __init__(self, run_dir: Path):
+        self.path = Path(run_dir) / LOCK
+        self.held = False
+
+    def __enter__(self) -> "RunLock":
+        for _ in range(2):
+            try:
+                descriptor = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                owner = self._owner()
+                if owner is not None and _alive(owner):
+                    raise RuntimeError(f"run directory {self.path.parent} is in use by process {owner} "
+                                       f"(remove {self.path} if that process is not training)") from None
+                self.path.unlink(missing_ok=True)  # stale: its owner is gone
+                continue
+            with os.fdopen(descriptor, "w") as handle:
+                handle.write(str(os.getpid()))
+            self.held = True
+            return self
+        raise RuntimeError(f"cannot lock run directory {self.path.parent}")
+
+    def __exit__(self, *exc) -> None:
+        if self.held:
+            self.path.unlink(missing_ok=True)
+            self.held = False
+
+    def _owner(self) -> int | None:
+        try:
+            return int(self.path.read_text().strip())
+        except (OSError, ValueError):
+            return None
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
