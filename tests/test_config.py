@@ -35,7 +35,7 @@ def test_presets_load_and_hold_only_overrides(name):
 
 
 def test_preset_base_chain_and_overrides():
-    config = load_config("camvid_ablation_no_optics", ["train.epochs=3", "data.hflip=false", "optics.lens=phone_80deg"])
+    config = load_config("camvid_ablation_no_optics", ["train.epochs=3", "train.warmup_epochs=1", "data.hflip=false", "optics.lens=phone_80deg"])
     assert config.data.dataset == "camvid"  # from the base preset
     assert config.optics.enabled is False  # the ablation's own change
     assert config.train.epochs == 3 and config.data.hflip is False and config.optics.lens == "phone_80deg"
@@ -72,3 +72,26 @@ def test_int_accepted_for_float_and_save_round_trip(tmp_path):
     from warpsense.config import config_from_dict
 
     assert dataclasses.asdict(config_from_dict(saved)) == dataclasses.asdict(config)
+
+
+@pytest.mark.parametrize("override,message", [
+    ("train.epochs=0", "train.epochs: must be >= 1, got 0"),
+    ("train.lr=-0.1", "train.lr: must be > 0"),
+    ("train.lr=inf", "train.lr: must be finite"),
+    ("train.lr=nan", "train.lr: must be finite"),
+    ("loss.ohem_fraction=0", "loss.ohem_fraction: must be > 0"),
+    ("cfa.temperature_end=0", "cfa.temperature_end: must be > 0"),
+    ("quantize.bits=0", "quantize.bits: must be >= 1"),
+    ("quantize.bits=64", "quantize.bits: must be <= 24"),
+    ("data.crop_height=0", "data.crop_height: must be >= 1"),
+    ("train.eval_every=0", "train.eval_every: must be >= 1"),
+    ("noise.shot=-1", "noise.shot: must be >= 0"),
+    ("run.name=../../etc", "run.name must be a plain folder name"),
+    ("train.warmup_epochs=20", "train.warmup_epochs \\(20\\) must be <= train.epochs"),
+    ("data.scale_min=2.0", "data.scale_min \\(2.0\\) must be <= data.scale_max"),
+])
+def test_values_out_of_range_are_refused_naming_the_key(override, message, tmp_path):
+    """Issue 14 item 7: rejected at load, before any directory exists."""
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [override, f"run.output_dir={tmp_path / 'out'}"])
+    assert not (tmp_path / "out").exists()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from warpsense import __version__
 
@@ -16,21 +17,28 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _train(args) -> int:
-    from warpsense.config import load_config
+    from warpsense.config import load_config, with_overrides
     from warpsense.train.engine import TrainingInterrupted, train
-    from warpsense.train.run_dir import newest_run
+    from warpsense.train.run_dir import newest_run, resumed_config
 
-    # overrides of run.output_dir / run.name only say where the run to resume is
-    locating = ("run.output_dir=", "run.name=")
-    asked = args.config is not None or any(not text.startswith(locating) for text in args.overrides)
-    config = load_config(args.config, args.overrides)
-    resume = args.resume_dir or args.resume
-    if args.resume and not args.resume_dir:  # the newest run of the config's name
-        resume = newest_run(config.run.output_dir, config.run.name)
+    if not (args.resume or args.resume_dir):
+        config, run_dir = load_config(args.config, args.overrides), False
+    else:
+        # overrides of run.output_dir / run.name only say where the run to resume is
+        locating = [text for text in args.overrides if text.startswith(("run.output_dir=", "run.name="))]
+        changes = [text for text in args.overrides if text not in locating]
+        if args.resume_dir:
+            run_dir = Path(args.resume_dir)
+        else:
+            located = load_config(args.config, locating)
+            run_dir = newest_run(located.run.output_dir, located.run.name)
+        # the run's own config, unless --config / --set ask for another (refused where it differs, unless allowed)
+        if args.config is not None:
+            config = load_config(args.config, args.overrides)
+        else:
+            config = with_overrides(resumed_config(run_dir, None), changes) if changes else None
     try:
-        # without --config/--set a resumed run continues with its own saved config
-        train(config if asked or not resume else None, resume=resume, progress=not args.no_progress,
-              allow_config_change=args.allow_config_change)
+        train(config, resume=run_dir, progress=not args.no_progress, allow_config_change=args.allow_config_change)
     except TrainingInterrupted as interrupted:
         print(f"warpsense train: interrupted; continue with: warpsense train --resume-dir {interrupted.run_dir}",
               file=sys.stderr)

@@ -7,8 +7,10 @@ name the offending key and what is valid.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
+import math
 import sys
 from dataclasses import dataclass, field
 from importlib import resources
@@ -177,6 +179,57 @@ def preset_names() -> list[str]:
     return sorted(p.name[:-5] for p in (CONFIG_DIR / "presets").iterdir() if p.name.endswith(".toml"))
 
 
+# value ranges per key: (minimum, maximum, minimum excluded); None = unbounded. Every float must also be finite.
+RANGES = {
+    "run.seed": (0, None, False),
+    "data.crop_height": (1, None, False), "data.crop_width": (1, None, False),
+    "data.scale_min": (0, None, True), "data.scale_max": (0, None, True), "data.batch_size": (1, None, False),
+    "data.num_workers": (0, 256, False), "data.on_device_max_mb": (0, None, False),
+    "data.max_train_images": (0, None, False), "data.max_val_images": (0, None, False),
+    "data.scenes_train": (1, None, False), "data.scenes_val": (1, None, False),
+    "data.scene_height": (8, 8192, False), "data.scene_width": (8, 8192, False),
+    "optics.normalize_mean": (0, None, False), "optics.energy_eps": (0, 1, False),
+    "optics.field_tolerance": (0, None, False),
+    "cfa.tile": (1, 8, False), "cfa.temperature_start": (0, None, True), "cfa.temperature_end": (0, None, True),
+    "noise.shot": (0, None, False), "noise.read": (0, None, False),
+    "quantize.bits": (1, 24, False), "quantize.white_level": (0, None, True),
+    "isp.gamma": (0, None, True),
+    "model.width": (1, 512, False), "model.num_classes": (0, 1024, False),
+    "loss.ohem_weight": (0, None, False), "loss.ohem_fraction": (0, 1, True), "loss.lovasz_weight": (0, None, False),
+    "loss.smooth_weight": (0, None, False),
+    "train.epochs": (1, None, False), "train.warmup_epochs": (0, None, False), "train.lr": (0, None, True),
+    "train.weight_decay": (0, None, False), "train.camera_lr_scale": (0, None, False),
+    "train.camera_grad_clip": (0, None, False), "train.max_steps_per_epoch": (0, None, False),
+    "train.time_budget_minutes": (0, None, False), "train.eval_every": (1, None, False),
+}
+
+
+def _check_range(value: Any, key: str, where: str) -> None:
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(f"{where}: must be finite, got {value}")
+    if key not in RANGES:
+        return
+    minimum, maximum, excluded = RANGES[key]
+    if minimum is not None and (value <= minimum if excluded else value < minimum):
+        raise ConfigError(f"{where}: must be {'>' if excluded else '>='} {minimum}, got {value}")
+    if maximum is not None and value > maximum:
+        raise ConfigError(f"{where}: must be <= {maximum}, got {value}")
+
+
+def validate(config: "Config", source: str) -> "Config":
+    """Checks across keys, after every file and override is applied (each error names the keys)."""
+    if config.train.warmup_epochs > config.train.epochs:
+        raise ConfigError(f"{source}: train.warmup_epochs ({config.train.warmup_epochs}) must be <= train.epochs "
+                          f"({config.train.epochs})")
+    if config.data.scale_min > config.data.scale_max:
+        raise ConfigError(f"{source}: data.scale_min ({config.data.scale_min}) must be <= data.scale_max "
+                          f"({config.data.scale_max})")
+    name = config.run.name
+    if not name or name in (".", "..") or "/" in name or "\\" in name or name != name.strip():
+        raise ConfigError(f"{source}: run.name must be a plain folder name (no path separators), got {name!r}")
+    return config
+
+
 def _check_type(value: Any, expected: type, where: str) -> Any:
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
@@ -210,6 +263,7 @@ def _apply(config: Config, overrides: dict, source: str) -> None:
             choices = spec.metadata.get("choices")
             if choices and value not in choices:
                 raise ConfigError(f"{where}: {value!r} is not one of {', '.join(choices)}")
+            _check_range(value, f"{section_name}.{key}", where)
             setattr(section, key, value)
 
 
@@ -266,11 +320,19 @@ def load_config(config: str | Path | None = None, overrides: list[str] | tuple[s
         _apply_file(resolved, config, depth=0)
     for text in overrides:
         _apply(resolved, parse_override(text), f"--set {text}")
-    return resolved
+    return validate(resolved, f"config {config}" if config is not None else "config")
+
+
+def with_overrides(config: Config, overrides: list[str] | tuple[str, ...]) -> Config:
+    """A copy of ``config`` with ``section.key=value`` overrides applied (validated like `load_config`)."""
+    resolved = copy.deepcopy(config)
+    for text in overrides:
+        _apply(resolved, parse_override(text), f"--set {text}")
+    return validate(resolved, "config")
 
 
 def config_from_dict(data: dict, source: str = "config") -> Config:
     """Rebuild a Config from `Config.to_dict()` output (e.g. the JSON saved beside a checkpoint)."""
     resolved = Config()
     _apply(resolved, data, source)
-    return resolved
+    return validate(resolved, source)

@@ -142,3 +142,24 @@ def test_eval_noise_keyed_by_dataset_index():
     whole = camera(radiance, torch.arange(10, 14))
     torch.testing.assert_close(camera(radiance[2:], torch.arange(12, 14)), whole[2:])
     assert not torch.equal(camera(radiance[:2], torch.arange(0, 2)), whole[:2])
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_nan_policy_camera_rejects_non_finite_radiance(bad):
+    """Issue 15 D10: one bad pixel is refused at the camera input with a clear error, for the full camera (the
+    optics' normalisation would otherwise spread it over the frame and into every camera gradient)."""
+    from warpsense.camera.camera import set_finite_check
+    from warpsense.config import load_config
+    from warpsense.train.system import build_system
+
+    torch.manual_seed(0)
+    model = build_system(load_config("camvid_codesign", ["train.compile=off"]), 11)
+    radiance = torch.rand(1, 3, 16, 20)
+    radiance[0, 1, 3, 4] = bad
+    with pytest.raises(ValueError, match="camera: radiance has 1 non-finite values"):
+        model(radiance)
+    set_finite_check(model, False)  # the training loop's setting: no check, and the NaN is not local
+    logits, _ = model(radiance)
+    assert not torch.isfinite(logits).any()
+    set_finite_check(model, True)
+    assert torch.isfinite(model(torch.rand(1, 3, 16, 20))[0]).all()

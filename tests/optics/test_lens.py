@@ -130,12 +130,17 @@ LENS = {
     ({"focal_length_mm": None}, "missing required key 'focal_length_mm'"),
     ({"bogus": 1}, "unknown key 'bogus'"),
     ({"f_number": "fast"}, "f_number: expected float"),
-    ({"psf_kernel_size": 8}, "psf_kernel_size must be a positive odd"),
+    ({"psf_kernel_size": 8}, "psf_kernel_size must be an odd int"),
     ({"psf_grid": [2]}, "psf_grid must be"),
     ({"wavelengths_um": [0.5]}, "wavelengths_um must be 3"),
     ({"zernike_waves": {"4": {"cubic": 1.0}}}, "zernike_waves.4"),
     ({"zernike_waves": {"x": {"constant": 1.0}}}, "Noll indices"),
     ({"reference_wavelength_um": 550}, "reference_wavelength_um must be a wavelength in um"),
+    ({"psf_kernel_size": 1001}, "psf_kernel_size must be an odd int in 1..101"),
+    ({"psf_grid": [1000, 1000]}, "psf_grid must be"),
+    ({"pupil_samples": 100000}, "pupil_samples must be in 8..512"),
+    ({"oversampling": 99}, "oversampling must be an odd int in 1..31"),
+    ({"zernike_waves": {"4": {"constant": 1e300}}}, "coefficients must be finite"),
     ({"lateral_color": [0.001, 0.0]}, "lateral_color must be 3 numbers"),
     ({"axial_color_waves": [0.1, "x", 0.0]}, "axial_color_waves must be 3 numbers"),
 ])
@@ -151,6 +156,15 @@ def test_malformed_lens_file_errors_name_file_and_key(tmp_path, change, message)
     with pytest.raises(LensFileError, match=message) as error:
         Lens.from_json(path)
     assert "bad_lens.json" in str(error.value)
+
+
+@pytest.mark.parametrize("content", [b"\xff\xfe{", b"[" * 100000 + b"]" * 100000, b'{"f_number": ' + b"9" * 5000 + b"}"])
+def test_unreadable_lens_json_is_one_line(tmp_path, content):
+    path = tmp_path / "odd.json"
+    path.write_bytes(content)
+    with pytest.raises(LensFileError, match="odd.json: (not UTF-8|invalid JSON)") as error:
+        Lens.from_json(path)
+    assert "\n" not in str(error.value)
 
 
 def test_invalid_json_and_unknown_name(tmp_path):

@@ -21,7 +21,15 @@ class Camera(nn.Module):
     Stages the config leaves out are None and cost nothing. Exposure is folded into the CFA responses, and
     exposure -> CFA -> noise -> quantization run as one fused Warp kernel (`fusable`). Without a CFA the sensor is
     monochrome (the mean of the three channels).
+
+    NaN policy (issue 15, D10): radiance must be finite. A NaN or inf pixel would not stay local (the optics'
+    mean normalisation spreads it over the frame and into the lens, gain and CFA gradients), so the camera rejects
+    it with a ValueError. The check costs one host synchronisation per call; `check_finite = False` skips it
+    (the training loop does: its radiance comes from 8-bit images, and it checks the loss and parameters each
+    epoch instead). Skipped while compiling or capturing a CUDA graph, where a host read is not allowed.
     """
+
+    check_finite: bool = True
 
     def __init__(self, optics: Optics | None = None, exposure: Exposure | None = None, cfa: CFA | None = None,
                  noise: SensorNoise | None = None, quantizer: Quantizer | None = None):
@@ -71,6 +79,12 @@ class Camera(nn.Module):
 
     def forward(self, radiance: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance [B, 3, H, W] -> RAW [B, 1, H, W]; ``image_index`` [B] (dataset indices) keys the eval noise."""
+        if self.check_finite and not torch.compiler.is_compiling() and not (
+                radiance.is_cuda and torch.cuda.is_current_stream_capturing()):
+            bad = int((~torch.isfinite(radiance)).sum())
+            if bad:
+                raise ValueError(f"camera: radiance has {bad} non-finite values (NaN or inf) of {radiance.numel()}; "
+                                 "the camera takes finite radiance only")
         image = self.optics(radiance) if self.optics is not None else radiance
         if self.fusable():
             noisy = self.noise is not None
@@ -85,3 +99,10 @@ class Camera(nn.Module):
         if self.quantizer is not None:
             raw = self.quantizer(raw)
         return raw
+
+
+def set_finite_check(module: nn.Module, enabled: bool) -> None:
+    """Turn the radiance check (`Camera.check_finite`) on or off for every camera inside ``module``."""
+    for child in module.modules():
+        if isinstance(child, Camera):
+            child.check_finite = enabled

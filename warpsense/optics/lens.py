@@ -37,6 +37,8 @@ OPTIONAL_KEYS = {
     "axial_color_waves": (list, [0.0, 0.0, 0.0]), "lateral_color": (list, [0.0, 0.0, 0.0]),
 }
 FIELD_TERMS = ("constant", "linear", "quadratic")
+# bounds that keep a lens's rendering within memory (a 1001-pixel kernel or 512-node grid would ask for 10s of GB)
+MAX_KERNEL_SIZE, MAX_GRID, MAX_OVERSAMPLING, MAX_PUPIL_SAMPLES = 101, 33, 31, 512
 
 
 class LensFileError(ValueError):
@@ -115,16 +117,21 @@ def parse_lens(data: dict, source: str) -> LensSpec:
             raise LensFileError(f"{source}: {key} must be 3 numbers (R, G, B) of magnitude <= {limit}, got {triple}")
         values[key] = tuple(float(v) for v in triple)
     size = values["psf_kernel_size"]
-    if size < 1 or size % 2 == 0:
-        raise LensFileError(f"{source}: psf_kernel_size must be a positive odd int, got {size}")
+    if not 1 <= size <= MAX_KERNEL_SIZE or size % 2 == 0:
+        raise LensFileError(f"{source}: psf_kernel_size must be an odd int in 1..{MAX_KERNEL_SIZE}, got {size}")
     grid = values["psf_grid"]
-    if len(grid) != 2 or not all(isinstance(g, int) and g >= 1 for g in grid):
-        raise LensFileError(f"{source}: psf_grid must be [Gy, Gx] with positive ints, got {grid}")
+    if len(grid) != 2 or not all(isinstance(g, int) and not isinstance(g, bool) and 1 <= g <= MAX_GRID
+                                 for g in grid):
+        raise LensFileError(f"{source}: psf_grid must be [Gy, Gx] with ints in 1..{MAX_GRID}, got {grid}")
     values["psf_grid"] = tuple(grid)
-    if values["oversampling"] < 1 or values["oversampling"] % 2 == 0:
-        raise LensFileError(f"{source}: oversampling must be a positive odd int, got {values['oversampling']}")
-    if values["pupil_samples"] < 8:
-        raise LensFileError(f"{source}: pupil_samples must be >= 8, got {values['pupil_samples']}")
+    if not 1 <= values["oversampling"] <= MAX_OVERSAMPLING or values["oversampling"] % 2 == 0:
+        raise LensFileError(f"{source}: oversampling must be an odd int in 1..{MAX_OVERSAMPLING}, "
+                            f"got {values['oversampling']}")
+    if not 8 <= values["pupil_samples"] <= MAX_PUPIL_SAMPLES:
+        raise LensFileError(f"{source}: pupil_samples must be in 8..{MAX_PUPIL_SAMPLES}, got {values['pupil_samples']}")
+    for key in ("focal_length_mm", "f_number", "pixel_pitch_um", "learnable_bound_waves"):
+        if not math.isfinite(values[key]) or values[key] > 1e4:
+            raise LensFileError(f"{source}: {key} must be a finite value <= 1e4, got {values[key]}")
     terms = {}
     for index, entry in values["zernike_waves"].items():
         where = f"{source}: zernike_waves.{index}"
@@ -133,6 +140,8 @@ def parse_lens(data: dict, source: str) -> LensSpec:
         if not isinstance(entry, dict) or set(entry) - set(FIELD_TERMS):
             raise LensFileError(f"{where}: must be an object with keys among {', '.join(FIELD_TERMS)}")
         terms[int(index)] = tuple(float(_typed(entry.get(t, 0.0), float, f"{where}.{t}")) for t in FIELD_TERMS)
+        if not all(math.isfinite(v) and abs(v) <= 100 for v in terms[int(index)]):
+            raise LensFileError(f"{where}: coefficients must be finite waves of magnitude <= 100")
     values["zernike_waves"] = dict(sorted(terms.items()))
     return LensSpec(**values)
 
@@ -198,11 +207,13 @@ class Lens(nn.Module):
     def from_json(cls, path: str | Path, learnable: bool = False) -> "Lens":
         path = lens_path(path)
         try:
-            data = json.loads(Path(path).read_text())
+            data = json.loads(Path(path).read_text(encoding="utf-8"))
         except OSError as error:
             raise LensFileError(f"{path}: cannot read: {error.strerror}") from None
-        except json.JSONDecodeError as error:
-            raise LensFileError(f"{path}: invalid JSON: {error}") from None
+        except UnicodeDecodeError:
+            raise LensFileError(f"{path}: not UTF-8 text") from None
+        except (ValueError, RecursionError) as error:  # JSONDecodeError, 5000-digit numbers, deep nesting
+            raise LensFileError(f"{path}: invalid JSON: {str(error).splitlines()[0][:200] or 'too deeply nested'}") from None
         return cls(parse_lens(data, str(path)), learnable=learnable)
 
     def coefficients(self) -> torch.Tensor:

@@ -13,6 +13,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler
 from tqdm import tqdm
 
+from warpsense.camera.camera import set_finite_check
 from warpsense.data import build_dataset
 from warpsense.data.on_device import DeviceBatches, dataset_megabytes
 from warpsense.data.transforms import EpochSampler
@@ -166,6 +167,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
                                   part="holdout") if config.data.holdout_prefix else None
     num_classes = config.model.num_classes or len(train_set.classes)
     model = build_system(config, num_classes).to(device)
+    set_finite_check(model, False)  # 8-bit inputs; the loss and parameters are checked each epoch (_check_finite)
     mark_learnable(model)
     if context.enabled and device.type == "cuda":
         model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
