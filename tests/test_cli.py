@@ -42,3 +42,22 @@ def test_console_entry_point_runs():
     result = subprocess.run([sys.executable, "-m", "warpsense", "--help"], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0 and "convert" in result.stdout
     assert build_parser().prog == "warpsense"
+
+
+@pytest.mark.parametrize("arguments,message", [
+    (["--plot", "x.png"], "--plot draws the sweeps: add --sweep"),
+    (["--latency", "--latency-size", "192"], "--latency-size must be HxW"),
+])
+def test_eval_argument_mistakes_are_one_line_errors_before_any_work(capsys, arguments, message):
+    assert main(["eval", "--checkpoint", "missing.safetensors", *arguments]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_subpackages_load_on_attribute_access_and_no_driver_warning_on_cpu():
+    code = "import warpsense; print(warpsense.ops.cfa_mosaic.__name__)"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.stdout.strip() == "cfa_mosaic"
+    import torch
+
+    if not torch.cuda.is_available():
+        assert "CUDA driver" not in result.stderr

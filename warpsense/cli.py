@@ -49,7 +49,12 @@ def _train(args) -> int:
 def _eval(args) -> int:
     from warpsense.train.evaluate import run_eval
 
-    height, width = (int(v) for v in args.latency_size.lower().split("x"))
+    if args.plot and not args.sweep:
+        raise ValueError("--plot draws the sweeps: add --sweep")
+    size = args.latency_size.lower().split("x")
+    if len(size) != 2 or not all(part.isdigit() and int(part) > 0 for part in size):
+        raise ValueError(f"--latency-size must be HxW, e.g. 192x640, got {args.latency_size!r}")
+    height, width = (int(part) for part in size)
     run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
              (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot, args.flip_tta)
     return 0

@@ -85,3 +85,15 @@ def test_ctrl_c_prints_the_resume_command_and_releases_the_lock(tmp_path, monkey
     assert code == 130
     assert f"continue with: warpsense train --resume-dir {tmp_path / 'cut'}" in capsys.readouterr().err
     assert not (tmp_path / "cut" / "train.lock").exists()
+
+
+def test_runs_record_their_environment_and_files_get_the_default_mode(tmp_path):
+    _, run = _run(tmp_path)
+    environment = json.loads((run / "environment.json").read_text())
+    assert environment["warpsense"] and environment["torch"] and environment["warp"]
+    state = json.loads((run / "checkpoint_last.json").read_text())["state"]
+    assert state["environment"] == environment
+    umask = os.umask(0)
+    os.umask(umask)
+    for name in ("checkpoint_last.safetensors", "checkpoint_best.safetensors", "checkpoint_last.json"):
+        assert (run / name).stat().st_mode & 0o777 == 0o666 & ~umask  # safetensors alone would write 0600

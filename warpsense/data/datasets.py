@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from skimage import io
+from PIL import Image
 from torch.utils.data import Dataset
 
 from warpsense.data.labels import CAMVID_CLASSES, CITYSCAPES_CLASSES, IGNORE_INDEX, id_to_train_id_table
@@ -22,7 +22,7 @@ class DatasetError(ValueError):
 
 
 def _read_rgb(path: Path) -> np.ndarray:
-    image = io.imread(path)
+    image = np.array(Image.open(path))  # a writable copy (torch.from_numpy needs one)
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)
     return np.ascontiguousarray(image[..., :3])
@@ -71,7 +71,7 @@ class PairDataset(Dataset):
     def __getitem__(self, index: int):
         image_path, label_path = self.pairs[index]
         image = torch.from_numpy(_read_rgb(image_path)).permute(2, 0, 1).contiguous()
-        label = io.imread(label_path)
+        label = np.array(Image.open(label_path))
         if label.ndim == 3:
             label = label[..., 0]
         label = torch.from_numpy(self.label_table[label].astype(np.int64))

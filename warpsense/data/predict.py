@@ -8,6 +8,7 @@ import torch
 from torch.nn import functional as F
 
 from warpsense.data.raw import BAYER_PATTERNS, read_raw_file
+from warpsense.files import publish
 
 
 def phase_offset(file_pattern: str, model_pattern: str) -> tuple[int, int]:
@@ -39,7 +40,7 @@ def predict_raw(checkpoint: str, raw_path: str, out_png: str, device: str = "aut
     to about ``target_width`` pixels wide (the scale the network was trained at) and scaled to the exposure the
     model saw in training (its exposure gain times the mean radiance 0.5 of the lens normalisation, when present).
     """
-    from skimage import io
+    from PIL import Image
 
     from warpsense.train.evaluate import load_system
     from warpsense.train.plots import colorize
@@ -66,8 +67,8 @@ def predict_raw(checkpoint: str, raw_path: str, out_png: str, device: str = "aut
     prediction = logits.argmax(dim=1)[0].cpu().numpy()
     out = Path(out_png)
     tmp = out.with_name(out.stem + ".tmp.png")
-    io.imsave(tmp, colorize(prediction, logits.shape[1]), check_contrast=False)
-    tmp.replace(out)
+    Image.fromarray(colorize(prediction, logits.shape[1])).save(tmp, format="PNG")
+    publish(tmp, out)
     print(f"wrote {out} ({prediction.shape[1]}x{prediction.shape[0]}, {metadata['cfa_pattern']} -> {model_pattern} "
           f"crop ({dy}, {dx}))")
     return out

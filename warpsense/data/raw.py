@@ -11,7 +11,6 @@ import glob
 import hashlib
 import json
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -19,6 +18,8 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
+
+from warpsense.files import publish
 
 RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw"}
 BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
@@ -91,7 +92,7 @@ def convert_file(path: str | Path, out_dir: str | Path) -> Path:
     tmp = target.with_name(target.name + ".tmp")
     try:
         save_file({"mosaic": torch.from_numpy(mosaic)[None].contiguous()}, str(tmp), metadata={"warpsense": json.dumps(metadata)})
-        os.replace(tmp, target)
+        publish(tmp, target)
     finally:
         tmp.unlink(missing_ok=True)
     return target
@@ -189,4 +190,4 @@ def write_dng(path: str | Path, mosaic: np.ndarray, pattern: str, black_level: i
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     tifffile.imwrite(tmp, data, photometric=32803, subfiletype=0, extratags=extratags, metadata=None)
-    os.replace(tmp, path)
+    publish(tmp, path)

@@ -15,13 +15,32 @@
 from __future__ import annotations
 
 import collections
+import os
 from collections.abc import Sequence
 
 import torch
 import warp as wp
 
 wp.config.log_level = 30  # warnings only: no banner or per-module compile lines
-wp.init()
+
+
+def _init_warp() -> None:
+    """wp.init(); on a machine without a CUDA driver, Warp's native library prints a driver warning to stderr on
+    every start, which only says what the user knows: silence that one call there."""
+    if torch.cuda.is_available():
+        wp.init()
+        return
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+_init_warp()
 _KERNEL_DTYPES = (torch.float32, torch.float64)
 
 

@@ -9,12 +9,13 @@ Reading takes the metadata inside the file; the sidecar is consulted only for ch
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
+
+from warpsense.files import publish
 
 METADATA_KEY = "warpsense"
 
@@ -26,7 +27,7 @@ class CheckpointError(ValueError):
 def _atomic_json(path: Path, payload: dict) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(payload, indent=2, sort_keys=True))
-    os.replace(tmp, path)
+    publish(tmp, path)
 
 
 def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict, state: dict,
@@ -47,7 +48,7 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict,
     payload = {"config": config_dict, "state": state}
     tmp = path.with_name(path.name + ".tmp")
     save_file(tensors, str(tmp), metadata={METADATA_KEY: json.dumps(payload, sort_keys=True)})
-    os.replace(tmp, path)
+    publish(tmp, path)
     _atomic_json(path.with_suffix(".json"), payload)
 
 

@@ -15,6 +15,7 @@ from tqdm import tqdm
 
 from warpsense.camera.camera import set_finite_check
 from warpsense.data import build_dataset
+from warpsense.files import environment
 from warpsense.data.on_device import DeviceBatches, dataset_megabytes
 from warpsense.data.transforms import EpochSampler
 from warpsense.models import count_parameters
@@ -204,6 +205,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         torch.manual_seed(config.run.seed * 1000 + context.rank + 1)
     if context.is_main:
         config.save(run_dir / "config.json")
+        versions = environment()
+        (run_dir / "environment.json").write_text(json.dumps(versions, indent=1) + "\n")
         (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in history))
         print(f"run directory: {run_dir}")
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
@@ -271,7 +274,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             with open(run_dir / "metrics.jsonl", "a") as log:
                 log.write(json.dumps(record) + "\n")
             state = {"epoch": epoch, "step": step, "best_miou": best_miou, "num_classes": num_classes,
-                     "class_names": list(train_set.classes), "record": record}
+                     "class_names": list(train_set.classes), "record": record, "environment": versions}
             if is_best:
                 save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
             save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state())

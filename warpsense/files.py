@@ -1,0 +1,35 @@
+"""Writing output files: a temporary beside the target, then one atomic rename, with the permissions the user's umask
+gives a new file (safetensors and mkstemp create 0600 files, which other users of a shared run folder cannot read)."""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+from pathlib import Path
+
+
+def publish(temporary: str | Path, target: str | Path) -> None:
+    """Give ``temporary`` the default mode for a new file (0666 minus the umask) and rename it onto ``target``."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(temporary, 0o666 & ~umask)
+    os.replace(temporary, target)
+
+
+def environment() -> dict:
+    """What produced a run or checkpoint: warpsense, torch, Warp and Python versions, the device, and the git
+    commit of the source tree (None outside a git checkout)."""
+    import torch
+    import warp
+
+    from warpsense import __version__
+
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True,
+                                text=True, timeout=5).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    return {"warpsense": __version__, "torch": torch.__version__, "warp": warp.config.version,
+            "python": platform.python_version(), "git_commit": commit,
+            "cuda_device": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
