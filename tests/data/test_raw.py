@@ -122,3 +122,36 @@ def test_predict_on_real_capture_and_refuses_non_bayer(shared_data, tmp_path):
     code = main(["predict", str(run / "checkpoint_last.safetensors"), str(shared_data / "dng" / "pidng_indoor_gbrg10.dng"),
                  "--out", str(tmp_path / "no.png")])
     assert code == 2 and not (tmp_path / "no.png").exists()
+
+
+def _simulated_dng(path, pattern="RGGB"):
+    write_dng(path, np.random.default_rng(0).random((32, 48)), pattern, black_level=64, white_level=1023)
+    return path
+
+
+def test_batch_problems_are_reported_and_the_batch_goes_on(tmp_path, capsys):
+    """Issue 14 item 4: a truncated DNG, a plain TIFF named .dng, two inputs with one stem, folders named like raw
+    files and a folder without raws: each is one line on stderr, the good files still convert, exit 1."""
+    import tifffile
+
+    inputs = tmp_path / "in"
+    (inputs / "a").mkdir(parents=True)
+    (inputs / "b").mkdir()
+    _simulated_dng(inputs / "a" / "frame.dng")
+    _simulated_dng(inputs / "b" / "frame.dng", "BGGR")  # same stem as a/frame.dng
+    whole = _simulated_dng(inputs / "a" / "whole.dng").read_bytes()
+    (inputs / "a" / "cut.dng").write_bytes(whole[: len(whole) // 2])  # truncated inside the pixel data
+    tifffile.imwrite(inputs / "a" / "plain.dng", np.zeros((16, 16), dtype=np.uint16))
+    (inputs / "a" / "folder.dng").mkdir()
+    (tmp_path / "empty").mkdir()
+    out = tmp_path / "out"
+    code = main(["convert", str(inputs), str(tmp_path / "empty"), "--out", str(out), "--no-progress"])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "cut.dng: LibRaw cannot" in err
+    assert "plain.dng: named .dng but has no DNGVersion tag" in err
+    assert "frame.safetensors would overwrite the one from" in err
+    assert "folder.dng: is a directory" in err
+    assert "empty: no raw files" in err
+    assert sorted(p.name for p in out.iterdir()) == ["frame.safetensors", "whole.safetensors"]
+    assert all(len(line) < 300 for line in err.splitlines())

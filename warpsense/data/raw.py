@@ -42,44 +42,65 @@ def _camera_names(path: Path) -> tuple[str, str]:
         return "", ""
 
 
+def _require_dng(path: Path) -> None:
+    """A .dng must be a DNG: a plain TIFF renamed .dng would otherwise be read by LibRaw as a Bayer mosaic."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            is_dng = "DNGVersion" in tif.pages[0].tags
+    except Exception:  # noqa: BLE001 (unparsable as TIFF: LibRaw gives the reason)
+        return
+    if not is_dng:
+        raise RawFileError(f"{path}: named .dng but has no DNGVersion tag (a plain TIFF?): refusing")
+
+
 def read_raw_file(path: str | Path) -> tuple[np.ndarray, dict]:
     """(normalised mosaic float32 [H, W], metadata) of a raw file; RawFileError for what cannot be converted."""
     import rawpy  # imported lazily: only raw-file paths need LibRaw
 
     path = Path(path)
+    if path.is_dir():
+        raise RawFileError(f"{path}: is a directory, not a raw file")
+    if path.suffix.lower() == ".dng":
+        _require_dng(path)
     try:
         raw = rawpy.imread(str(path))
     except (rawpy.LibRawError, OSError) as error:
         raise RawFileError(f"{path}: LibRaw cannot read it ({type(error).__name__}: {error})") from None
-    with raw:
-        if raw.raw_type != rawpy.RawType.Flat or raw.num_colors < 3 or raw.raw_pattern is None:
-            raise RawFileError(f"{path}: not a colour-filter mosaic (LinearRaw / stacked data): refusing")
-        try:
-            visible = raw.raw_image_visible.astype(np.float32)
-            colors = raw.raw_colors_visible
-        except rawpy.LibRawError as error:
-            raise RawFileError(f"{path}: LibRaw cannot unpack it ({error})") from None
-        description = raw.color_desc.decode()
-        tile = raw.raw_pattern.shape[0]
-        letters = ["".join(description[colors[y, x]] for x in range(tile)) for y in range(tile)]
-        pattern = "".join(letters)
-        if pattern not in BAYER_PATTERNS:
-            raise RawFileError(f"{path}: CFA pattern {pattern!r} (tile {tile}) is not supported; supported: "
-                               f"{', '.join(BAYER_PATTERNS)}")
-        black = np.asarray(raw.black_level_per_channel, dtype=np.float32)
-        white = float(raw.white_level)
-        black_map = black[colors]
-        mosaic = (visible - black_map) / (white - black_map)
-        make, model = _camera_names(path)
-        metadata = {
-            "cfa_pattern": pattern, "tile": tile, "color_desc": description,
-            "black_levels": black.tolist(), "white_level": white, "bit_depth": int(math.ceil(math.log2(white + 1))),
-            "as_shot_white_balance": [float(v) for v in raw.camera_whitebalance],
-            "color_matrix": np.asarray(raw.color_matrix, dtype=float).tolist(),
-            "rgb_xyz_matrix": np.asarray(raw.rgb_xyz_matrix, dtype=float).tolist(),
-            "make": make, "model": model, "height": int(mosaic.shape[0]), "width": int(mosaic.shape[1]),
-            "source": path.name, "source_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
-        }
+    try:
+        with raw:
+            return _decode(raw, path, rawpy)
+    except rawpy.LibRawError as error:  # LibRaw unpacks lazily: a truncated file fails at the first pixel access
+        raise RawFileError(f"{path}: LibRaw cannot unpack it ({type(error).__name__}: {error})") from None
+
+
+def _decode(raw, path: Path, rawpy) -> tuple[np.ndarray, dict]:
+    if raw.raw_type != rawpy.RawType.Flat or raw.num_colors < 3 or raw.raw_pattern is None:
+        raise RawFileError(f"{path}: not a colour-filter mosaic (LinearRaw / stacked data): refusing")
+    visible = raw.raw_image_visible.astype(np.float32)
+    colors = raw.raw_colors_visible
+    description = raw.color_desc.decode()
+    tile = raw.raw_pattern.shape[0]
+    letters = ["".join(description[colors[y, x]] for x in range(tile)) for y in range(tile)]
+    pattern = "".join(letters)
+    if pattern not in BAYER_PATTERNS:
+        raise RawFileError(f"{path}: CFA pattern {pattern!r} (tile {tile}) is not supported; supported: "
+                           f"{', '.join(BAYER_PATTERNS)}")
+    black = np.asarray(raw.black_level_per_channel, dtype=np.float32)
+    white = float(raw.white_level)
+    black_map = black[colors]
+    mosaic = (visible - black_map) / (white - black_map)
+    make, model = _camera_names(path)
+    metadata = {
+        "cfa_pattern": pattern, "tile": tile, "color_desc": description,
+        "black_levels": black.tolist(), "white_level": white, "bit_depth": int(math.ceil(math.log2(white + 1))),
+        "as_shot_white_balance": [float(v) for v in raw.camera_whitebalance],
+        "color_matrix": np.asarray(raw.color_matrix, dtype=float).tolist(),
+        "rgb_xyz_matrix": np.asarray(raw.rgb_xyz_matrix, dtype=float).tolist(),
+        "make": make, "model": model, "height": int(mosaic.shape[0]), "width": int(mosaic.shape[1]),
+        "source": path.name, "source_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+    }
     return mosaic.astype(np.float32), metadata
 
 
@@ -108,43 +129,63 @@ def load_raw(path: str | Path) -> tuple[torch.Tensor, dict]:
     return load_file(str(path))["mosaic"], metadata
 
 
-def expand_inputs(inputs: list[str]) -> list[Path]:
-    """Files, folders (raw files inside, recursively) and glob patterns -> sorted unique paths."""
-    found = []
+def expand_inputs(inputs: list[str]) -> tuple[list[Path], list[tuple[Path, str]]]:
+    """Files, folders (raw files inside, recursively) and glob patterns -> (sorted unique paths, problems).
+
+    Problems are reported, not dropped: a named folder without raw files, a folder named like a raw file, a pattern
+    that matches nothing."""
+    found, problems = [], []
     for item in inputs:
         path = Path(item)
         if path.is_dir():
-            found += [p for p in sorted(path.rglob("*")) if p.suffix.lower() in RAW_SUFFIXES and p.is_file()]
+            inside = [p for p in sorted(path.rglob("*")) if p.suffix.lower() in RAW_SUFFIXES]
+            problems += [(p, f"{p}: is a directory, not a raw file") for p in inside if p.is_dir()]
+            files = [p for p in inside if p.is_file()]
+            if not files and path.suffix.lower() not in RAW_SUFFIXES:
+                problems.append((path, f"{path}: no raw files ({', '.join(sorted(RAW_SUFFIXES))}) in this folder"))
+            found += files if path.suffix.lower() not in RAW_SUFFIXES else [path]
         elif any(ch in item for ch in "*?["):
-            found += [Path(p) for p in sorted(glob.glob(item, recursive=True)) if Path(p).is_file()]
+            matches = [Path(p) for p in sorted(glob.glob(item, recursive=True))]
+            if not matches:
+                problems.append((path, f"{item}: the pattern matches nothing"))
+            found += [p for p in matches if p.is_file()]
         else:
             found.append(path)
     unique = []
     for path in found:
         if path not in unique:
             unique.append(path)
-    return unique
+    return unique, problems
 
 
 def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True) -> list[tuple[Path, str]]:
-    """Convert every input; a failing file is reported on stderr with a one-line reason and skipped.
+    """Convert every input; a failing file is reported on stderr with a one-line reason and skipped, and the batch
+    goes on. Two inputs with one stem would write one output: the second is refused, naming the first.
 
     Returns the failures [(path, reason)]; the CLI exits non-zero when there are any."""
-    paths = expand_inputs(inputs)
-    if not paths:
+    paths, failures = expand_inputs(inputs)
+    for _, reason in failures:
+        print(f"warpsense convert: skipped {reason}", file=sys.stderr)
+    if not paths and not failures:
         print(f"warpsense convert: error: no input files found in {' '.join(inputs)}", file=sys.stderr)
         return [(Path(" ".join(inputs)), "no input files found")]
-    failures = []
+    outputs: dict[str, Path] = {}
     for path in tqdm(paths, desc="convert", unit="file", disable=not progress):
         try:
-            if not path.is_file():
+            name = f"{path.stem}.safetensors"
+            if name in outputs:
+                raise RawFileError(f"{path}: its output {name} would overwrite the one from {outputs[name]}; "
+                                   "convert it into another folder")
+            if not path.exists():
                 raise RawFileError(f"{path}: no such file")
             convert_file(path, out_dir)
-        except RawFileError as error:
-            failures.append((path, str(error)))
-            tqdm.write(f"warpsense convert: skipped {error}", file=sys.stderr)
+            outputs[name] = path
+        except (RawFileError, OSError) as error:
+            reason = str(error) if isinstance(error, RawFileError) else f"{path}: cannot write its output ({error})"
+            failures.append((path, reason))
+            tqdm.write(f"warpsense convert: skipped {reason}", file=sys.stderr)
     failed = f"; {len(failures)} failed" if failures else ""
-    print(f"converted {len(paths) - len(failures)} of {len(paths)} file(s) into {out_dir}{failed}")
+    print(f"converted {len(outputs)} of {len(paths)} file(s) into {out_dir}{failed}")
     return failures
 
 
