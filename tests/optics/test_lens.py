@@ -259,3 +259,23 @@ def test_pixel_integration_is_exact_against_a_brute_force_midpoint_rule(name, mo
     old_rule = lens.psf_grid((1, 1), oversampling=5)
     assert (exact - brute_force).abs().sum(dim=(-2, -1)).max() < 0.004
     assert (old_rule - brute_force).abs().sum(dim=(-2, -1)).max() > 0.008
+
+
+def test_corner_pixel_psf_matches_a_direct_rendering_at_its_field_point():
+    """Issue 12 item 1: the grid's bilinear PSF at the image's corner pixel equals the lens rendered at that pixel's
+    own field height (~1.0); a grid clamped at its outer node centres would give the 0.8-field PSF there."""
+    from warpsense.ops.reference import bilinear_node_weights
+
+    lens = _small()
+    height, width = 600, 800
+    grid = lens.psf_grid((5, 5))
+    weights = bilinear_node_weights(height, width, 5, 5, torch.float64, "cpu")[:, :, 0, 0]
+    interpolated = (grid * weights[None, :, :, None, None]).sum(dim=(1, 2))
+    half_w, half_h = lens.spec.aspect_ratio / 2, 0.5
+    x, y = (0.5 / width - 0.5) * 2 * half_w, (0.5 / height - 0.5) * 2 * half_h
+    field = torch.tensor([math.hypot(x, y) / math.hypot(half_w, half_h)], dtype=torch.float64)
+    direct = lens.psf_at(field, torch.tensor([math.atan2(y, x)], dtype=torch.float64))[:, 0]
+    inner = lens.psf_at(field * 0.8, torch.tensor([math.atan2(y, x)], dtype=torch.float64))[:, 0]
+    assert field.item() > 0.99
+    assert (interpolated - direct).abs().sum(dim=(-2, -1)).max() < 0.02
+    assert (inner - direct).abs().sum(dim=(-2, -1)).min() > 0.1
