@@ -279,3 +279,18 @@ def test_corner_pixel_psf_matches_a_direct_rendering_at_its_field_point():
     assert field.item() > 0.99
     assert (interpolated - direct).abs().sum(dim=(-2, -1)).max() < 0.02
     assert (inner - direct).abs().sum(dim=(-2, -1)).min() > 0.1
+
+
+def test_kernel_size_chosen_from_max_energy_outside(tmp_path):
+    data = dict(LENS, max_energy_outside=0.05, pupil_samples=32)
+    path = tmp_path / "auto_k.json"
+    path.write_text(json.dumps(data))
+    lens = Lens.from_json(path)
+    size = lens.spec.psf_kernel_size
+    assert size % 2 == 1 and size != LENS["psf_kernel_size"]
+    assert (lens.energy_outside(size, reference_size=63) <= 0.05).all()
+    assert not (lens.energy_outside(size - 2, reference_size=63) <= 0.05).all()
+    assert lens.psf_grid().shape[-1] == size
+    path.write_text(json.dumps(dict(LENS, max_energy_outside=0.9)))
+    with pytest.raises(LensFileError, match="max_energy_outside must be in"):
+        Lens.from_json(path)

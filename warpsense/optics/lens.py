@@ -11,7 +11,9 @@ green wavelength), i.e. an optical path difference OPD = c * lambda_ref that eve
 lambda the phase is OPD / lambda waves. ``axial_color_waves`` adds per-channel defocus (Noll 4, waves at the
 reference wavelength: longitudinal chromatic aberration) and ``lateral_color`` a per-channel relative
 magnification (0.001: that channel's image is 0.1% larger, its PSF moves outward by 0.001 x the image height; a
-radial tilt, Noll 2, at that wavelength).
+radial tilt, Noll 2, at that wavelength). ``max_energy_outside`` (optional) replaces ``psf_kernel_size`` by the
+smallest odd K that leaves at most that fraction of every node's energy outside the kernel (measured within a
+63-pixel window; `Lens.energy_outside`).
 """
 
 from __future__ import annotations
@@ -34,10 +36,12 @@ OPTIONAL_KEYS = {
     "description": (str, ""), "aspect_ratio": (float, 4.0 / 3.0), "oversampling": (int, 5),
     "pupil_samples": (int, 64), "learnable_bound_waves": (float, 0.25), "reference_wavelength_um": (float, None),
     "axial_color_waves": (list, [0.0, 0.0, 0.0]), "lateral_color": (list, [0.0, 0.0, 0.0]),
+    "max_energy_outside": (float, None),
 }
 FIELD_TERMS = ("constant", "linear", "quadratic")
 # bounds that keep a lens's rendering within memory (a 1001-pixel kernel or 512-node grid would ask for 10s of GB)
 MAX_KERNEL_SIZE, MAX_GRID, MAX_OVERSAMPLING, MAX_PUPIL_SAMPLES = 101, 33, 31, 512
+ENERGY_WINDOW = 63  # pixels: the rendering that "energy outside K" is measured against
 
 
 class LensFileError(ValueError):
@@ -63,6 +67,7 @@ class LensSpec:
     reference_wavelength_um: float | None = None
     axial_color_waves: tuple[float, float, float] = (0.0, 0.0, 0.0)
     lateral_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    max_energy_outside: float | None = None
 
     def __post_init__(self):
         if self.reference_wavelength_um is None:
@@ -106,6 +111,9 @@ def parse_lens(data: dict, source: str) -> LensSpec:
     if len(wavelengths) != 3 or not all(isinstance(w, (int, float)) and 0.2 < w < 2.0 for w in wavelengths):
         raise LensFileError(f"{source}: wavelengths_um must be 3 wavelengths (R, G, B) in um, got {wavelengths}")
     values["wavelengths_um"] = tuple(float(w) for w in wavelengths)
+    eps = values.get("max_energy_outside")
+    if eps is not None and not 0 < eps <= 0.5:
+        raise LensFileError(f"{source}: max_energy_outside must be in (0, 0.5], got {eps}")
     reference = values.get("reference_wavelength_um")
     if reference is not None and not 0.2 < reference < 2.0:
         raise LensFileError(f"{source}: reference_wavelength_um must be a wavelength in um, got {reference}")
@@ -201,6 +209,8 @@ class Lens(nn.Module):
         table = torch.tensor([spec.zernike_waves[j] for j in self.noll], dtype=torch.float64).reshape(-1, 3)
         self.register_buffer("base_coefficients", table)
         self.offset = nn.Parameter(torch.zeros_like(table), requires_grad=learnable)
+        if spec.max_energy_outside is not None:  # K chosen from the energy the kernel may leave out
+            spec.psf_kernel_size = self.kernel_size_for(spec.max_energy_outside, max_size=ENERGY_WINDOW)
 
     @classmethod
     def from_json(cls, path: str | Path, learnable: bool = False) -> "Lens":
