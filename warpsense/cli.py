@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from warpsense import __version__
+from warpsense.files import check_output_file, check_output_folder
 
 
 def _add_config_options(parser: argparse.ArgumentParser) -> None:
@@ -23,6 +24,7 @@ def _train(args) -> int:
 
     if not (args.resume or args.resume_dir):
         config, run_dir = load_config(args.config, args.overrides), False
+        check_output_folder(config.run.output_dir, "run.output_dir")
     else:
         # overrides of run.output_dir / run.name only say where the run to resume is
         locating = [text for text in args.overrides if text.startswith(("run.output_dir=", "run.name="))]
@@ -51,6 +53,8 @@ def _eval(args) -> int:
 
     if args.plot and not args.sweep:
         raise ValueError("--plot draws the sweeps: add --sweep")
+    check_output_file(args.json, "--json")
+    check_output_file(args.plot, "--plot")
     size = args.latency_size.lower().split("x")
     if len(size) != 2 or not all(part.isdigit() and int(part) > 0 for part in size):
         raise ValueError(f"--latency-size must be HxW, e.g. 192x640, got {args.latency_size!r}")
@@ -63,6 +67,8 @@ def _eval(args) -> int:
 def _bench(args) -> int:
     from warpsense.bench.runner import run_bench
 
+    check_output_file(args.json, "--json")
+    check_output_file(args.plot, "--plot")
     run_bench(device=args.device, quick=args.quick, json_out=args.json, plot_out=args.plot, suite=args.suite)
     return 0
 
@@ -70,6 +76,7 @@ def _bench(args) -> int:
 def _convert(args) -> int:
     from warpsense.data.raw import convert_files
 
+    check_output_folder(args.out, "--out")
     failures = convert_files(args.inputs, args.out, progress=not args.no_progress)
     return 1 if failures else 0
 
@@ -77,6 +84,7 @@ def _convert(args) -> int:
 def _predict(args) -> int:
     from warpsense.data.predict import predict_raw
 
+    check_output_file(args.out, "--out")
     predict_raw(args.checkpoint, args.input, args.out, device=args.device)
     return 0
 
@@ -180,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return args.handler(args)
-    except (ConfigError, DatasetError, LensFileError, FileNotFoundError, KeyError, ValueError) as error:
+    except (ConfigError, DatasetError, LensFileError, OSError, KeyError, ValueError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"warpsense {args.command}: error: {message}", file=sys.stderr)
         return 2

@@ -17,6 +17,33 @@ def publish(temporary: str | Path, target: str | Path) -> None:
     os.replace(temporary, target)
 
 
+def check_output_file(path: str | Path | None, what: str) -> None:
+    """Refuse, before any long work, an output file path that cannot be written: a folder, a missing or
+    non-writable parent folder. ValueError naming the option and path."""
+    if not path:
+        return
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise ValueError(f"{what} {path}: is a folder, expected a file path")
+    if not parent.is_dir():
+        raise ValueError(f"{what} {path}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise ValueError(f"{what} {path}: folder {parent} is not writable")
+
+
+def check_output_folder(path: str | Path, what: str) -> None:
+    """Refuse an output folder that is a file or sits under a non-writable folder (it may not exist yet)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{what} {path}: is a file, expected a folder")
+    existing = path
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK):
+        raise ValueError(f"{what} {path}: {existing} is not a writable folder")
+
+
 def environment() -> dict:
     """What produced a run or checkpoint: warpsense, torch, Warp and Python versions, the device, and the git
     commit of the source tree (None outside a git checkout)."""

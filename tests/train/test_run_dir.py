@@ -68,7 +68,7 @@ def test_torn_metrics_line_in_the_middle_is_an_error(tmp_path):
 def test_run_lock_refuses_a_second_training_and_takes_over_a_stale_lock(tmp_path):
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     with RunLock(tmp_path):
-        with pytest.raises(RuntimeError, match="in use by process"):
+        with pytest.raises(FileExistsError, match="in use by process"):
             RunLock(tmp_path).__enter__()
     assert not (tmp_path / "train.lock").exists()
     (tmp_path / "train.lock").write_text(dead.stdout.strip())  # left by a process that has exited
@@ -97,3 +97,23 @@ def test_runs_record_their_environment_and_files_get_the_default_mode(tmp_path):
     os.umask(umask)
     for name in ("checkpoint_last.safetensors", "checkpoint_best.safetensors", "checkpoint_last.json"):
         assert (run / name).stat().st_mode & 0o777 == 0o666 & ~umask  # safetensors alone would write 0600
+
+
+@pytest.mark.parametrize("command", [
+    ["eval", "--checkpoint", "c.safetensors", "--json", "{missing}/m.json"],
+    ["eval", "--checkpoint", "c.safetensors", "--json", "{folder}"],
+    ["bench", "--quick", "--plot", "{missing}/p.png"],
+    ["predict", "c.safetensors", "x.dng", "--out", "{missing}/p.png"],
+    ["convert", "x.dng", "--out", "{file}"],
+    ["train", "--set", "run.output_dir={file}"],
+])
+def test_output_paths_are_checked_before_any_work(tmp_path, capsys, command):
+    """Issue 14 item 8: a folder where a file goes, a file where a folder goes, a missing folder: one line, exit 2,
+    nothing written."""
+    (tmp_path / "afile").write_text("x")
+    names = {"missing": str(tmp_path / "no" / "such"), "folder": str(tmp_path), "file": str(tmp_path / "afile")}
+    before = sorted(tmp_path.rglob("*"))
+    assert main([part.format(**names) for part in command]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"warpsense {command[0]}: error:") and "\n" not in err
+    assert sorted(tmp_path.rglob("*")) == before

@@ -113,7 +113,7 @@ class RunLock:
             except FileExistsError:
                 owner = self._owner()
                 if owner is not None and _alive(owner):
-                    raise RuntimeError(f"run directory {self.path.parent} is in use by process {owner} "
+                    raise FileExistsError(f"run directory {self.path.parent} is in use by process {owner} "
                                        f"(remove {self.path} if that process is not training)") from None
                 self.path.unlink(missing_ok=True)  # stale: its owner is gone
                 continue
@@ -121,7 +121,7 @@ class RunLock:
                 handle.write(str(os.getpid()))
             self.held = True
             return self
-        raise RuntimeError(f"cannot lock run directory {self.path.parent}")
+        raise FileExistsError(f"cannot lock run directory {self.path.parent}")
 
     def __exit__(self, *exc) -> None:
         if self.held:
