@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 import torch
-from skimage import io
+from PIL import Image
 
 from warpsense.config import load_config
 from warpsense.data import KITTI360, CamVid, Cityscapes, DatasetError, StreetScenes, build_dataset
@@ -11,8 +11,8 @@ from warpsense.data.color import linear_to_srgb, srgb_to_linear
 def _write_pair(image_path, label_path, label_ids, size=(8, 12)):
     image_path.parent.mkdir(parents=True, exist_ok=True)
     label_path.parent.mkdir(parents=True, exist_ok=True)
-    io.imsave(image_path, np.random.default_rng(0).integers(0, 255, (*size, 3), dtype=np.uint8), check_contrast=False)
-    io.imsave(label_path, np.asarray(label_ids, dtype=np.uint8).reshape(size), check_contrast=False)
+    Image.fromarray(np.random.default_rng(0).integers(0, 255, (*size, 3), dtype=np.uint8)).save(image_path)
+    Image.fromarray(np.asarray(label_ids, dtype=np.uint8).reshape(size)).save(label_path)
 
 
 LABEL_IDS = [7, 8, 11, 26, 24, 0, 33, 3] * 12  # road, sidewalk, building, car, person, unlabeled, bicycle, out of roi
