@@ -98,8 +98,19 @@ class NoiseConfig:
     enabled: bool = True
     shot: float = 0.015
     read: float = 0.002
+    full_well_electrons: float = 0.0
+    read_electrons: float = 0.0
     learnable: bool = False
     eval_seed: int = 1234
+
+
+def noise_levels(noise: NoiseConfig) -> tuple[float, float]:
+    """(shot variance coefficient, read std) in units of the white level. With ``full_well_electrons`` set the
+    sensor is stated physically: a signal of s (white level = 1) holds s * FWC electrons, so its shot variance is
+    s / FWC (shot = 1 / FWC) and the read noise is read_electrons / FWC; ``shot`` and ``read`` are then ignored."""
+    if noise.full_well_electrons > 0:
+        return 1.0 / noise.full_well_electrons, noise.read_electrons / noise.full_well_electrons
+    return noise.shot, noise.read
 
 
 @dataclass
@@ -192,6 +203,7 @@ RANGES = {
     "optics.field_tolerance": (0, None, False),
     "cfa.tile": (1, 8, False), "cfa.temperature_start": (0, None, True), "cfa.temperature_end": (0, None, True),
     "noise.shot": (0, None, False), "noise.read": (0, None, False),
+    "noise.full_well_electrons": (0, 1e7, False), "noise.read_electrons": (0, 1e4, False),
     "quantize.bits": (1, 24, False), "quantize.white_level": (0, None, True),
     "isp.gamma": (0, None, True),
     "model.width": (1, 512, False), "model.num_classes": (0, 1024, False),
@@ -224,6 +236,9 @@ def validate(config: "Config", source: str) -> "Config":
     if config.data.scale_min > config.data.scale_max:
         raise ConfigError(f"{source}: data.scale_min ({config.data.scale_min}) must be <= data.scale_max "
                           f"({config.data.scale_max})")
+    if config.noise.read_electrons > 0 and config.noise.full_well_electrons == 0:
+        raise ConfigError(f"{source}: noise.read_electrons needs noise.full_well_electrons (electrons at the white "
+                          "level)")
     name = config.run.name
     if not name or name in (".", "..") or "/" in name or "\\" in name or name != name.strip():
         raise ConfigError(f"{source}: run.name must be a plain folder name (no path separators), got {name!r}")

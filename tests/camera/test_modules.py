@@ -3,7 +3,7 @@ import torch
 
 from warpsense.camera import CFA, Camera, Exposure, Optics, Quantizer, SensorNoise
 from warpsense.camera.isp import FixedISP
-from warpsense.config import load_config
+from warpsense.config import ConfigError, load_config
 from warpsense.ops import cfa_mosaic, exposure, poisson_gaussian, psf_conv, quantize_ste
 from warpsense.optics import Lens
 
@@ -163,3 +163,20 @@ def test_nan_policy_camera_rejects_non_finite_radiance(bad):
     assert not torch.isfinite(logits).any()
     set_finite_check(model, True)
     assert torch.isfinite(model(torch.rand(1, 3, 16, 20))[0]).all()
+
+
+def test_physical_sensor_preset_noise_matches_electron_counts():
+    """Issue 13: a 4500 e- full well with 2 e- read noise. A flat field at half the white level holds 2250 e-; its
+    variance in white-level units is (2250 + 2^2) / 4500^2."""
+    from warpsense.camera import SensorNoise
+    from warpsense.config import noise_levels
+
+    config = load_config("camvid_codesign_phone")
+    shot, read = noise_levels(config.noise)
+    assert shot == pytest.approx(1 / 4500) and read == pytest.approx(2 / 4500)
+    noise = SensorNoise(shot, read).train()
+    flat = torch.full((4, 1, 128, 128), 0.5, dtype=torch.float64)
+    variance = noise(flat).var().item()
+    assert variance == pytest.approx((2250 + 4) / 4500**2, rel=0.05)
+    with pytest.raises(ConfigError, match="noise.read_electrons needs noise.full_well_electrons"):
+        load_config(None, ["noise.read_electrons=2"])

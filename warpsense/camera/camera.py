@@ -44,6 +44,8 @@ class Camera(nn.Module):
     @classmethod
     def from_config(cls, config) -> "Camera":
         """Build from a `warpsense.config.Config` (only the enabled stages are constructed)."""
+        from warpsense.config import noise_levels
+
         optics = exposure = cfa = noise = quantizer = None
         if config.optics.enabled:
             lens = Lens.from_json(config.optics.lens, learnable=config.optics.learnable)
@@ -55,7 +57,8 @@ class Camera(nn.Module):
         if config.cfa.enabled:
             cfa = CFA(config.cfa.pattern, config.cfa.tile, config.cfa.mode, config.cfa.init_logit)
         if config.noise.enabled:
-            noise = SensorNoise(config.noise.shot, config.noise.read, config.noise.learnable, config.noise.eval_seed)
+            shot, read = noise_levels(config.noise)
+            noise = SensorNoise(shot, read, config.noise.learnable, config.noise.eval_seed)
         if config.quantize.enabled:
             quantizer = Quantizer(config.quantize.bits, config.quantize.white_level, config.quantize.mode)
         return cls(optics, exposure, cfa, noise, quantizer)
