@@ -203,8 +203,10 @@ def psf_conv(image: torch.Tensor, psf: torch.Tensor, method: str = "auto") -> to
 
     Args:
         image: [B, C, H, W] linear irradiance (float32 or float64; half types compute in float32).
-        psf: [C, Gy, Gx, K, K] node PSFs (K odd) on a corner-aligned grid (`node_axis`), bilinear in between. Each
-            PSF should sum to 1. Cast to the image's float type.
+        psf: [C, Gy, Gx, K, K] node PSFs (K odd) on a corner-aligned grid (`node_axis`), bilinear in between. Cast
+            to the image's float type. Value policy: the convolution is linear in the PSF and takes any values
+            (negative lobes, sums other than 1 for vignetting); energy is conserved only for PSFs summing to 1,
+            which is the lens's job (`Lens.psf_grid`). A NaN or inf PSF value makes the outputs it reaches NaN.
         method: "auto" (default: the fastest exact method; the Warp kernel for a varying grid; for one PSF the
             fastest of cuDNN conv2d, a cuDNN forward with the Warp adjoints as its backward, and the Warp kernel, measured once
             per shape and gradient need on CUDA; FFT is left out for its precision), "direct" (Warp kernel),
