@@ -4,7 +4,7 @@ import importlib
 
 __version__ = "0.1.0"
 
-_SUBPACKAGES = ("bench", "camera", "data", "models", "ops", "optics", "train")
+_SUBPACKAGES = ("bench", "camera", "commands", "data", "models", "ops", "optics", "train")
 
 
 def __getattr__(name: str):

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from warpsense import __version__
-from warpsense.files import check_output_file, check_output_folder
+from warpsense.files import check_output_file
 
 
 def _add_config_options(parser: argparse.ArgumentParser) -> None:
@@ -18,38 +17,14 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _train(args) -> int:
-    from warpsense.config import load_config, with_overrides
-    from warpsense.train.engine import TrainingInterrupted, train
-    from warpsense.train.run_dir import newest_run, resumed_config
+    from warpsense.commands.train import run_train
 
-    if not (args.resume or args.resume_dir):
-        config, run_dir = load_config(args.config, args.overrides), False
-        check_output_folder(config.run.output_dir, "run.output_dir")
-    else:
-        # overrides of run.output_dir / run.name only say where the run to resume is
-        locating = [text for text in args.overrides if text.startswith(("run.output_dir=", "run.name="))]
-        changes = [text for text in args.overrides if text not in locating]
-        if args.resume_dir:
-            run_dir = Path(args.resume_dir)
-        else:
-            located = load_config(args.config, locating)
-            run_dir = newest_run(located.run.output_dir, located.run.name)
-        # the run's own config, unless --config / --set ask for another (refused where it differs, unless allowed)
-        if args.config is not None:
-            config = load_config(args.config, args.overrides)
-        else:
-            config = with_overrides(resumed_config(run_dir, None), changes) if changes else None
-    try:
-        train(config, resume=run_dir, progress=not args.no_progress, allow_config_change=args.allow_config_change)
-    except TrainingInterrupted as interrupted:
-        print(f"warpsense train: interrupted; continue with: warpsense train --resume-dir {interrupted.run_dir}",
-              file=sys.stderr)
-        return 130
-    return 0
+    return run_train(args.config, args.overrides, args.resume, args.resume_dir, args.allow_config_change,
+                     progress=not args.no_progress)
 
 
 def _eval(args) -> int:
-    from warpsense.train.evaluate import run_eval
+    from warpsense.commands.eval import run_eval
 
     if args.plot and not args.sweep:
         raise ValueError("--plot draws the sweeps: add --sweep")
@@ -65,24 +40,19 @@ def _eval(args) -> int:
 
 
 def _bench(args) -> int:
-    from warpsense.bench.runner import run_bench
+    from warpsense.commands.bench import run_bench_command
 
-    check_output_file(args.json, "--json")
-    check_output_file(args.plot, "--plot")
-    run_bench(device=args.device, quick=args.quick, json_out=args.json, plot_out=args.plot, suite=args.suite)
-    return 0
+    return run_bench_command(args.device, args.suite, args.quick, args.json, args.plot)
 
 
 def _convert(args) -> int:
-    from warpsense.data.raw import convert_files
+    from warpsense.commands.convert import run_convert
 
-    check_output_folder(args.out, "--out")
-    failures = convert_files(args.inputs, args.out, progress=not args.no_progress)
-    return 1 if failures else 0
+    return run_convert(args.inputs, args.out, progress=not args.no_progress)
 
 
 def _predict(args) -> int:
-    from warpsense.data.predict import predict_raw
+    from warpsense.commands.predict import predict_raw
 
     check_output_file(args.out, "--out")
     predict_raw(args.checkpoint, args.input, args.out, device=args.device)
@@ -90,14 +60,9 @@ def _predict(args) -> int:
 
 
 def _lens(args) -> int:
-    import json
+    from warpsense.commands.lens import run_lens
 
-    from warpsense.optics.lens import Lens
-    from warpsense.optics.report import format_report, lens_report
-
-    report = lens_report(Lens.from_json(args.lens))
-    print(json.dumps(report, indent=1) if args.json else format_report(report))
-    return 0
+    return run_lens(args.lens, args.json)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -93,7 +93,7 @@ def test_bad_files_clear_errors(shared_data, name, reason):
 
 
 def test_phase_offset_and_binning():
-    from warpsense.data.predict import bin_mosaic, phase_offset
+    from warpsense.commands.predict import bin_mosaic, phase_offset
 
     assert phase_offset("RGGB", "RGGB") == (0, 0)
     assert phase_offset("GBRG", "RGGB") == (1, 0)

@@ -94,3 +94,15 @@ def restore(tensors: dict, model: torch.nn.Module, optimizer: torch.optim.Optimi
                 restored.setdefault(int(index), {})[key] = value
         state_dict["state"] = restored
         optimizer.load_state_dict(state_dict)
+
+
+def load_system(checkpoint: str | Path, device) -> tuple[torch.nn.Module, object, dict]:
+    """(model in eval mode, config, training state) from a checkpoint written by `warpsense train`."""
+    tensors, meta = read_checkpoint(checkpoint)
+    from warpsense.config import config_from_dict
+    from warpsense.train.system import build_system
+
+    config = config_from_dict(meta["config"], source=f"{checkpoint} config")
+    model = build_system(config, meta["state"]["num_classes"])
+    restore(tensors, model)
+    return model.to(device).eval(), config, meta["state"]

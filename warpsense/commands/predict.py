@@ -42,7 +42,7 @@ def predict_raw(checkpoint: str, raw_path: str, out_png: str, device: str = "aut
     """
     from PIL import Image
 
-    from warpsense.train.evaluate import load_system
+    from warpsense.train.checkpoint import load_system
     from warpsense.train.plots import colorize
 
     torch_device = torch.device("cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu")

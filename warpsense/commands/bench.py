@@ -1,0 +1,15 @@
+"""`warpsense bench`: kernel microbenchmarks and the training suite against the plain-torch baseline."""
+
+from __future__ import annotations
+
+from warpsense.files import check_output_file
+
+
+def run_bench_command(device: str, suite: str, quick: bool, json_out: str | None, plot_out: str | None) -> int:
+    """Run the suite (`warpsense.bench.runner.run_bench`) after checking where its outputs go."""
+    from warpsense.bench.runner import run_bench
+
+    check_output_file(json_out, "--json")
+    check_output_file(plot_out, "--plot")
+    run_bench(device=device, quick=quick, json_out=json_out, plot_out=plot_out, suite=suite)
+    return 0

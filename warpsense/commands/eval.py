@@ -1,0 +1,98 @@
+"""`warpsense eval`: score a checkpoint on a dataset split, with robustness sweeps and latency."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from warpsense.train.checkpoint import load_system
+from warpsense.train.evaluate import evaluate
+
+
+def robustness_sweep(model, dataset, device, batch_size: int, class_names, amp: bool) -> list[dict]:
+    """mIoU under extra blur, scaled noise and other bit depths (one factor at a time)."""
+    rows = []
+    camera = model.camera
+    for sigma in (0.0, 0.5, 1.0, 2.0):
+        metrics = evaluate(model, dataset, device, batch_size, class_names=class_names, amp=amp, blur_sigma=sigma)
+        rows.append({"factor": "blur_sigma_px", "value": sigma, "miou": metrics["miou"]})
+    if camera.noise is not None:
+        for scale in (0.5, 1.0, 2.0, 4.0):
+            camera.noise.scale = scale
+            metrics = evaluate(model, dataset, device, batch_size, class_names=class_names, amp=amp)
+            rows.append({"factor": "noise_scale", "value": scale, "miou": metrics["miou"]})
+        camera.noise.scale = 1.0
+    if camera.quantizer is not None:
+        bits = camera.quantizer.bits
+        for value in (4, 6, 8, 10, 12):
+            camera.quantizer.bits = value
+            metrics = evaluate(model, dataset, device, batch_size, class_names=class_names, amp=amp)
+            rows.append({"factor": "bits", "value": value, "miou": metrics["miou"]})
+        camera.quantizer.bits = bits
+    return rows
+
+
+def measure_latency(model, device, height: int, width: int, batch: int, repeats: int = 50) -> dict:
+    """Median latency (ms) of sensor simulation + network and of the network alone; on CUDA also replayed as
+    CUDA graphs."""
+    from warpsense.bench.timing import time_function
+
+    images = torch.randint(0, 256, (batch, 3, height, width), dtype=torch.uint8, device=device)
+    sensed = model.sense(images)
+    result = {"device": str(device), "height": height, "width": width, "batch": batch}
+    with torch.no_grad():
+        result["sensor_plus_network_ms"] = time_function(lambda: model(images), device, repeats)["median_ms"]
+        result["network_ms"] = time_function(lambda: model.network(sensed), device, repeats)["median_ms"]
+        if device.type == "cuda":
+            from warpsense.bench.timing import time_cuda_graph
+
+            result["sensor_plus_network_graph_ms"] = time_cuda_graph(lambda: model(images), repeats)["median_ms"]
+            result["network_graph_ms"] = time_cuda_graph(lambda: model.network(sensed), repeats)["median_ms"]
+    return result
+
+
+def run_eval(checkpoint: str, data: str, data_root: str, split: str, json_out: str | None = None,
+             sweep: bool = False, latency: bool = False, latency_size: tuple[int, int] = (192, 640),
+             latency_batch: int = 1, device: str = "auto", batch_size: int = 4, limit: int = 0,
+             plot_out: str | None = None, flip: bool = False) -> dict:
+    """The `warpsense eval` command as a function; returns the JSON payload."""
+    from warpsense.data import build_dataset
+
+    torch_device = torch.device("cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu")
+    model, config, state = load_system(checkpoint, torch_device)
+    config.data.dataset = data
+    config.data.root = data_root
+    config.data.max_val_images = limit
+    if data == "scenes":
+        config.data.scenes_val = limit or config.data.scenes_val
+    dataset = build_dataset(config.data, split, train=False, seed=config.run.seed)
+    class_names = state.get("class_names") or list(dataset.classes)
+    amp = torch_device.type == "cuda" and config.train.amp
+    metrics = evaluate(model, dataset, torch_device, batch_size, class_names=class_names, amp=amp, progress=True,
+                       flip=flip)
+    payload = dict(metrics)
+    payload.update({"checkpoint": str(checkpoint), "dataset": data, "split": split, "flip_tta": flip})
+    print(f"mIoU {metrics['miou']:.4f}  pixel accuracy {metrics['pixel_accuracy']:.4f}  images {metrics['num_images']}")
+    for name, iou in metrics["per_class_iou"].items():
+        print(f"  {name:>14s}  {'-' if iou is None else f'{iou:.4f}'}")
+    if sweep:
+        rows = robustness_sweep(model, dataset, torch_device, batch_size, class_names, amp)
+        payload["sweep"] = rows
+        print(f"{'factor':>14s} {'value':>8s} {'mIoU':>8s}")
+        for row in rows:
+            print(f"{row['factor']:>14s} {row['value']:>8g} {row['miou']:>8.4f}")
+        if plot_out:
+            from warpsense.train.plots import plot_sweep
+
+            plot_sweep(rows, plot_out)
+    if latency:
+        payload["latency"] = measure_latency(model, torch_device, *latency_size, latency_batch)
+        print("latency:", json.dumps(payload["latency"]))
+    if json_out:
+        path = Path(json_out)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(payload, indent=2))
+        tmp.replace(path)
+    return payload

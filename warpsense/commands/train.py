@@ -1,0 +1,50 @@
+"""`warpsense train`: a new run, or the continuation of one (which run, and with which config)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from warpsense.config import load_config, with_overrides
+from warpsense.files import check_output_folder
+from warpsense.train.engine import TrainingInterrupted, train
+from warpsense.train.run_dir import newest_run, resumed_config
+
+LOCATING_KEYS = ("run.output_dir=", "run.name=")  # overrides that only say where the run to resume is
+
+
+def run_train(config_file: str | None, overrides: list[str], resume: bool = False, resume_dir: str | None = None,
+              allow_config_change: bool = False, progress: bool = True) -> int:
+    """Train; returns the exit code (130 after Ctrl-C, with the command that continues the run on stderr).
+
+    Args:
+        config_file: a preset name or TOML file (None: the defaults).
+        overrides: ``section.key=value`` strings.
+        resume: continue the newest run <output_dir>/<name>[-N] of the config.
+        resume_dir: continue this run directory.
+        allow_config_change: when continuing, use ``config_file`` / ``overrides`` even where they differ from the
+            run's saved config (refused otherwise). Without them a run continues with its own config.
+        progress: show progress bars.
+    """
+    if not (resume or resume_dir):
+        config, run_dir = load_config(config_file, overrides), False
+        check_output_folder(config.run.output_dir, "run.output_dir")
+    else:
+        locating = [text for text in overrides if text.startswith(LOCATING_KEYS)]
+        changes = [text for text in overrides if text not in locating]
+        if resume_dir:
+            run_dir = Path(resume_dir)
+        else:
+            located = load_config(config_file, locating)
+            run_dir = newest_run(located.run.output_dir, located.run.name)
+        if config_file is not None:
+            config = load_config(config_file, overrides)
+        else:
+            config = with_overrides(resumed_config(run_dir, None), changes) if changes else None
+    try:
+        train(config, resume=run_dir, progress=progress, allow_config_change=allow_config_change)
+    except TrainingInterrupted as interrupted:
+        print(f"warpsense train: interrupted; continue with: warpsense train --resume-dir {interrupted.run_dir}",
+              file=sys.stderr)
+        return 130
+    return 0
