@@ -95,7 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--flip-tta", action="store_true",
                           help="average with the prediction on the mirrored capture (keeps the CFA phase)")
     evaluate.add_argument("--plot", metavar="OUT.png", help="with --sweep: plot the sweeps")
-    evaluate.add_argument("--latency", action="store_true", help="time sensor simulation + network and network alone")
+    evaluate.add_argument("--latency", action="store_true", help="time sensor simulation + network and network alone (alone: no dataset, no mIoU; with --sweep: both)")
     evaluate.add_argument("--latency-size", default="192x640", metavar="HxW", help="input size for --latency")
     evaluate.add_argument("--latency-batch", type=int, default=1, help="batch size for --latency")
     evaluate.add_argument("--batch-size", type=int, default=4, help="evaluation batch size")

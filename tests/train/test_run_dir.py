@@ -117,3 +117,15 @@ def test_output_paths_are_checked_before_any_work(tmp_path, capsys, command):
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"warpsense {command[0]}: error:") and "\n" not in err
     assert sorted(tmp_path.rglob("*")) == before
+
+
+def test_eval_latency_alone_reads_no_dataset_and_scores_nothing(tmp_path):
+    from warpsense.commands.eval import run_eval
+
+    _, run = _run(tmp_path)
+    payload = run_eval(str(run / "checkpoint_last.safetensors"), "camvid", str(tmp_path / "no_dataset_here"), "val",
+                       json_out=str(tmp_path / "latency.json"), latency=True, latency_size=(32, 48), device="cpu")
+    assert "miou" not in payload
+    assert {"sensor_plus_network_ms", "network_ms"} <= set(payload["latency"])
+    assert payload["latency"]["sensor_plus_network_ms"] > 0
+    assert json.loads((tmp_path / "latency.json").read_text())["latency"] == payload["latency"]

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import torch
 
+from warpsense.files import publish
 from warpsense.train.checkpoint import load_system
 from warpsense.train.evaluate import evaluate
 
@@ -57,11 +58,18 @@ def run_eval(checkpoint: str, data: str, data_root: str, split: str, json_out: s
              sweep: bool = False, latency: bool = False, latency_size: tuple[int, int] = (192, 640),
              latency_batch: int = 1, device: str = "auto", batch_size: int = 4, limit: int = 0,
              plot_out: str | None = None, flip: bool = False) -> dict:
-    """The `warpsense eval` command as a function; returns the JSON payload."""
+    """The `warpsense eval` command as a function; returns the JSON payload. ``latency`` alone (without
+    ``sweep``) only times the model: no dataset is read and no mIoU computed."""
     from warpsense.data import build_dataset
 
     torch_device = torch.device("cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu")
     model, config, state = load_system(checkpoint, torch_device)
+    if latency and not sweep:
+        payload = {"checkpoint": str(checkpoint), "latency": measure_latency(model, torch_device, *latency_size,
+                                                                             latency_batch)}
+        print("latency (no scoring; run without --latency for mIoU):", json.dumps(payload["latency"]))
+        _write_json(payload, json_out)
+        return payload
     config.data.dataset = data
     config.data.root = data_root
     config.data.max_val_images = limit
@@ -90,9 +98,13 @@ def run_eval(checkpoint: str, data: str, data_root: str, split: str, json_out: s
     if latency:
         payload["latency"] = measure_latency(model, torch_device, *latency_size, latency_batch)
         print("latency:", json.dumps(payload["latency"]))
+    _write_json(payload, json_out)
+    return payload
+
+
+def _write_json(payload: dict, json_out: str | None) -> None:
     if json_out:
         path = Path(json_out)
         tmp = path.with_name(path.name + ".tmp")
         tmp.write_text(json.dumps(payload, indent=2))
-        tmp.replace(path)
-    return payload
+        publish(tmp, path)

@@ -258,7 +258,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         last_epoch = epoch == config.train.epochs - 1
         if (epoch + 1) % config.train.eval_every == 0 or last_epoch:
             evaluation = dict(device=device, batch_size=max(1, config.data.batch_size // 2), context=context,
-                              class_names=train_set.classes, amp=amp)
+                              class_names=train_set.classes, amp=amp, progress=progress and context.is_main)
             metrics = evaluate(model, val_set, **evaluation)
             record.update({"val_miou": metrics["miou"], "val_pixel_accuracy": metrics["pixel_accuracy"],
                            "val_per_class_iou": metrics["per_class_iou"]})
