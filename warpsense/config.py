@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import json
 import math
 import sys
 from dataclasses import dataclass, field
@@ -177,10 +176,9 @@ class Config:
 
     def save(self, path: str | Path) -> None:
         """Write the resolved config as JSON (atomically)."""
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True))
-        tmp.replace(path)
+        from warpsense.files import write_json
+
+        write_json(path, self.to_dict(), sort_keys=True)
 
 
 CONFIG_DIR = resources.files("warpsense.configs")

@@ -3,6 +3,7 @@ gives a new file (safetensors and mkstemp create 0600 files, which other users o
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import subprocess
@@ -15,6 +16,17 @@ def publish(temporary: str | Path, target: str | Path) -> None:
     os.umask(umask)
     os.chmod(temporary, 0o666 & ~umask)
     os.replace(temporary, target)
+
+
+def write_json(path: str | Path, payload, indent: int = 2, sort_keys: bool = False) -> None:
+    """Write ``payload`` as JSON at ``path`` atomically (a temporary beside it, then `publish`)."""
+    path = Path(path)
+    temporary = path.with_name(path.name + ".tmp")
+    try:
+        temporary.write_text(json.dumps(payload, indent=indent, sort_keys=sort_keys) + "\n")
+        publish(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 def check_output_file(path: str | Path | None, what: str) -> None:
@@ -53,8 +65,10 @@ def environment() -> dict:
     from warpsense import __version__
 
     try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True,
-                                text=True, timeout=5).stdout.strip() or None
+        result = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
+                                capture_output=True, text=True, timeout=5)
+        # outside a repository git prints its argument back on stdout: only trust a successful answer
+        commit = (result.stdout.strip() or None) if result.returncode == 0 else None
     except (OSError, subprocess.SubprocessError):
         commit = None
     return {"warpsense": __version__, "torch": torch.__version__, "warp": warp.config.version,

@@ -27,7 +27,7 @@ def test_a_kill_after_the_tensors_land_keeps_a_consistent_checkpoint(tmp_path, m
     def killed(*args, **kwargs):
         raise KeyboardInterrupt  # the process dies after the checkpoint's rename, before the readable copy
 
-    monkeypatch.setattr(checkpoint, "_atomic_json", killed)
+    monkeypatch.setattr(checkpoint, "write_json", killed)
     with pytest.raises(KeyboardInterrupt):
         save_checkpoint(path, _model(1.0), {"run": {}}, {"epoch": 1})
     assert json.loads(path.with_suffix(".json").read_text())["state"]["epoch"] == 0  # the stale copy

@@ -8,17 +8,14 @@ region). Errors: max abs and max relative (to the reference's max magnitude) aga
 
 from __future__ import annotations
 
-import json
 import platform
-import subprocess
 import time
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
-from warpsense import __version__
 from warpsense.bench.timing import _summary, _sync, time_cuda_graph, time_function
+from warpsense.files import environment, write_json
 from warpsense.ops import cfa_mosaic, poisson_gaussian, psf_conv, quantize_ste
 from warpsense.ops.psf import _conv2d_warp_gradient, psf_conv_fft, psf_conv_patch
 from warpsense.ops.reference import cfa_mosaic_reference, poisson_gaussian_reference, psf_conv_reference, quantize_reference
@@ -45,18 +42,8 @@ def _errors(output: torch.Tensor, reference: torch.Tensor) -> dict:
 
 
 def _metadata(device: str) -> dict:
-    try:
-        result = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
-                                cwd=Path(__file__).parent)
-        # outside a repository git prints its argument back on stdout: only trust a successful answer
-        commit = result.stdout.strip() if result.returncode == 0 else ""
-    except (OSError, subprocess.SubprocessError):
-        commit = ""
-    import warp
-
     name = torch.cuda.get_device_name() if device == "cuda" else (platform.processor() or platform.machine())
-    return {"warpsense": __version__, "torch": torch.__version__, "warp": warp.config.version, "python":
-            platform.python_version(), "device_name": name, "git_commit": commit, "cpu_count": torch.get_num_threads()}
+    return {**environment(), "device_name": name, "cpu_count": torch.get_num_threads()}
 
 
 class Bench:
@@ -117,7 +104,7 @@ def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = N
 
         records += run_train_suite(device, quick, _metadata(device))
     if json_out:
-        Path(json_out).write_text(json.dumps({"metadata": _metadata(device), "records": records}, indent=2))
+        write_json(json_out, {"metadata": _metadata(device), "records": records})
     if plot_out:
         plot_pareto([r for r in records if "kernel" in r], plot_out)
     return records

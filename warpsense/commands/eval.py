@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import torch
 
-from warpsense.files import publish
+from warpsense.files import write_json
 from warpsense.train.checkpoint import load_system
 from warpsense.train.evaluate import evaluate
 
@@ -68,7 +67,8 @@ def run_eval(checkpoint: str, data: str, data_root: str, split: str, json_out: s
         payload = {"checkpoint": str(checkpoint), "latency": measure_latency(model, torch_device, *latency_size,
                                                                              latency_batch)}
         print("latency (no scoring; run without --latency for mIoU):", json.dumps(payload["latency"]))
-        _write_json(payload, json_out)
+        if json_out:
+            write_json(json_out, payload)
         return payload
     config.data.dataset = data
     config.data.root = data_root
@@ -98,13 +98,7 @@ def run_eval(checkpoint: str, data: str, data_root: str, split: str, json_out: s
     if latency:
         payload["latency"] = measure_latency(model, torch_device, *latency_size, latency_batch)
         print("latency:", json.dumps(payload["latency"]))
-    _write_json(payload, json_out)
+    if json_out:
+        write_json(json_out, payload)
     return payload
 
-
-def _write_json(payload: dict, json_out: str | None) -> None:
-    if json_out:
-        path = Path(json_out)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(payload, indent=2))
-        publish(tmp, path)

@@ -15,19 +15,13 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from warpsense.files import publish
+from warpsense.files import publish, write_json
 
 METADATA_KEY = "warpsense"
 
 
 class CheckpointError(ValueError):
     """A checkpoint that cannot be read or does not describe a warpsense run (message names the file)."""
-
-
-def _atomic_json(path: Path, payload: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(payload, indent=2, sort_keys=True))
-    publish(tmp, path)
 
 
 def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict, state: dict,
@@ -49,7 +43,7 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict,
     tmp = path.with_name(path.name + ".tmp")
     save_file(tensors, str(tmp), metadata={METADATA_KEY: json.dumps(payload, sort_keys=True)})
     publish(tmp, path)
-    _atomic_json(path.with_suffix(".json"), payload)
+    write_json(path.with_suffix(".json"), payload, sort_keys=True)
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:

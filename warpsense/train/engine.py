@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from warpsense.camera.camera import set_finite_check
 from warpsense.data import build_dataset
-from warpsense.files import environment
+from warpsense.files import environment, write_json
 from warpsense.data.on_device import DeviceBatches, dataset_megabytes
 from warpsense.data.transforms import EpochSampler
 from warpsense.models import count_parameters
@@ -148,13 +148,13 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
     lock = RunLock(run_dir)
     if context.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
-        lock.__enter__()
+        lock.acquire()
     try:
         return _train(config, run_dir, bool(resume), context, progress, return_model)
     except KeyboardInterrupt:
         raise TrainingInterrupted(run_dir) from None
     finally:
-        lock.__exit__()
+        lock.release()
 
 
 def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_model: bool):
@@ -206,7 +206,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     if context.is_main:
         config.save(run_dir / "config.json")
         versions = environment()
-        (run_dir / "environment.json").write_text(json.dumps(versions, indent=1) + "\n")
+        write_json(run_dir / "environment.json", versions)
         (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in history))
         print(f"run directory: {run_dir}")
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
