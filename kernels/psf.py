@@ -35,10 +35,15 @@ TAPS = 8  # PSF taps (consecutive j) per thread in the PSF-adjoint kernel (8 bea
 
 
 @wp.func
+def along_x(corners: Any, fx: Any):
+    """A cell's corner values (00, 01, 10, 11) interpolated along x: the values on its top and bottom edges."""
+    return corners[0] + fx * (corners[1] - corners[0]), corners[2] + fx * (corners[3] - corners[2])
+
+
+@wp.func
 def bilinear(corners: Any, fy: Any, fx: Any):
     """Value at fractions (fy, fx) inside a cell from its corner values (00, 01, 10, 11)."""
-    top = corners[0] + fx * (corners[1] - corners[0])
-    bottom = corners[2] + fx * (corners[3] - corners[2])
+    top, bottom = along_x(corners, fx)
     return top + fy * (bottom - top)
 
 
@@ -77,9 +82,7 @@ def psf_forward(
             for k in range(ROWS):
                 value[k] = source[bc, s + k, t]
             if one_cell:
-                corners = cells[c, row_base[0] + column, i, j]
-                low = corners[0] + fx * (corners[1] - corners[0])
-                high = corners[2] + fx * (corners[3] - corners[2])
+                low, high = along_x(cells[c, row_base[0] + column, i, j], fx)
                 acc += value * low + wp.cw_mul(value, fy) * (high - low)
             else:
                 for k in range(ROWS):
@@ -122,9 +125,7 @@ def psf_backward_source(
     if cell[0] == cell[ROWS - 1]:
         for i in range(size):
             for j in range(size):
-                corners = cells[c, cell[0], i, j]
-                low = corners[0] + fx * (corners[1] - corners[0])
-                high = corners[2] + fx * (corners[3] - corners[2])
+                low, high = along_x(cells[c, cell[0], i, j], fx)
                 for k in range(ROWS):
                     grad[k] = padded_grad[bc, s + k + i, t + j]
                 low_sum += grad * low

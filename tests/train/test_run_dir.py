@@ -69,7 +69,7 @@ def test_run_lock_refuses_a_second_training_and_takes_over_a_stale_lock(tmp_path
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     with RunLock(tmp_path):
         with pytest.raises(FileExistsError, match="in use by process"):
-            RunLock(tmp_path).__enter__()
+            RunLock(tmp_path).acquire()
     assert not (tmp_path / "train.lock").exists()
     (tmp_path / "train.lock").write_text(dead.stdout.strip())  # left by a process that has exited
     with RunLock(tmp_path):

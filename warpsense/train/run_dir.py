@@ -106,7 +106,7 @@ class RunLock:
         self.path = Path(run_dir) / LOCK
         self.held = False
 
-    def __enter__(self) -> "RunLock":
+    def acquire(self) -> "RunLock":
         for _ in range(2):
             try:
                 descriptor = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
@@ -123,10 +123,16 @@ class RunLock:
             return self
         raise FileExistsError(f"cannot lock run directory {self.path.parent}")
 
-    def __exit__(self, *exc) -> None:
+    def release(self) -> None:
         if self.held:
             self.path.unlink(missing_ok=True)
             self.held = False
+
+    def __enter__(self) -> "RunLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
 
     def _owner(self) -> int | None:
         try:
