@@ -95,3 +95,9 @@ def test_values_out_of_range_are_refused_naming_the_key(override, message, tmp_p
     with pytest.raises(ConfigError, match=message):
         load_config(None, [override, f"run.output_dir={tmp_path / 'out'}"])
     assert not (tmp_path / "out").exists()
+
+
+def test_cuda_graph_refuses_self_capturing_compile_modes():
+    with pytest.raises(ConfigError, match="train.cuda_graph.*reduce-overhead"):
+        load_config(None, ["train.cuda_graph=true", "train.compile=reduce-overhead"])
+    assert load_config(None, ["train.cuda_graph=true", "train.compile=default"]).train.cuda_graph

@@ -131,6 +131,7 @@ class ModelConfig:
     name: str = "dsunet"
     width: int = 16
     num_classes: int = 0
+    channels_last: bool = True
 
 
 @dataclass
@@ -151,6 +152,7 @@ class TrainConfig:
     camera_grad_clip: float = 0.1
     amp: bool = True
     compile: str = field(default="off", metadata=_choices("off", "default", "reduce-overhead", "max-autotune"))
+    cuda_graph: bool = False
     max_steps_per_epoch: int = 0
     time_budget_minutes: float = 0.0
     eval_every: int = 1
@@ -237,6 +239,9 @@ def validate(config: "Config", source: str) -> "Config":
     if config.noise.read_electrons > 0 and config.noise.full_well_electrons == 0:
         raise ConfigError(f"{source}: noise.read_electrons needs noise.full_well_electrons (electrons at the white "
                           "level)")
+    if config.train.cuda_graph and config.train.compile in ("reduce-overhead", "max-autotune"):
+        raise ConfigError(f"{source}: train.cuda_graph captures the whole step; train.compile = "
+                          f"{config.train.compile!r} captures graphs itself (use \"off\" or \"default\" with it)")
     name = config.run.name
     if not name or name in (".", "..") or "/" in name or "\\" in name or name != name.strip():
         raise ConfigError(f"{source}: run.name must be a plain folder name (no path separators), got {name!r}")

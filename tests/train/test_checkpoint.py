@@ -70,3 +70,29 @@ def test_every_unreadable_checkpoint_is_a_one_line_error(tmp_path, capsys):
         assert main(["eval", "--checkpoint", str(path), "--data", "scenes", "--device", "cpu"]) != 0
         error = capsys.readouterr().err.strip()
         assert path.name in error and "\n" not in error and "Traceback" not in error
+
+
+def test_restored_optimizer_moments_keep_the_channels_last_layout(tmp_path):
+    """The file stores contiguous tensors; restored AdamW moments take their parameter's NHWC strides again, and
+    the resumed step equals the uninterrupted one."""
+    def model_and_optimizer():
+        torch.manual_seed(0)
+        model = torch.nn.Conv2d(3, 4, 3).to(memory_format=torch.channels_last)
+        return model, torch.optim.AdamW(model.parameters(), lr=0.1)
+
+    def step(model, optimizer):
+        optimizer.zero_grad()
+        model(torch.ones(1, 3, 5, 5).contiguous(memory_format=torch.channels_last)).square().sum().backward()
+        optimizer.step()
+
+    model, optimizer = model_and_optimizer()
+    step(model, optimizer)
+    save_checkpoint(tmp_path / "c.safetensors", model, {}, {"epoch": 0}, optimizer)
+    step(model, optimizer)
+    resumed, resumed_optimizer = model_and_optimizer()
+    tensors, _ = read_checkpoint(tmp_path / "c.safetensors")
+    checkpoint.restore(tensors, resumed, resumed_optimizer)
+    moment = resumed_optimizer.state[resumed.weight]["exp_avg"]
+    assert moment.stride() == resumed.weight.stride() and resumed.weight.stride() != (27, 9, 3, 1)
+    step(resumed, resumed_optimizer)
+    torch.testing.assert_close(resumed.weight, model.weight)

@@ -11,7 +11,7 @@ from warpsense.train import engine
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.engine import train
 from warpsense.train.step import TrainingStep, cosine_scale
-from warpsense.train.system import build_system, camera_parameters
+from warpsense.train.system import build_system, camera_parameters, mark_learnable, set_camera_trainable
 
 from tests.train.test_training import TINY
 
@@ -140,3 +140,49 @@ def test_holdout_prefix_selects_on_a_sequence_training_never_sees(shared_data, t
     with pytest.raises(Exception, match="holdout prefix"):
         build_dataset(load_config(None, ["data.dataset=camvid", f"data.root={shared_data / 'camvid'}",
                                          "data.holdout_prefix=XYZ"]).data, "train", False, part="holdout")
+
+
+def test_exception_cuda_graph_needs_cuda():
+    config, model, optimizer, images, labels = _step_and_batch()
+    with pytest.raises(ValueError, match="needs a CUDA device"):
+        TrainingStep(config.loss, optimizer, camera_parameters(model), 4, False, cuda_graph=True)
+
+
+@pytest.mark.cuda
+def test_cuda_graph_steps_match_eager_steps():
+    """A captured-and-replayed step trains exactly like the eager one: the learnable-lens camera in both phases,
+    a new batch every step, a changing learning rate, device statistics; cuDNN set deterministic so the two
+    runs can agree to rounding."""
+    torch.backends.cudnn.deterministic, deterministic = True, torch.backends.cudnn.deterministic
+    try:
+        config = load_config("camvid_codesign", ["model.width=8"])
+        generator = torch.Generator().manual_seed(1)
+        batches = [(torch.randint(0, 256, (2, 3, 32, 48), dtype=torch.uint8, generator=generator).cuda(),
+                    torch.randint(0, 11, (2, 32, 48), generator=generator).cuda()) for _ in range(12)]
+        results = []
+        for cuda_graph in (False, True):
+            torch.manual_seed(0)
+            model = build_system(config, 11).cuda().train()
+            mark_learnable(model)
+            camera = camera_parameters(model)
+            network = [p for p in model.network.parameters()]
+            optimizer = torch.optim.AdamW([{"params": network, "lr": 3e-3}, {"params": camera, "lr": 1e-3}],
+                                          fused=True)
+            step = TrainingStep(config.loss, optimizer, camera, total_steps=12, amp=True, camera_grad_clip=0.5,
+                                cuda_graph=cuda_graph)
+            statistics = []
+            for index, (images, labels) in enumerate(batches):
+                joint = index >= 6
+                if index in (0, 6):
+                    set_camera_trainable(model, joint)
+                step(model, images, labels, index, joint)
+                if index in (5, 11):
+                    statistics.append(step.epoch_statistics(DistributedContext()))
+            results.append(([p.detach().clone() for p in model.parameters()], statistics))
+        (eager, eager_statistics), (graphed, graphed_statistics) = results
+        for a, b in zip(eager, graphed):
+            torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+        for a, b in zip(eager_statistics, graphed_statistics):
+            assert b == pytest.approx(a, rel=1e-5)
+    finally:
+        torch.backends.cudnn.deterministic = deterministic

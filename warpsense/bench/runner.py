@@ -205,7 +205,7 @@ def _end_to_end(bench: Bench, device: str) -> None:
 
     config = load_config(None, ["exposure.learnable=false", "cfa.mode=fixed"])
     camera = Camera.from_config(config).to(device).eval()
-    network = build_model("dsunet", in_channels=1, num_classes=19, width=16).to(device).eval()
+    network = build_model("dsunet", in_channels=1, num_classes=19, width=16, channels_last=True).to(device).eval()
     radiance = torch.rand(1, 3, 192, 640, device=device)
     phi = camera.cfa.phi() * camera.exposure.gain()
 

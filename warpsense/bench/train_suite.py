@@ -71,12 +71,12 @@ def build(method: str, camera_name: str, device) -> tuple[nn.Module, nn.Module]:
         camera = Camera.from_config(load_config("camvid_codesign", []))
     else:
         camera = BaselineCamera() if method == "torch_baseline" else SimpleCamera()
-    network = build_model("dsunet", in_channels=1, num_classes=11, width=16, tile=2)
+    network = build_model("dsunet", in_channels=1, num_classes=11, width=16, tile=2, channels_last=True)
     return camera.to(device), network.to(device)
 
 
 def training_throughput(method, camera_name, loss_name, device, batch, height, width, steps, warmup,
-                        compile_mode: str = "off") -> float:
+                        compile_mode: str = "off", cuda_graph: bool = False) -> float:
     """Images per second of full training steps (the training engine's `TrainingStep`: sensor + network forward,
     loss, backward, fused AdamW on CUDA), after ``warmup`` steps (which include any compilation)."""
     torch.manual_seed(0)
@@ -88,7 +88,8 @@ def training_throughput(method, camera_name, loss_name, device, batch, height, w
     loss_config = load_config(None, [] if loss_name == "full" else
                               ["loss.ohem_fraction=1.0", "loss.lovasz_weight=0.0", "loss.smooth_weight=0.0"]).loss
     torch._dynamo.reset()
-    step = TrainingStep(loss_config, optimizer, [], steps + warmup, amp=cuda, compile_mode=compile_mode)
+    step = TrainingStep(loss_config, optimizer, [], steps + warmup, amp=cuda, compile_mode=compile_mode,
+                        cuda_graph=cuda_graph)
     images = torch.randint(0, 256, (batch, 3, height, width), dtype=torch.uint8, device=device)
     labels = torch.randint(0, 11, (batch, height, width), device=device)
     for index in range(warmup):
@@ -130,21 +131,25 @@ def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
         figure = (f"{record['images_per_s']:8.1f} img/s" if "images_per_s" in record
                   else f"{record['median_ms']:8.3f} ms" if "median_ms" in record else f"failed: {record['error']}")
         print(f"train-suite {record['method']:>15s} {record['camera']:>9s} {record.get('loss', record.get('mode')):>6s}"
-              f" {record.get('compile', ''):>8s} {figure}", flush=True)
+              f" {record.get('compile', ''):>8s} {'graph' if record.get('cuda_graph') else '':>5s} {figure}", flush=True)
 
     cases = [("torch_baseline", "simple"), ("warpsense", "simple"), ("warpsense", "codesign")]
-    # torch.compile (inductor) of forward + loss: on CUDA only (minutes of C++ compilation on a CPU), full loss only
-    runs = [(loss_name, "off") for loss_name in ("ce", "full")] + ([("full", "default")] if device == "cuda" else [])
+    # (loss, torch.compile mode, whole-step CUDA graph); compiling on a CPU takes minutes of C++ compilation and
+    # graphs need CUDA: both are timed on CUDA only, with the full loss
+    runs = [("ce", "off", False), ("full", "off", False)]
+    if device == "cuda":
+        runs += [("full", "default", False), ("full", "off", True)]
     for method, camera_name in cases:
-        for loss_name, compile_mode in runs:
+        for loss_name, compile_mode, cuda_graph in runs:
             record = {"method": method, "camera": camera_name, "loss": loss_name, "compile": compile_mode,
-                      "shape": [batch, 3, height, width]}
+                      "cuda_graph": cuda_graph, "shape": [batch, 3, height, width]}
+            extra_warmup = 5 if compile_mode != "off" or cuda_graph else 0  # compilation or capture
             try:
                 record["images_per_s"] = training_throughput(method, camera_name, loss_name, device, batch, height,
-                                                             width, steps, warmup + (5 if compile_mode != "off" else 0),
-                                                             compile_mode)
+                                                             width, steps, warmup + extra_warmup, compile_mode,
+                                                             cuda_graph)
             except Exception as error:  # a compiler failure is a result to report, not the end of the suite
-                if compile_mode == "off":
+                if compile_mode == "off" and not cuda_graph:
                     raise
                 record["error"] = f"{type(error).__name__}: {str(error).splitlines()[0][:300]}"
             add(record)

@@ -32,12 +32,13 @@ class Optics(nn.Module):
                 psf = collapse_grid(crop_to_energy(lens.psf_grid(), energy_eps), field_tolerance)
             self.register_buffer("frozen_psf", psf.float())
 
-        self._cached_psf = None
+        self._cached_psf: torch.Tensor | None = None
+        self._cache_valid = False
         self._register_load_state_dict_pre_hook(lambda *args, **kwargs: self.invalidate_cache())
 
     def invalidate_cache(self) -> None:
-        """Forget the cached PSF grid (call after changing the lens coefficients or their requires_grad)."""
-        self._cached_psf = None
+        """Mark the cached PSF grid stale (call after changing the lens coefficients or their requires_grad)."""
+        self._cache_valid = False
 
     def psf(self) -> torch.Tensor:
         """[3, Gy, Gx, K, K] PSF grid in use. A learnable lens is re-rendered while its coefficients take gradients
@@ -45,11 +46,17 @@ class Optics(nn.Module):
         if not self.learnable:
             return self.frozen_psf
         if self.lens.offset.requires_grad and self.training and torch.is_grad_enabled():
-            self._cached_psf = None
+            self._cache_valid = False
             return self.lens.psf_grid().float()
-        if self._cached_psf is None:
+        if not self._cache_valid:
             with torch.no_grad():
-                self._cached_psf = self.lens.psf_grid().float()
+                psf = self.lens.psf_grid().float()
+            # refreshed in place: a captured CUDA graph holds the cache's address, not the Python attribute
+            if self._cached_psf is None or self._cached_psf.shape != psf.shape or self._cached_psf.device != psf.device:
+                self._cached_psf = psf
+            else:
+                self._cached_psf.copy_(psf)
+            self._cache_valid = True
         return self._cached_psf
 
     def forward(self, radiance: torch.Tensor) -> torch.Tensor:

@@ -55,10 +55,16 @@ class DSUNet(nn.Module):
     (the CFA tile's sites as channels) concatenated at half resolution. Encoder: 1, 1/2, 1/4, 1/8, 1/16 with widths
     w, 2w, 4w, 6w, 8w; decoder: bilinear upsampling + skip concatenation + separable blocks; head at full
     resolution. width=16 gives 0.18M parameters, width=24 0.40M (the camvid presets).
+
+    ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 it doubles the training speed (batch
+    norm and depthwise convolutions have fast NHWC kernels; their NCHW bf16 backward is slow). The output is the
+    same up to float rounding.
     """
 
-    def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 16, tile: int = 2):
+    def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 16, tile: int = 2,
+                 channels_last: bool = False):
         super().__init__()
+        self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
         w = width
         self.tile = tile if in_channels == 1 and tile > 1 else 0
         self.stem = nn.Sequential(nn.Conv2d(in_channels, w, 3, 1, 1, bias=False), nn.BatchNorm2d(w), nn.ReLU(inplace=True))
@@ -75,16 +81,21 @@ class DSUNet(nn.Module):
         self.dec2 = Stage(4 * w + 2 * w, 2 * w, 1, 1)
         self.dec1 = Stage(2 * w + w, w, 1, 1)
         self.head = nn.Conv2d(w, num_classes, 1)
+        self.to(memory_format=self.memory_format)
 
     @staticmethod
     def _up(x, like):
-        return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
+        # autocast runs bilinear upsampling in float32, and the float32 result then promotes the skip concatenation
+        # and the next block's input: upsample in the activations' own dtype instead
+        with torch.autocast(x.device.type, enabled=False):
+            return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
 
     def forward(self, raw: torch.Tensor) -> torch.Tensor:
         height, width = raw.shape[-2:]
         pad_h, pad_w = (-height) % 16, (-width) % 16
         if pad_h or pad_w:
             raw = F.pad(raw, (0, pad_w, 0, pad_h), mode="replicate")
+        raw = raw.contiguous(memory_format=self.memory_format)
         s1 = self.enc1(self.stem(raw))
         s2 = self.down2(s1)
         if self.tile == 2:

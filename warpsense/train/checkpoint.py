@@ -88,6 +88,12 @@ def restore(tensors: dict, model: torch.nn.Module, optimizer: torch.optim.Optimi
                 restored.setdefault(int(index), {})[key] = value
         state_dict["state"] = restored
         optimizer.load_state_dict(state_dict)
+        # the file holds contiguous tensors; fused AdamW needs each moment laid out like its (channels-last) parameter
+        for group in optimizer.param_groups:
+            for parameter in group["params"]:
+                for key, value in optimizer.state.get(parameter, {}).items():
+                    if torch.is_tensor(value) and value.shape == parameter.shape and value.stride() != parameter.stride():
+                        optimizer.state[parameter][key] = torch.empty_like(parameter, dtype=value.dtype).copy_(value)
 
 
 def load_system(checkpoint: str | Path, device) -> tuple[torch.nn.Module, object, dict]:

@@ -212,8 +212,10 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
               f"{sum(p.numel() for p in camera_params):,}; device: {device}; ranks: {context.world_size}")
 
+    if config.train.cuda_graph and context.enabled:
+        raise ValueError("train.cuda_graph captures one GPU's step; with several ranks (DDP) leave it false")
     training_step = TrainingStep(config.loss, optimizer, camera_params, total_steps, amp,
-                                 config.train.camera_grad_clip, config.train.compile)
+                                 config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph)
     wrapped, wrapped_phase = model, None
     for epoch in itertools.count(start_epoch):
         if epoch >= config.train.epochs:  # re-read each epoch: the time budget may shorten the run
@@ -250,7 +252,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
                 config.save(run_dir / "config.json")
         record = {
             "epoch": epoch, "step": step, "phase": "joint" if joint else "warmup",
-            "lr": optimizer.param_groups[0]["lr"], **statistics,
+            "lr": float(optimizer.param_groups[0]["lr"]), **statistics,
             "images_per_s": steps_per_epoch * config.data.batch_size / elapsed, "epoch_time_s": elapsed,
         }
         if model.camera.cfa is not None:

@@ -1,5 +1,6 @@
 """One optimisation step of co-design training: forward (camera -> network) and loss, optionally compiled, backward,
-camera-gradient throttling, learning-rate schedule and optimizer step, with the statistics kept on the device."""
+camera-gradient throttling, learning-rate schedule and optimizer step, with the statistics kept on the device; on
+CUDA the whole step can be captured once per phase as a CUDA graph and replayed."""
 
 from __future__ import annotations
 
@@ -10,6 +11,9 @@ import torch
 from warpsense.train.losses import segmentation_loss
 
 COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
+# compile modes that capture CUDA graphs themselves: a whole-step capture cannot contain them
+SELF_CAPTURING_MODES = ("reduce-overhead", "max-autotune")
+EAGER_STEPS_BEFORE_CAPTURE = 3  # side-stream steps that initialise optimizer state, cuDNN and `auto` choices
 LOSS_PARTS = ("ohem", "lovasz", "smooth")
 STATISTICS = ("loss", *LOSS_PARTS, "steps", "nonfinite_steps")
 
@@ -31,22 +35,41 @@ class TrainingStep:
         amp: bf16 autocast for the network.
         compile_mode: "off" or a `torch.compile` mode for the forward and loss (the backward is compiled with
             it); shapes are fixed by the training crop, so the step compiles once per phase.
+        cuda_graph: capture forward, loss, backward, clipping, optimizer step and statistics as one CUDA graph per
+            phase and batch shape, after `EAGER_STEPS_BEFORE_CAPTURE` eager steps, and replay it: no host work
+            or kernel-launch overhead per step. The optimizer's learning rates become device tensors (the
+            schedule writes them before each replay) and its steps capturable. Everything the step reads must
+            keep its storage between steps (parameters, buffers, the optics' PSF cache do).
     """
 
     def __init__(self, loss_config, optimizer: torch.optim.Optimizer, camera_params: list, total_steps: int,
-                 amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off"):
+                 amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
+        if cuda_graph and compile_mode in SELF_CAPTURING_MODES:
+            raise ValueError(f"train.cuda_graph captures the whole step; compile mode {compile_mode!r} captures "
+                             "graphs itself: use compile = \"off\" or \"default\" with it")
         self.loss_config = loss_config
         self.optimizer = optimizer
         self.camera_params = camera_params
         self.total_steps = total_steps
         self.amp = amp
         self.camera_grad_clip = camera_grad_clip
-        self.base_lrs = [group["lr"] for group in optimizer.param_groups]
+        self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
         self.forward_loss = self._forward_loss if compile_mode == "off" else \
             torch.compile(self._forward_loss, mode=None if compile_mode == "default" else compile_mode)
-        self._sums: torch.Tensor | None = None  # float64 [len(STATISTICS)] on the device
+        self._sums: torch.Tensor | None = None  # float64 [len(STATISTICS)] on the device, updated in place
+        self._steps_since_read = 0
+        self.cuda_graph = cuda_graph
+        self._graphs: dict[tuple, _CapturedStep] = {}
+        self._eager_key, self._eager_count = None, 0
+        if cuda_graph:
+            device = optimizer.param_groups[0]["params"][0].device
+            if device.type != "cuda":
+                raise ValueError(f"train.cuda_graph needs a CUDA device; the model is on {device}")
+            for group in optimizer.param_groups:
+                group["lr"] = torch.tensor(float(group["lr"]), device=device)
+                group["capturable"] = True
 
     def _forward_loss(self, model, images, labels):
         logits, sensed = model(images, self.amp)
@@ -55,23 +78,69 @@ class TrainingStep:
 
     def __call__(self, model, images: torch.Tensor, labels: torch.Tensor, step: int, joint: bool) -> None:
         """One step at schedule position ``step``; ``joint``: camera gradients are applied (and clipped)."""
-        loss, parts = self.forward_loss(model, images, labels)
+        scale = cosine_scale(step, self.total_steps)
+        for group, base_lr in zip(self.optimizer.param_groups, self.base_lrs):
+            if torch.is_tensor(group["lr"]):
+                group["lr"].fill_(base_lr * scale)
+            else:
+                group["lr"] = base_lr * scale
+        self._steps_since_read += 1
+        if not self.cuda_graph:
+            self.optimizer.zero_grad(set_to_none=True)
+            self._forward_backward_update(model, images, labels, joint)
+            return
+        key = (joint, tuple(images.shape), images.dtype, tuple(labels.shape), labels.dtype)
+        captured = self._graphs.get(key)
+        if captured is None:
+            if self._eager_key != key:
+                self._graphs.clear()  # a new phase or shape: the old graphs' memory goes back
+                self._eager_key, self._eager_count = key, 0
+            if self._eager_count < EAGER_STEPS_BEFORE_CAPTURE:
+                self._eager_count += 1
+                self._on_side_stream(lambda: self._eager_step(model, images, labels, joint))
+                return
+            captured = self._graphs[key] = self._capture(model, images, labels, joint)
+        captured.images.copy_(images)
+        captured.labels.copy_(labels)
+        captured.graph.replay()
+
+    def _eager_step(self, model, images, labels, joint) -> None:
         self.optimizer.zero_grad(set_to_none=True)
+        self._forward_backward_update(model, images, labels, joint)
+
+    def _forward_backward_update(self, model, images, labels, joint) -> None:
+        loss, parts = self.forward_loss(model, images, labels)
         loss.backward()
         if joint and self.camera_grad_clip > 0:
             trainable = [p for p in self.camera_params if p.grad is not None]
             if trainable:
                 torch.nn.utils.clip_grad_norm_(trainable, self.camera_grad_clip)
-        scale = cosine_scale(step, self.total_steps)
-        for group, base_lr in zip(self.optimizer.param_groups, self.base_lrs):
-            group["lr"] = base_lr * scale
         self.optimizer.step()
         self._accumulate(loss.detach(), parts)
+
+    @staticmethod
+    def _on_side_stream(work) -> None:
+        # warm-up before a capture must not run on the default stream (torch.cuda.graphs' whole-network recipe)
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            work()
+        torch.cuda.current_stream().wait_stream(side)
+
+    def _capture(self, model, images, labels, joint) -> "_CapturedStep":
+        """Record one step on static copies of the batch; it is not executed: the caller replays it."""
+        static_images, static_labels = images.clone(), labels.clone()
+        self.optimizer.zero_grad(set_to_none=True)  # gradients are then allocated (and overwritten) by the graph
+        graph = torch.cuda.CUDAGraph()
+        torch.cuda.synchronize()
+        with torch.cuda.graph(graph):
+            self._forward_backward_update(model, static_images, static_labels, joint)
+        return _CapturedStep(graph, static_images, static_labels)
 
     @property
     def totals(self) -> dict[str, torch.Tensor]:
         """Sums since the last `epoch_statistics`, by name (``STATISTICS``)."""
-        return dict(zip(STATISTICS, self._sums)) if self._sums is not None else {}
+        return dict(zip(STATISTICS, self._sums)) if self._steps_since_read else {}
 
     def _accumulate(self, loss: torch.Tensor, parts: dict) -> None:
         values = torch.stack([loss, *(parts.get(name, torch.zeros_like(loss)) for name in LOSS_PARTS)]).double()
@@ -79,15 +148,18 @@ class TrainingStep:
         # a non-finite loss is counted, not summed: the epoch's mean stays readable
         step = torch.cat([torch.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0),
                           torch.ones_like(nonfinite).view(1), nonfinite.view(1)])
-        self._sums = step if self._sums is None else self._sums + step
+        if self._sums is None:
+            self._sums = torch.zeros_like(step)
+        self._sums.add_(step)  # in place: a captured step adds into the same buffer on every replay
 
     def epoch_statistics(self, context) -> dict[str, float]:
         """Mean loss and parts over the steps since the last call (all ranks), and the count of non-finite losses;
         one host synchronisation."""
-        if self._sums is None:
+        if not self._steps_since_read:
             return {}
-        totals = dict(zip(STATISTICS, context.all_reduce_sum(self._sums).tolist()))
-        self._sums = None
+        totals = dict(zip(STATISTICS, context.all_reduce_sum(self._sums.clone()).tolist()))
+        self._sums.zero_()
+        self._steps_since_read = 0
         steps = max(totals.pop("steps"), 1.0)
         nonfinite = int(totals.pop("nonfinite_steps"))
         finite_steps = max(steps - nonfinite, 1.0)
@@ -95,3 +167,10 @@ class TrainingStep:
                       for name, value in totals.items()}
         statistics["nonfinite_steps"] = nonfinite
         return statistics
+
+
+class _CapturedStep:
+    """A recorded training step and the static input buffers it reads."""
+
+    def __init__(self, graph: torch.cuda.CUDAGraph, images: torch.Tensor, labels: torch.Tensor):
+        self.graph, self.images, self.labels = graph, images, labels

@@ -91,7 +91,7 @@ def build_system(config, num_classes: int) -> SensingModel:
         isp = FixedISP(layout_letters(config.cfa.pattern, config.cfa.tile), config.isp.gamma)
     network = build_model(config.model.name, in_channels=3 if isp is not None else 1,
                           num_classes=config.model.num_classes or num_classes, width=config.model.width,
-                          tile=camera.tile)
+                          tile=camera.tile, channels_last=config.model.channels_last)
     return SensingModel(camera, network, isp, unprocess_input=config.data.unprocess)
 
 
