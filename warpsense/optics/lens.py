@@ -264,11 +264,13 @@ class Lens(nn.Module):
         scale = spec.reference_wavelength_um / wavelength
         waves, noll = coefficients * scale, list(self.noll)
         half_diagonal_um = spec.sensor_diagonal_mm * 500.0
-        extra = {4: spec.axial_color_waves[channel] * scale * torch.ones_like(field_height),
-                 2: spec.lateral_color[channel] * half_diagonal_um * field_height / (4 * wavelength * spec.f_number)}
+        # decided on the lens file's numbers, not on device values: rendering stays free of host reads (CUDA graphs)
+        extra = {}
+        if spec.axial_color_waves[channel] != 0:
+            extra[4] = spec.axial_color_waves[channel] * scale * torch.ones_like(field_height)
+        if spec.lateral_color[channel] != 0:
+            extra[2] = spec.lateral_color[channel] * half_diagonal_um * field_height / (4 * wavelength * spec.f_number)
         for index, column in extra.items():
-            if not bool((column != 0).any()):
-                continue
             column = column.to(waves.dtype)[:, None]
             if index in noll:
                 position = noll.index(index)

@@ -133,8 +133,13 @@ class TrainingStep:
         self.optimizer.zero_grad(set_to_none=True)  # gradients are then allocated (and overwritten) by the graph
         graph = torch.cuda.CUDAGraph()
         torch.cuda.synchronize()
-        with torch.cuda.graph(graph):
-            self._forward_backward_update(model, static_images, static_labels, joint)
+        try:
+            with torch.cuda.graph(graph):
+                self._forward_backward_update(model, static_images, static_labels, joint)
+        except RuntimeError as error:  # a host read or synchronisation inside the step: name it, not the CUDA code
+            first_line = str(error).splitlines()[0] if str(error) else type(error).__name__
+            raise RuntimeError(f"train.cuda_graph: the training step could not be captured ({first_line}); "
+                               "run with train.cuda_graph=false") from error
         return _CapturedStep(graph, static_images, static_labels)
 
     @property
