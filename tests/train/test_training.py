@@ -13,7 +13,8 @@ from warpsense.train.losses import segmentation_loss
 from warpsense.train.system import build_system
 
 TINY = ["data.scenes_train=16", "data.scenes_val=4", "data.batch_size=4", "data.scene_height=32",
-        "data.scene_width=48", "data.crop_height=32", "data.crop_width=48", "train.plots=false", "train.compile=off"]
+        "data.scene_width=48", "data.crop_height=32", "data.crop_width=48", "train.plots=false", "train.compile=off",
+        "train.cuda_graph=false"]
 
 
 def test_model_parameter_budget():

@@ -66,7 +66,8 @@ class TrainingStep:
         if cuda_graph:
             device = optimizer.param_groups[0]["params"][0].device
             if device.type != "cuda":
-                raise ValueError(f"train.cuda_graph needs a CUDA device; the model is on {device}")
+                raise ValueError(f"train.cuda_graph needs a CUDA device; the model is on {device} (set "
+                                 "train.cuda_graph=false)")
             for group in optimizer.param_groups:
                 group["lr"] = torch.tensor(float(group["lr"]), device=device)
                 group["capturable"] = True
