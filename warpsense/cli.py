@@ -52,10 +52,12 @@ def _convert(args) -> int:
 
 
 def _predict(args) -> int:
-    from warpsense.commands.predict import predict_raw
+    from warpsense.commands.predict import image_format, predict_raw
 
     check_output_file(args.out, "--out")
-    predict_raw(args.checkpoint, args.input, args.out, device=args.device)
+    image_format(args.out)
+    predict_raw(args.checkpoint, args.input, args.out, device=args.device, overlay=args.overlay,
+                legend=not args.no_legend)
     return 0
 
 
@@ -126,8 +128,11 @@ def build_parser() -> argparse.ArgumentParser:
                                   description="Run a checkpoint trained with a fixed Bayer CFA on a DNG and write a "
                                   "colour-coded segmentation PNG.")
     predict.add_argument("checkpoint", help="checkpoint .safetensors")
-    predict.add_argument("input", help="raw file (DNG)")
-    predict.add_argument("--out", required=True, help="output PNG")
+    predict.add_argument("input", help="raw file (DNG, or another LibRaw raw) or a `warpsense convert` .safetensors")
+    predict.add_argument("--out", required=True,
+                         help="output image, as large as the capture; its type follows the suffix (.png, .jpg, ...)")
+    predict.add_argument("--overlay", action="store_true", help="blend the class colours over the capture")
+    predict.add_argument("--no-legend", action="store_true", help="leave out the strip naming the class colours")
     predict.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="device")
     predict.set_defaults(handler=_predict)
 

@@ -9,7 +9,7 @@ from warpsense.cli import main
 from warpsense.ops import cfa_mosaic
 
 rawpy = pytest.importorskip("rawpy")
-from warpsense.data.raw import RawFileError, read_raw_file, write_dng  # noqa: E402
+from warpsense.data.raw import RawFileError, convert_file, read_raw_file, write_dng  # noqa: E402
 
 GOOD = {"canon_eos_kiss_x4_colorchart_rggb14.dng": "RGGB", "pidng_indoor_gbrg10.dng": "GBRG",
         "rpi_imx296_checkerboard_bggr10.dng": "BGGR"}
@@ -111,12 +111,24 @@ def test_predict_on_real_capture_and_refuses_non_bayer(shared_data, tmp_path):
                                 "data.scenes_val=2", "data.batch_size=4", "data.scene_height=32", "data.scene_width=48",
                                 "data.crop_height=32", "data.crop_width=48", f"run.output_dir={tmp_path}", "train.plots=false"])
     run = train(config, progress=False)
+    dng = shared_data / "dng" / "pidng_indoor_gbrg10.dng"
     out = tmp_path / "pred.png"
-    main(["predict", str(run / "checkpoint_last.safetensors"), str(shared_data / "dng" / "pidng_indoor_gbrg10.dng"),
-          "--out", str(out), "--device", "cpu"])
+    assert main(["predict", str(run / "checkpoint_last.safetensors"), str(dng), "--out", str(out), "--device", "cpu",
+                 "--no-legend"]) == 0
     from PIL import Image
 
-    assert np.asarray(Image.open(out)).shape[2] == 3
+    mosaic, _ = read_raw_file(dng)
+    labels = np.asarray(Image.open(out))
+    assert labels.shape == (*mosaic.shape, 3)  # as large as the capture
+    # convert's output is an input too, and the image type follows the suffix (JPEG bytes for .jpg)
+    converted = convert_file(dng, tmp_path / "converted")
+    jpeg = tmp_path / "pred.jpg"
+    assert main(["predict", str(run / "checkpoint_last.safetensors"), str(converted), "--out", str(jpeg),
+                 "--device", "cpu", "--overlay"]) == 0
+    with Image.open(jpeg) as image:
+        assert image.format == "JPEG" and image.width == mosaic.shape[1] and image.height > mosaic.shape[0]  # legend
+    code = main(["predict", str(run / "checkpoint_last.safetensors"), str(dng), "--out", str(tmp_path / "p.xyz")])
+    assert code == 2 and not (tmp_path / "p.xyz").exists()
     config.cfa.pattern, config.cfa.mode, config.run.name = "RCCC", "fixed", "rccc"
     run = train(config, progress=False)
     code = main(["predict", str(run / "checkpoint_last.safetensors"), str(shared_data / "dng" / "pidng_indoor_gbrg10.dng"),

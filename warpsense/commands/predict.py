@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch.nn import functional as F
 
-from warpsense.data.raw import BAYER_PATTERNS, read_raw_file
+from warpsense.data.raw import BAYER_PATTERNS, load_raw, read_raw_file
 from warpsense.files import publish
 
 
@@ -32,19 +33,76 @@ def bin_mosaic(mosaic: torch.Tensor, factor: int) -> torch.Tensor:
     return F.pixel_shuffle(planes, 2)[0, 0]
 
 
+# Pillow format of each output suffix; the image format follows the file name the user gives
+IMAGE_FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".tif": "TIFF", ".tiff": "TIFF", ".bmp": "BMP",
+                 ".webp": "WEBP"}
+OVERLAY_ALPHA = 0.5  # colour share of the overlay; the rest is the capture in grey
+
+
+def image_format(path: str | Path) -> str:
+    """Pillow format for an output path; ValueError listing the supported suffixes otherwise."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in IMAGE_FORMATS:
+        raise ValueError(f"--out {path}: unsupported image type {suffix or '(none)'}; use one of "
+                         f"{', '.join(sorted(IMAGE_FORMATS))}")
+    return IMAGE_FORMATS[suffix]
+
+
+def read_capture(path: str | Path) -> tuple[np.ndarray, dict]:
+    """Normalised mosaic float32 [H, W] and metadata (``cfa_pattern`` ...) of a raw file (DNG and what LibRaw
+    reads) or of `warpsense convert`'s output (.safetensors)."""
+    if Path(path).suffix.lower() == ".safetensors":
+        mosaic, metadata = load_raw(path)
+        return mosaic[0].numpy(), metadata
+    return read_raw_file(path)
+
+
+def legend_strip(class_names: list[str], present: set[int], num_classes: int, width: int) -> np.ndarray:
+    """[h, width, 3] uint8 strip naming the colour of each class present in the prediction."""
+    from PIL import Image, ImageDraw
+
+    from warpsense.train.plots import colorize
+
+    palette = colorize(np.arange(num_classes)[None], num_classes)[0]
+    row_height, swatch, gap = 16, 12, 10
+    entries = [(index, class_names[index] if index < len(class_names) else f"class {index}") for index in sorted(present)]
+    strip = Image.new("RGB", (width, row_height), "white")
+    draw = ImageDraw.Draw(strip)
+    rows, x = [strip], 4
+    for index, name in entries:
+        needed = swatch + 4 + int(draw.textlength(name)) + gap
+        if x + needed > width and x > 4:  # wrap onto a new row
+            strip = Image.new("RGB", (width, row_height), "white")
+            draw, x = ImageDraw.Draw(strip), 4
+            rows.append(strip)
+        draw.rectangle([x, 2, x + swatch, 2 + swatch], fill=tuple(int(v) for v in palette[index]), outline="black")
+        draw.text((x + swatch + 4, 2), name, fill="black")
+        x += needed
+    return np.concatenate([np.asarray(row) for row in rows], axis=0)
+
+
 @torch.no_grad()
-def predict_raw(checkpoint: str, raw_path: str, out_png: str, device: str = "auto", target_width: int = 480) -> Path:
-    """Run the network of ``checkpoint`` on the mosaic of ``raw_path`` and write a colour-coded PNG.
+def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "auto", target_width: int = 480,
+                overlay: bool = False, legend: bool = True) -> Path:
+    """Run the network of ``checkpoint`` on the mosaic of ``raw_path`` and write a colour-coded label image.
 
     The capture is black/white normalised, phase-matched to the model's Bayer layout by a one-pixel crop, binned
     to about ``target_width`` pixels wide (the scale the network was trained at) and scaled to the exposure the
     model saw in training (its exposure gain times the mean radiance 0.5 of the lens normalisation, when present).
+    The label map is resized (nearest) back to the capture's size, so the output is as large as the input.
+
+    Args:
+        raw_path: a DNG (or other LibRaw raw file) or a `warpsense convert` .safetensors.
+        out_image: the file type follows its suffix (`IMAGE_FORMATS`).
+        overlay: blend the colours over the capture (grey) instead of writing colours alone.
+        legend: append a strip naming the colour of each class present.
     """
     from PIL import Image
 
     from warpsense.train.checkpoint import load_system
     from warpsense.train.plots import colorize
 
+    file_format = image_format(out_image)
     torch_device = torch.device("cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu")
     model, config, state = load_system(checkpoint, torch_device)
     cfa = model.camera.cfa
@@ -52,11 +110,13 @@ def predict_raw(checkpoint: str, raw_path: str, out_png: str, device: str = "aut
     if cfa is None or cfa.tile != 2 or model_pattern not in BAYER_PATTERNS:
         raise ValueError(f"{checkpoint}: the checkpoint's CFA ({model_pattern or 'none'}) is not a Bayer layout; "
                          f"predict needs one of {', '.join(BAYER_PATTERNS)}")
-    mosaic_np, metadata = read_raw_file(raw_path)
+    mosaic_np, metadata = read_capture(raw_path)
+    capture_height, capture_width = mosaic_np.shape
     dy, dx = phase_offset(metadata["cfa_pattern"], model_pattern)
-    mosaic = torch.from_numpy(mosaic_np[dy:, dx:]).clamp(0, 1)
+    mosaic = torch.from_numpy(np.ascontiguousarray(mosaic_np[dy:, dx:])).clamp(0, 1)
     mosaic = mosaic[: mosaic.shape[0] // 2 * 2, : mosaic.shape[1] // 2 * 2]
-    mosaic = bin_mosaic(mosaic, max(1, round(mosaic.shape[1] / target_width)))
+    factor = max(1, round(mosaic.shape[1] / target_width))
+    mosaic = bin_mosaic(mosaic, factor)
     if model.camera.exposure is not None:
         level = float(model.camera.exposure.gain()) * (config.optics.normalize_mean if config.optics.enabled else 0.25)
         mosaic = mosaic * (level * 0.5 / max(float(mosaic.mean()), 1e-6))
@@ -64,11 +124,25 @@ def predict_raw(checkpoint: str, raw_path: str, out_png: str, device: str = "aut
     if model.isp is not None:
         sensed = model.isp(sensed)
     logits = model.network(sensed)
-    prediction = logits.argmax(dim=1)[0].cpu().numpy()
-    out = Path(out_png)
-    tmp = out.with_name(out.stem + ".tmp.png")
-    Image.fromarray(colorize(prediction, logits.shape[1])).save(tmp, format="PNG")
-    publish(tmp, out)
-    print(f"wrote {out} ({prediction.shape[1]}x{prediction.shape[0]}, {metadata['cfa_pattern']} -> {model_pattern} "
-          f"crop ({dy}, {dx}))")
+    num_classes = logits.shape[1]
+    prediction = logits.argmax(dim=1)[0].cpu().numpy().astype(np.uint8)
+    labels = np.asarray(Image.fromarray(prediction).resize((capture_width, capture_height), Image.NEAREST))
+    picture = colorize(labels, num_classes)
+    if overlay:
+        grey = np.clip(mosaic_np / max(float(np.percentile(mosaic_np, 99)), 1e-6), 0, 1) ** (1 / 2.2) * 255
+        picture = (OVERLAY_ALPHA * picture + (1 - OVERLAY_ALPHA) * grey[..., None]).astype(np.uint8)
+    if legend:
+        names = list(state.get("class_names") or [])
+        picture = np.concatenate([picture, legend_strip(names, set(np.unique(labels).tolist()), num_classes,
+                                                        capture_width)], axis=0)
+    out = Path(out_image)
+    tmp = out.with_name(f".{out.name}.tmp")
+    try:
+        Image.fromarray(picture).save(tmp, format=file_format)
+        publish(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    print(f"wrote {out} ({capture_width}x{capture_height}; the network ran at {prediction.shape[1]}x"
+          f"{prediction.shape[0]}, 1/{factor} of the capture after the {metadata['cfa_pattern']} -> {model_pattern} "
+          f"crop ({dy}, {dx}){'; legend strip below' if legend else ''})")
     return out
