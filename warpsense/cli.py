@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from warpsense import __version__
+from warpsense.config import preset_names
 from warpsense.files import check_output_file
 
 
@@ -20,7 +21,7 @@ def _train(args) -> int:
     from warpsense.commands.train import run_train
 
     return run_train(args.config, args.overrides, args.resume, args.resume_dir, args.allow_config_change,
-                     progress=not args.no_progress)
+                     progress=not args.no_progress, print_config=args.print_config)
 
 
 def _eval(args) -> int:
@@ -75,7 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     train = commands.add_parser("train", help="train camera + network (default: built-in scenes on the CPU)",
                                 description="Two-phase co-design training. With no arguments it trains on built-in "
-                                "generated street scenes. Multi-GPU: torchrun --nproc_per_node N -m warpsense train ...")
+                                "generated street scenes. Multi-GPU: torchrun --nproc_per_node N -m warpsense train ...",
+                                epilog=f"presets: {', '.join(preset_names())}. Every key and its default: "
+                                "configs/default.toml, or --print-config.")
     _add_config_options(train)
     train.add_argument("--resume", action="store_true", help="continue the run <output_dir>/<name> from its last checkpoint")
     train.add_argument("--resume-dir", metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint")
@@ -83,6 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="with --resume/--resume-dir: continue with the given --config/--set even where it differs "
                             "from the run's saved config (refused otherwise)")
     train.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    train.add_argument("--print-config", action="store_true",
+                       help="print the resolved config (after --config and --set) as JSON and exit")
     train.set_defaults(handler=_train)
 
     evaluate = commands.add_parser("eval", help="evaluate a checkpoint (mIoU, per-class IoU, sweeps, latency)",

@@ -42,11 +42,15 @@ def test_overfits_a_fixed_batch():
     assert losses[-1] < 0.5 * losses[0]
 
 
-def test_train_then_eval_cli_on_scenes(tmp_path):
+def test_train_then_eval_cli_on_scenes(tmp_path, capsys):
     config = load_config(None, TINY + ["train.epochs=2", "train.warmup_epochs=1", f"run.output_dir={tmp_path}"])
     run = train(config, progress=False)
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert [r["phase"] for r in records] == ["warmup", "joint"] and "val_miou" in records[-1]
+    best_epoch = max(records, key=lambda r: r["val_miou"])["epoch"]  # the first of equal scores is kept
+    summary = capsys.readouterr().out.strip().splitlines()[-3:]
+    assert summary[0] == f"done: {run}"
+    assert summary[1].startswith(f"  best: checkpoint_best.safetensors (epoch {best_epoch + 1}, val mIoU ")
     assert json.loads((run / "config.json").read_text())["train"]["epochs"] == 2
     out = tmp_path / "eval.json"
     assert main(["eval", "--checkpoint", str(run / "checkpoint_best.safetensors"), "--data", "scenes", "--split",

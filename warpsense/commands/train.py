@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -14,7 +15,7 @@ LOCATING_KEYS = ("run.output_dir=", "run.name=")  # overrides that only say wher
 
 
 def run_train(config_file: str | None, overrides: list[str], resume: bool = False, resume_dir: str | None = None,
-              allow_config_change: bool = False, progress: bool = True) -> int:
+              allow_config_change: bool = False, progress: bool = True, print_config: bool = False) -> int:
     """Train; returns the exit code (130 after Ctrl-C, with the command that continues the run on stderr).
 
     Args:
@@ -25,7 +26,11 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
         allow_config_change: when continuing, use ``config_file`` / ``overrides`` even where they differ from the
             run's saved config (refused otherwise). Without them a run continues with its own config.
         progress: show progress bars.
+        print_config: print the resolved config (JSON, as each run saves it) and return without training.
     """
+    if print_config:
+        print(json.dumps(load_config(config_file, overrides).to_dict(), indent=2))
+        return 0
     if not (resume or resume_dir):
         config, run_dir = load_config(config_file, overrides), False
         check_output_folder(config.run.output_dir, "run.output_dir")

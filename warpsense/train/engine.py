@@ -290,6 +290,24 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         from warpsense.train.plots import write_run_plots
 
         write_run_plots(run_dir, model, val_set, device)
+    if context.is_main:
+        print(run_summary(run_dir, config))
     context.barrier()
     context.close()
     return (run_dir, model) if return_model else run_dir
+
+
+def run_summary(run_dir: Path, config) -> str:
+    """The closing lines of a run: the best checkpoint's score and epoch, and where everything went."""
+    best_json = run_dir / Path(BEST).with_suffix(".json")
+    lines = [f"done: {run_dir}"]
+    if best_json.is_file():
+        best = json.loads(best_json.read_text())["state"]["record"]
+        if "selection_miou" in best:
+            score = f"held-out {config.data.holdout_prefix} mIoU {best['selection_miou']:.4f}, val {best['val_miou']:.4f}"
+        else:
+            score = f"val mIoU {best['val_miou']:.4f}"
+        lines.append(f"  best: {BEST} (epoch {best['epoch'] + 1}, {score})")
+    lines.append(f"  last: {LAST}; metrics: metrics.jsonl; config: config.json"
+                 + ("; plots: *.png" if config.train.plots else ""))
+    return "\n".join(lines)
