@@ -58,6 +58,10 @@ def test_train_then_eval_cli_on_scenes(tmp_path, capsys):
     result = json.loads(out.read_text())
     assert {"miou", "per_class_iou", "pixel_accuracy", "num_images"} <= set(result) and result["num_images"] == 4
     assert {row["factor"] for row in result["sweep"]} == {"blur_sigma_px", "noise_scale", "bits"}
+    # one factor moves at a time: the rows at the checkpoint's own operating point are the same evaluation
+    at_operating_point = {row["miou"] for row in result["sweep"] if (row["factor"], row["value"]) in
+                          {("blur_sigma_px", 0.0), ("noise_scale", 1.0), ("bits", config.quantize.bits)}}
+    assert len(at_operating_point) == 1 and at_operating_point == {result["miou"]}
 
 
 def test_train_on_real_camvid_crops(shared_data, tmp_path):

@@ -11,26 +11,37 @@ from warpsense.train.checkpoint import load_system
 from warpsense.train.evaluate import evaluate
 
 
-def robustness_sweep(model, dataset, device, batch_size: int, class_names, amp: bool) -> list[dict]:
-    """mIoU under extra blur, scaled noise and other bit depths (one factor at a time)."""
-    rows = []
+def robustness_sweep(model, dataset, device, batch_size: int, class_names, amp: bool,
+                     progress: bool = True) -> list[dict]:
+    """mIoU under extra blur, scaled noise and other bit depths (one factor at a time, the others at the
+    checkpoint's operating point), with a progress bar over the settings; the camera is restored afterwards."""
+    from tqdm import tqdm
+
     camera = model.camera
-    for sigma in (0.0, 0.5, 1.0, 2.0):
-        metrics = evaluate(model, dataset, device, batch_size, class_names=class_names, amp=amp, blur_sigma=sigma)
-        rows.append({"factor": "blur_sigma_px", "value": sigma, "miou": metrics["miou"]})
+    settings = [("blur_sigma_px", sigma) for sigma in (0.0, 0.5, 1.0, 2.0)]
     if camera.noise is not None:
-        for scale in (0.5, 1.0, 2.0, 4.0):
-            camera.noise.scale = scale
-            metrics = evaluate(model, dataset, device, batch_size, class_names=class_names, amp=amp)
-            rows.append({"factor": "noise_scale", "value": scale, "miou": metrics["miou"]})
-        camera.noise.scale = 1.0
+        settings += [("noise_scale", scale) for scale in (0.5, 1.0, 2.0, 4.0)]
     if camera.quantizer is not None:
-        bits = camera.quantizer.bits
-        for value in (4, 6, 8, 10, 12):
-            camera.quantizer.bits = value
-            metrics = evaluate(model, dataset, device, batch_size, class_names=class_names, amp=amp)
-            rows.append({"factor": "bits", "value": value, "miou": metrics["miou"]})
-        camera.quantizer.bits = bits
+        settings += [("bits", value) for value in (4, 6, 8, 10, 12)]
+    noise_scale = camera.noise.scale if camera.noise is not None else None
+    bits = camera.quantizer.bits if camera.quantizer is not None else None
+    rows = []
+    bar = tqdm(settings, desc="sweep", disable=not progress)
+    try:
+        for factor, value in bar:
+            bar.set_postfix_str(f"{factor}={value}")
+            if camera.noise is not None:
+                camera.noise.scale = value if factor == "noise_scale" else noise_scale
+            if camera.quantizer is not None:
+                camera.quantizer.bits = value if factor == "bits" else bits
+            metrics = evaluate(model, dataset, device, batch_size, class_names=class_names, amp=amp,
+                               blur_sigma=value if factor == "blur_sigma_px" else 0.0)
+            rows.append({"factor": factor, "value": value, "miou": metrics["miou"]})
+    finally:
+        if camera.noise is not None:
+            camera.noise.scale = noise_scale
+        if camera.quantizer is not None:
+            camera.quantizer.bits = bits
     return rows
 
 
