@@ -3,10 +3,12 @@ gives a new file (safetensors and mkstemp create 0600 files, which other users o
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
 import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -18,15 +20,24 @@ def publish(temporary: str | Path, target: str | Path) -> None:
     os.replace(temporary, target)
 
 
-def write_json(path: str | Path, payload, indent: int = 2, sort_keys: bool = False) -> None:
-    """Write ``payload`` as JSON at ``path`` atomically (a temporary beside it, then `publish`)."""
-    path = Path(path)
-    temporary = path.with_name(path.name + ".tmp")
+@contextlib.contextmanager
+def atomic_write(target: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``target`` to write to; when the block ends normally it is `publish`ed onto
+    ``target``, and on any error (or a kill before the rename) ``target`` keeps its old content and the temporary is
+    removed."""
+    target = Path(target)
+    temporary = target.with_name(target.name + ".tmp")
     try:
-        temporary.write_text(json.dumps(payload, indent=indent, sort_keys=sort_keys) + "\n")
-        publish(temporary, path)
+        yield temporary
+        publish(temporary, target)
     finally:
         temporary.unlink(missing_ok=True)
+
+
+def write_json(path: str | Path, payload, indent: int = 2, sort_keys: bool = False) -> None:
+    """Write ``payload`` as JSON at ``path`` atomically (`atomic_write`)."""
+    with atomic_write(path) as temporary:
+        temporary.write_text(json.dumps(payload, indent=indent, sort_keys=sort_keys) + "\n")
 
 
 def check_output_file(path: str | Path | None, what: str) -> None:

@@ -1,14 +1,8 @@
-import importlib.util
 import json
-from pathlib import Path
-
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "bench_psf.py"
 
 
-def test_bench_psf_quick_on_cpu_reports_every_method_and_a_correct_kernel(tmp_path, capsys):
-    spec = importlib.util.spec_from_file_location("bench_psf", TOOL)
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+def test_bench_psf_quick_on_cpu_reports_every_method_and_a_correct_kernel(tmp_path, capsys, load_tool):
+    tool = load_tool("bench_psf")
     report = tool.main(["--device", "cpu", "--quick", "--json", str(tmp_path / "psf.json")])
     assert {row["method"] for row in report["rows"]} == set(tool.METHODS)
     assert all(row["fwd_bwd_ms"] > 0 for row in report["rows"])

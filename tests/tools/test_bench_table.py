@@ -1,18 +1,11 @@
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "bench_table.py"
-
 
 @pytest.fixture
-def tool():
-    spec = importlib.util.spec_from_file_location("bench_table", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def tool(load_tool):
+    return load_tool("bench_table")
 
 
 def test_ratios_are_to_the_baseline_of_the_same_loss_and_step(tool, tmp_path):

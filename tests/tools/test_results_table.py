@@ -1,18 +1,11 @@
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "results_table.py"
-
 
 @pytest.fixture
-def tool():
-    spec = importlib.util.spec_from_file_location("results_table", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def tool(load_tool):
+    return load_tool("results_table")
 
 
 def _run(root, name, seed, vals, held_out, best_epoch=None):

@@ -9,7 +9,7 @@ import torch
 from torch.nn import functional as F
 
 from warpsense.data.raw import BAYER_PATTERNS, load_raw, read_raw_file
-from warpsense.files import publish
+from warpsense.files import atomic_write
 
 
 def phase_offset(file_pattern: str, model_pattern: str) -> tuple[int, int]:
@@ -136,12 +136,8 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
         picture = np.concatenate([picture, legend_strip(names, set(np.unique(labels).tolist()), num_classes,
                                                         capture_width)], axis=0)
     out = Path(out_image)
-    tmp = out.with_name(f".{out.name}.tmp")
-    try:
-        Image.fromarray(picture).save(tmp, format=file_format)
-        publish(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_write(out) as temporary:
+        Image.fromarray(picture).save(temporary, format=file_format)
     print(f"wrote {out} ({capture_width}x{capture_height}; the network ran at {prediction.shape[1]}x"
           f"{prediction.shape[0]}, 1/{factor} of the capture after the {metadata['cfa_pattern']} -> {model_pattern} "
           f"crop ({dy}, {dx}){'; legend strip below' if legend else ''})")

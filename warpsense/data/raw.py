@@ -19,7 +19,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
-from warpsense.files import publish
+from warpsense.files import atomic_write
 
 RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw"}
 BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
@@ -110,12 +110,9 @@ def convert_file(path: str | Path, out_dir: str | Path) -> Path:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"{Path(path).stem}.safetensors"
-    tmp = target.with_name(target.name + ".tmp")
-    try:
-        save_file({"mosaic": torch.from_numpy(mosaic)[None].contiguous()}, str(tmp), metadata={"warpsense": json.dumps(metadata)})
-        publish(tmp, target)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_write(target) as temporary:
+        save_file({"mosaic": torch.from_numpy(mosaic)[None].contiguous()}, str(temporary),
+                  metadata={"warpsense": json.dumps(metadata)})
     return target
 
 
@@ -228,7 +225,5 @@ def write_dng(path: str | Path, mosaic: np.ndarray, pattern: str, black_level: i
         (271, "s", 0, make, True),  # Make
         (272, "s", 0, model, True),  # Model
     ]
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tifffile.imwrite(tmp, data, photometric=32803, subfiletype=0, extratags=extratags, metadata=None)
-    publish(tmp, path)
+    with atomic_write(path) as temporary:
+        tifffile.imwrite(temporary, data, photometric=32803, subfiletype=0, extratags=extratags, metadata=None)

@@ -15,7 +15,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from warpsense.files import publish, write_json
+from warpsense.files import atomic_write, write_json
 
 METADATA_KEY = "warpsense"
 
@@ -40,9 +40,8 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict,
     if rng_state is not None:
         tensors["rng"] = rng_state
     payload = {"config": config_dict, "state": state}
-    tmp = path.with_name(path.name + ".tmp")
-    save_file(tensors, str(tmp), metadata={METADATA_KEY: json.dumps(payload, sort_keys=True)})
-    publish(tmp, path)
+    with atomic_write(path) as temporary:
+        save_file(tensors, str(temporary), metadata={METADATA_KEY: json.dumps(payload, sort_keys=True)})
     write_json(path.with_suffix(".json"), payload, sort_keys=True)
 
 
