@@ -61,8 +61,8 @@ class TrainingStep:
         self._sums: torch.Tensor | None = None  # float64 [len(STATISTICS)] on the device, updated in place
         self._steps_since_read = 0
         self.cuda_graph = cuda_graph
-        self._graphs: dict[tuple, _CapturedStep] = {}
-        self._eager_key, self._eager_count = None, 0
+        # the phase and batch shape being captured, eager steps run for it so far, and its graph once recorded
+        self._capture_key, self._eager_count, self._captured = None, 0, None
         if cuda_graph:
             device = optimizer.param_groups[0]["params"][0].device
             if device.type != "cuda":
@@ -87,23 +87,20 @@ class TrainingStep:
                 group["lr"] = base_lr * scale
         self._steps_since_read += 1
         if not self.cuda_graph:
-            self.optimizer.zero_grad(set_to_none=True)
-            self._forward_backward_update(model, images, labels, joint)
+            self._eager_step(model, images, labels, joint)
             return
         key = (joint, tuple(images.shape), images.dtype, tuple(labels.shape), labels.dtype)
-        captured = self._graphs.get(key)
-        if captured is None:
-            if self._eager_key != key:
-                self._graphs.clear()  # a new phase or shape: the old graphs' memory goes back
-                self._eager_key, self._eager_count = key, 0
+        if self._capture_key != key:  # a new phase or shape: the old graph (and its memory) goes
+            self._capture_key, self._eager_count, self._captured = key, 0, None
+        if self._captured is None:
             if self._eager_count < EAGER_STEPS_BEFORE_CAPTURE:
                 self._eager_count += 1
                 self._on_side_stream(lambda: self._eager_step(model, images, labels, joint))
                 return
-            captured = self._graphs[key] = self._capture(model, images, labels, joint)
-        captured.images.copy_(images)
-        captured.labels.copy_(labels)
-        captured.graph.replay()
+            self._captured = self._capture(model, images, labels, joint)
+        self._captured.images.copy_(images)
+        self._captured.labels.copy_(labels)
+        self._captured.graph.replay()
 
     def _eager_step(self, model, images, labels, joint) -> None:
         self.optimizer.zero_grad(set_to_none=True)
