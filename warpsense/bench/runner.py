@@ -96,15 +96,15 @@ def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = N
         raise ValueError("--device cuda: no CUDA device available")
     if suite not in BENCH_SUITES:
         raise ValueError(f"--suite must be one of {BENCH_SUITES}, got {suite!r}")
-    records = []
+    records, metadata = [], _metadata(device)
     if suite in ("kernels", "all"):
         records += _kernel_suite(device, quick)
     if suite in ("train", "all"):
         from warpsense.bench.train_suite import run_train_suite
 
-        records += run_train_suite(device, quick, _metadata(device))
+        records += run_train_suite(device, quick, metadata)
     if json_out:
-        write_json(json_out, {"metadata": _metadata(device), "records": records})
+        write_json(json_out, {"metadata": metadata, "records": records})
     if plot_out:
         plot_pareto([r for r in records if "kernel" in r], plot_out)
     return records
