@@ -26,6 +26,12 @@ class ConfigError(ValueError):
     """A config file or override is malformed; the message names the file and key."""
 
 
+# torch.compile modes of the training step; the self-capturing ones record CUDA graphs themselves, so a whole-step
+# capture (train.cuda_graph) cannot contain them
+COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
+SELF_CAPTURING_COMPILE_MODES = ("reduce-overhead", "max-autotune")
+
+
 def _choices(*values: str) -> dict:
     return {"choices": values}
 
@@ -151,7 +157,7 @@ class TrainConfig:
     camera_lr_scale: float = 0.1
     camera_grad_clip: float = 0.1
     amp: bool = True
-    compile: str = field(default="off", metadata=_choices("off", "default", "reduce-overhead", "max-autotune"))
+    compile: str = field(default="off", metadata=_choices(*COMPILE_MODES))
     cuda_graph: bool = False
     max_steps_per_epoch: int = 0
     time_budget_minutes: float = 0.0
@@ -239,7 +245,7 @@ def validate(config: "Config", source: str) -> "Config":
     if config.noise.read_electrons > 0 and config.noise.full_well_electrons == 0:
         raise ConfigError(f"{source}: noise.read_electrons needs noise.full_well_electrons (electrons at the white "
                           "level)")
-    if config.train.cuda_graph and config.train.compile in ("reduce-overhead", "max-autotune"):
+    if config.train.cuda_graph and config.train.compile in SELF_CAPTURING_COMPILE_MODES:
         raise ConfigError(f"{source}: train.cuda_graph captures the whole step; train.compile = "
                           f"{config.train.compile!r} captures graphs itself (use \"off\" or \"default\" with it)")
     name = config.run.name

@@ -8,11 +8,9 @@ import math
 
 import torch
 
+from warpsense.config import COMPILE_MODES, SELF_CAPTURING_COMPILE_MODES
 from warpsense.train.losses import segmentation_loss
 
-COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
-# compile modes that capture CUDA graphs themselves: a whole-step capture cannot contain them
-SELF_CAPTURING_MODES = ("reduce-overhead", "max-autotune")
 EAGER_STEPS_BEFORE_CAPTURE = 3  # side-stream steps that initialise optimizer state, cuDNN and `auto` choices
 LOSS_PARTS = ("ohem", "lovasz", "smooth")
 STATISTICS = ("loss", *LOSS_PARTS, "steps", "nonfinite_steps")
@@ -46,7 +44,7 @@ class TrainingStep:
                  amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
-        if cuda_graph and compile_mode in SELF_CAPTURING_MODES:
+        if cuda_graph and compile_mode in SELF_CAPTURING_COMPILE_MODES:
             raise ValueError(f"train.cuda_graph captures the whole step; compile mode {compile_mode!r} captures "
                              "graphs itself: use compile = \"off\" or \"default\" with it")
         self.loss_config = loss_config
