@@ -53,10 +53,9 @@ def _convert(args) -> int:
 
 
 def _predict(args) -> int:
-    from warpsense.commands.predict import image_format, predict_raw
+    from warpsense.commands.predict import predict_raw
 
     check_output_file(args.out, "--out")
-    image_format(args.out)
     predict_raw(args.checkpoint, args.input, args.out, device=args.device, overlay=args.overlay,
                 legend=not args.no_legend)
     return 0
