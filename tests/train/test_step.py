@@ -15,6 +15,7 @@ from warpsense.camera import Camera
 from warpsense.train.system import (SensingModel, build_system, camera_parameters, mark_learnable,
                                     set_camera_trainable)
 
+from tests.conftest import device_params
 from tests.train.test_training import TINY
 
 
@@ -190,3 +191,28 @@ def test_cuda_graph_steps_match_eager_steps():
             assert b == pytest.approx(a, rel=1e-5)
     finally:
         torch.backends.cudnn.deterministic = deterministic
+
+
+@pytest.mark.parametrize("device", device_params())
+def test_compiled_step_trains_the_camera_after_warm_up(device):
+    """Warm-up freezes the camera and the joint phase unfreezes it in place. A compiled step must then take the
+    camera's gradients: torch 2.11's dynamo replayed the warm-up graph, and a camera with a fixed lens (exposure and
+    CFA learnable) never moved in 100 CamVid epochs on the H100."""
+    config = load_config("camvid_learned_cfa_exposure", ["optics.enabled=false"])
+    torch.manual_seed(0)
+    network = torch.nn.Sequential(torch.nn.Conv2d(1, 4, 3, padding=1), torch.nn.ReLU(), torch.nn.Conv2d(4, 11, 1))
+    model = SensingModel(Camera.from_config(config), network).to(device).train()
+    mark_learnable(model)
+    camera = camera_parameters(model)
+    optimizer = torch.optim.AdamW([{"params": list(network.parameters())}, {"params": camera}], lr=1e-2)
+    step = TrainingStep(config.loss, optimizer, camera, total_steps=8, amp=False, compile_mode="default")
+    images = torch.randint(0, 256, (2, 3, 16, 24), dtype=torch.uint8, device=device)
+    labels = torch.randint(0, 11, (2, 16, 24), device=device)
+    set_camera_trainable(model, False)
+    for index in range(2):
+        step(model, images, labels, index, joint=False)
+    before = [p.detach().clone() for p in camera]
+    set_camera_trainable(model, True)
+    for index in range(2, 4):
+        step(model, images, labels, index, joint=True)
+    assert all(not torch.equal(a, p.detach()) for a, p in zip(before, camera))

@@ -54,8 +54,10 @@ class TrainingStep:
         self.amp = amp
         self.camera_grad_clip = camera_grad_clip
         self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
-        self.forward_loss = self._forward_loss if compile_mode == "off" else \
+        self.compiled = compile_mode != "off"
+        self.forward_loss = self._forward_loss if not self.compiled else \
             torch.compile(self._forward_loss, mode=None if compile_mode == "default" else compile_mode)
+        self._phase: bool | None = None  # `joint` of the last step
         self._sums: torch.Tensor | None = None  # float64 [len(STATISTICS)] on the device, updated in place
         self._steps_since_read = 0
         self.cuda_graph = cuda_graph
@@ -84,6 +86,12 @@ class TrainingStep:
             else:
                 group["lr"] = base_lr * scale
         self._steps_since_read += 1
+        if self.compiled and self._phase is not None and joint != self._phase:
+            # The phase switch flips requires_grad on camera parameters in place. Dynamo's guards can miss that and
+            # replay the previous phase's graph, in which the camera takes no gradient (pytorch#139476; fixed after
+            # torch 2.11 by pytorch#177158): a camera with a fixed lens then never learned. Recompile.
+            torch.compiler.reset()
+        self._phase = joint
         if not self.cuda_graph:
             self._eager_step(model, images, labels, joint)
             return
