@@ -248,6 +248,17 @@ def validate(config: "Config", source: str) -> "Config":
     if config.train.cuda_graph and config.train.compile in SELF_CAPTURING_COMPILE_MODES:
         raise ConfigError(f"{source}: train.cuda_graph captures the whole step; train.compile = "
                           f"{config.train.compile!r} captures graphs itself (use \"off\" or \"default\" with it)")
+    from warpsense.models import MODELS
+    from warpsense.optics.lens import LensFileError, read_lens_spec
+
+    if config.model.name not in MODELS:
+        raise ConfigError(f"{source}: model.name: unknown model {config.model.name!r}; valid models: "
+                          f"{', '.join(sorted(MODELS))}")
+
+    try:  # a lens file is read even while optics is off: the saved config must run when it is turned on
+        read_lens_spec(config.optics.lens)
+    except LensFileError as error:
+        raise ConfigError(f"{source}: optics.lens: {error}") from None
     name = config.run.name
     if not name or name in (".", "..") or "/" in name or "\\" in name or name != name.strip():
         raise ConfigError(f"{source}: run.name must be a plain folder name (no path separators), got {name!r}")
@@ -298,6 +309,8 @@ def _read_toml(path: Path, label: str) -> dict:
         raise ConfigError(f"{label}: invalid TOML: {error}") from None
     except OSError as error:
         raise ConfigError(f"{label}: cannot read: {error.strerror}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{label}: not UTF-8 text") from None
 
 
 def parse_override(text: str) -> dict:
@@ -328,6 +341,8 @@ def _apply_file(config: Config, name_or_path: str | Path, depth: int) -> None:
     if base is not None:
         if not isinstance(base, str) or depth > 8:
             raise ConfigError(f"{label}: base must name a preset (and presets must not loop)")
+        if base not in preset_names() and not Path(base).is_file():
+            raise ConfigError(f"{label}: base {base!r}: no such preset or file; presets: {', '.join(preset_names())}")
         _apply_file(config, base, depth + 1)
     _apply(config, data, label)
 

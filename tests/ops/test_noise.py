@@ -22,7 +22,7 @@ def test_smoke(device):
 def test_exception():
     with pytest.raises(ValueError, match="non-empty"):
         poisson_gaussian(torch.zeros(0), 0.1, 0.1, 0)
-    with pytest.raises(ValueError, match="scalar"):
+    with pytest.raises(ValueError, match="0-d tensor"):
         poisson_gaussian(torch.rand(3), torch.rand(2), 0.1, 0)
 
 

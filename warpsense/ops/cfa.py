@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import cfa as kernels
+from warpsense.ops.arguments import check_same_device, check_tensor
 from warpsense.ops._warp import launch, prepare, reduction_lanes, save_inputs, warp_op
 
 
@@ -62,7 +63,10 @@ def cfa_mosaic(rgb: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
         raw: [B, 1, H, W], raw(p) = sum_c rgb[c](p) * phi[p mod T, c]. Differentiable w.r.t. rgb and phi.
         float16/bfloat16 inputs compute in float32. NaN/Inf in the inputs propagate to the affected pixels.
     """
-    if rgb.dim() != 4 or rgb.shape[1] != 3:
+    check_tensor("cfa_mosaic", "rgb", rgb, 4, "[B, 3, H, W]")
+    check_tensor("cfa_mosaic", "phi", phi)
+    check_same_device("cfa_mosaic", rgb=rgb, phi=phi)
+    if rgb.shape[1] != 3:
         raise ValueError(f"cfa_mosaic: rgb must be [B, 3, H, W], got {tuple(rgb.shape)}")
     if phi.dim() != 3 or phi.shape[0] != phi.shape[1] or phi.shape[2] != 3 or phi.shape[0] < 1:
         raise ValueError(f"cfa_mosaic: phi must be [T, T, 3] with T >= 1, got {tuple(phi.shape)}")

@@ -9,15 +9,24 @@ from __future__ import annotations
 
 import torch
 
+from warpsense.ops.arguments import check_same_device, check_tensor
+
 GAIN_MIN = 0.25
 GAIN_RANGE = 3.75
 
 
 def exposure_gain(gain_logit: torch.Tensor) -> torch.Tensor:
     """a(g) in [0.25, 4] for a logit g of any shape."""
+    check_tensor("exposure_gain", "gain_logit", gain_logit)
     return GAIN_MIN + GAIN_RANGE * torch.sigmoid(gain_logit)
 
 
 def exposure(image: torch.Tensor, gain_logit: torch.Tensor) -> torch.Tensor:
-    """Scale linear irradiance [B, C, H, W] by a(g) (0-d logit g)."""
+    """Scale linear irradiance [B, C, H, W] by a(g) (0-d or 1-element logit g)."""
+    check_tensor("exposure", "image", image, 4, "[B, C, H, W]")
+    check_tensor("exposure", "gain_logit", gain_logit)
+    check_same_device("exposure", image=image, gain_logit=gain_logit)
+    if gain_logit.numel() != 1:
+        raise ValueError(f"exposure: gain_logit must be 0-d or 1-element (one gain per camera), got "
+                         f"{tuple(gain_logit.shape)}")
     return image * exposure_gain(gain_logit).to(image.dtype)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import noise as kernels
+from warpsense.ops.arguments import check_level, check_tensor
 from warpsense.ops._warp import launch, prepare, reduction_lanes, save_inputs, scalar_tensor, seed_int32, warp_op
 
 POISSON_NORMAL_LIMIT = float(kernels.POISSON_NORMAL_LIMIT)
@@ -73,18 +74,13 @@ def _poisson_gaussian_exact(raw: torch.Tensor, shot: torch.Tensor, read: torch.T
 
 
 def _noise_inputs(raw, shot, read, seed, name):
-    if not isinstance(raw, torch.Tensor):
-        raise TypeError(f"{name}: raw must be a torch.Tensor, got {type(raw).__name__}")
+    check_tensor(name, "raw", raw)
     if raw.numel() == 0:
         raise ValueError(f"{name}: raw must be non-empty, got shape {tuple(raw.shape)}")
     if raw.numel() >= 2**31:
         raise ValueError(f"{name}: at most 2^31 - 1 elements per call (noise is keyed by an int32 element index)")
-    for level_name, level in (("shot", shot), ("read", read)):
-        if not isinstance(level, torch.Tensor):
-            if isinstance(level, bool) or not isinstance(level, (int, float)):
-                raise TypeError(f"{name}: {level_name} must be a float or a tensor, got {type(level).__name__}")
-            if not level >= 0 or level == float("inf"):
-                raise ValueError(f"{name}: {level_name} must be finite and >= 0, got {level!r}")
+    check_level(name, "shot", shot)
+    check_level(name, "read", read)
     batch = raw.shape[0] if raw.dim() > 0 else 1
     seeds, image_stride = noise_seeds(seed, batch, raw.device)
     raw, shot_t, read_t = prepare(raw, scalar_tensor(shot, raw), scalar_tensor(read, raw))

@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from warpsense.kernels import psf as kernels
+from warpsense.ops.arguments import check_same_device, check_tensor
 from warpsense.ops._warp import Vectors, launch, prepare, save_inputs, warp_op
 
 PSF_METHODS = ("auto", "direct", "conv2d", "fft", "patch")
@@ -177,19 +178,13 @@ def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_
 
 
 def _check(image: torch.Tensor, psf: torch.Tensor, method: str) -> None:
-    for name, tensor in (("image", image), ("psf", psf)):
-        if not isinstance(tensor, torch.Tensor):
-            raise TypeError(f"psf_conv: {name} must be a torch.Tensor, got {type(tensor).__name__}")
-        if not tensor.is_floating_point():
-            raise TypeError(f"psf_conv: {name} must be floating point, got {tensor.dtype}")
-    if image.dim() != 4 or 0 in image.shape:
-        raise ValueError(f"psf_conv: image must be a non-empty [B, C, H, W], got {tuple(image.shape)}")
+    check_tensor("psf_conv", "image", image, 4, "[B, C, H, W]")
+    check_tensor("psf_conv", "psf", psf)
     if psf.dim() != 5 or 0 in psf.shape or psf.shape[3] != psf.shape[4] or psf.shape[3] % 2 == 0:
         raise ValueError(f"psf_conv: psf must be a non-empty [C, Gy, Gx, K, K] with K odd, got {tuple(psf.shape)}")
     if psf.shape[0] != image.shape[1]:
         raise ValueError(f"psf_conv: psf has {psf.shape[0]} channels, image has {image.shape[1]}")
-    if psf.device != image.device:
-        raise ValueError(f"psf_conv: image is on {image.device}, psf on {psf.device}")
+    check_same_device("psf_conv", image=image, psf=psf)
     if method not in PSF_METHODS:
         raise ValueError(f"psf_conv: method must be one of {PSF_METHODS}, got {method!r}")
     invariant = psf.shape[1] == psf.shape[2] == 1

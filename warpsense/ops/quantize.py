@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import quantize as kernels
+from warpsense.ops.arguments import check_tensor
 from warpsense.ops._warp import launch, prepare, save_inputs, warp_op
 
 QUANTIZE_MODES = ("full_well", "max")
@@ -21,8 +22,10 @@ def check_quantize_arguments(bits, white_level, mode: str, name: str) -> None:
     """Raise a one-line error for an invalid bit depth, white level or mode."""
     if mode not in QUANTIZE_MODES:
         raise ValueError(f"{name}: mode must be one of {QUANTIZE_MODES}, got {mode!r}")
-    if isinstance(bits, bool) or not isinstance(bits, int) or not 1 <= bits <= 24:
-        raise ValueError(f"{name}: bits must be an int in 1..24, got {bits!r}")
+    if isinstance(bits, bool) or not isinstance(bits, int):
+        raise TypeError(f"{name}: bits must be an int, got {type(bits).__name__}")
+    if not 1 <= bits <= 24:
+        raise ValueError(f"{name}: bits must be in 1..24, got {bits!r}")
     if isinstance(white_level, bool) or not isinstance(white_level, (int, float)):
         raise TypeError(f"{name}: white_level must be a float, got {type(white_level).__name__}")
     low, high = _FLOAT32_RANGE
@@ -78,8 +81,7 @@ def quantize_ste(raw: torch.Tensor, bits: int, white_level: float = 1.0, mode: s
         Quantized tensor of raw's shape; gradient 1 where 0 <= R <= w, 0 outside (clipped STE).
     """
     check_quantize_arguments(bits, white_level, mode, "quantize_ste")
-    if not isinstance(raw, torch.Tensor):
-        raise TypeError(f"quantize_ste: raw must be a torch.Tensor, got {type(raw).__name__}")
+    check_tensor("quantize_ste", "raw", raw)
     if raw.numel() == 0:
         raise ValueError(f"quantize_ste: raw must be non-empty, got shape {tuple(raw.shape)}")
     (raw_c,) = prepare(raw)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import sensor as kernels
+from warpsense.ops.arguments import check_level, check_same_device, check_tensor
 from warpsense.ops._warp import launch, prepare, save_inputs, scalar_tensor, warp_op
 from warpsense.ops.cfa import rgb_gradient_buffer, site_reduction_buffers
 from warpsense.ops.noise import noise_seeds
@@ -69,14 +70,19 @@ def sensor_capture(rgb: torch.Tensor, phi: torch.Tensor, shot: float | torch.Ten
         raw [B, 1, H, W], equal to quantize_ste(poisson_gaussian(cfa_mosaic(rgb, phi), shot, read, seed), bits,
         white_level) and with the same gradients (w.r.t. rgb, phi, shot and read). Once differentiable.
     """
-    if not isinstance(rgb, torch.Tensor) or rgb.dim() != 4 or rgb.shape[1] != 3 or 0 in rgb.shape:
-        raise ValueError(f"sensor_capture: rgb must be a non-empty [B, 3, H, W] tensor, got "
-                         f"{tuple(rgb.shape) if isinstance(rgb, torch.Tensor) else type(rgb).__name__}")
+    check_tensor("sensor_capture", "rgb", rgb, 4, "[B, 3, H, W]")
+    check_tensor("sensor_capture", "phi", phi)
+    check_same_device("sensor_capture", rgb=rgb, phi=phi)
+    if rgb.shape[1] != 3:
+        raise ValueError(f"sensor_capture: rgb must be a non-empty [B, 3, H, W] tensor, got {tuple(rgb.shape)}")
     if phi.dim() != 3 or phi.shape[0] != phi.shape[1] or phi.shape[2] != 3 or phi.shape[0] < 1:
         raise ValueError(f"sensor_capture: phi must be [T, T, 3] with T >= 1, got {tuple(phi.shape)}")
     if (shot is None) != (read is None):
         raise ValueError("sensor_capture: give both shot and read (noise) or neither")
     noisy = shot is not None
+    if noisy:
+        check_level("sensor_capture", "shot", shot)
+        check_level("sensor_capture", "read", read)
     if bits is not None:
         check_quantize_arguments(bits, white_level, "full_well", "sensor_capture")
     if rgb.numel() >= 2**31:

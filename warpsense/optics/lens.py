@@ -167,6 +167,21 @@ def lens_path(name_or_path: str | Path) -> Path:
     raise LensFileError(f"lens {str(name_or_path)!r}: no such file or packaged lens; packaged: {', '.join(names)}")
 
 
+def read_lens_spec(name_or_path: str | Path) -> LensSpec:
+    """Read and validate a lens file (a packaged name or a path); every failure is a one-line `LensFileError`
+    naming the file."""
+    path = lens_path(name_or_path)
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except OSError as error:
+        raise LensFileError(f"{path}: cannot read: {error.strerror}") from None
+    except UnicodeDecodeError:
+        raise LensFileError(f"{path}: not UTF-8 text") from None
+    except (ValueError, RecursionError) as error:  # JSONDecodeError, 5000-digit numbers, deep nesting
+        raise LensFileError(f"{path}: invalid JSON: {str(error).splitlines()[0][:200] or 'too deeply nested'}") from None
+    return parse_lens(data, str(path))
+
+
 def pupil_psf(
     coefficients: torch.Tensor, noll: list[int], azimuth: torch.Tensor, pupil_samples: int, zero_padding: float
 ) -> torch.Tensor:
@@ -214,16 +229,7 @@ class Lens(nn.Module):
 
     @classmethod
     def from_json(cls, path: str | Path, learnable: bool = False) -> "Lens":
-        path = lens_path(path)
-        try:
-            data = json.loads(Path(path).read_text(encoding="utf-8"))
-        except OSError as error:
-            raise LensFileError(f"{path}: cannot read: {error.strerror}") from None
-        except UnicodeDecodeError:
-            raise LensFileError(f"{path}: not UTF-8 text") from None
-        except (ValueError, RecursionError) as error:  # JSONDecodeError, 5000-digit numbers, deep nesting
-            raise LensFileError(f"{path}: invalid JSON: {str(error).splitlines()[0][:200] or 'too deeply nested'}") from None
-        return cls(parse_lens(data, str(path)), learnable=learnable)
+        return cls(read_lens_spec(path), learnable=learnable)
 
     def coefficients(self) -> torch.Tensor:
         """[J, 3] (constant, linear, quadratic) field-dependence coefficients in waves."""

@@ -1,0 +1,50 @@
+"""Argument checks shared by the ops, run before any kernel launch: a wrong type, shape or value is a one-line
+TypeError / ValueError that names the op and the argument (issue 14, items 3 and 12).
+
+Value policy (documented per op):
+- tensors are checked for type, floating dtype, shape and device, never for their values: reading values would
+  synchronise the device on every call (and break CUDA-graph capture). Non-finite values propagate to the outputs
+  they reach; `Camera` rejects non-finite radiance at its input.
+- noise levels and white levels given as Python numbers are checked for range (finite, >= 0 / > 0); given as
+  tensors (learnable levels) their shape is checked and their values are clamped inside the kernels.
+- integers that count (bits) must be int, not bool.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def check_tensor(op: str, name: str, value, ndim: int | None = None, layout: str = "") -> None:
+    """``value`` must be a floating-point torch.Tensor (of ``ndim`` dimensions, described by ``layout``, with no
+    empty dimension)."""
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{op}: {name} must be a torch.Tensor, got {type(value).__name__} (torch.as_tensor "
+                        "converts numpy arrays and lists)")
+    if not value.is_floating_point():
+        raise TypeError(f"{op}: {name} must be floating point, got {value.dtype}")
+    if ndim is not None and (value.dim() != ndim or 0 in value.shape):
+        raise ValueError(f"{op}: {name} must be a non-empty {layout or f'{ndim}-d tensor'}, got "
+                         f"{tuple(value.shape)}")
+
+
+def check_same_device(op: str, **tensors: torch.Tensor) -> None:
+    devices = {name: tensor.device for name, tensor in tensors.items()}
+    if len(set(devices.values())) > 1:
+        raise ValueError(f"{op}: inputs must be on one device, got " +
+                         ", ".join(f"{name} on {device}" for name, device in devices.items()))
+
+
+def check_level(op: str, name: str, level) -> None:
+    """A noise level: a finite Python number >= 0, or a floating 0-d / 1-element tensor."""
+    if isinstance(level, torch.Tensor):
+        if not level.is_floating_point() or level.numel() != 1:
+            raise ValueError(f"{op}: {name} must be a float or a floating 0-d tensor, got a {level.dtype} tensor "
+                             f"of shape {tuple(level.shape)}")
+        return
+    if isinstance(level, bool) or not isinstance(level, (int, float)):
+        raise TypeError(f"{op}: {name} must be a float or a tensor, got {type(level).__name__}")
+    if not math.isfinite(level) or level < 0:
+        raise ValueError(f"{op}: {name} must be finite and >= 0, got {level!r}")
