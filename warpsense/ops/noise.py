@@ -12,17 +12,18 @@ from warpsense.ops._warp import launch, prepare, reduction_lanes, save_inputs, s
 POISSON_NORMAL_LIMIT = float(kernels.POISSON_NORMAL_LIMIT)
 
 
-def noise_seeds(seed: int | torch.Tensor, batch: int, device: torch.device) -> tuple[torch.Tensor, int]:
+def noise_seeds(seed: int | torch.Tensor, batch: int, device: torch.device, op: str = "noise"
+                ) -> tuple[torch.Tensor, int]:
     """(int32 seeds [batch], image_stride) for the kernels: one int seeds the whole batch, keyed by flat element
     index (image_stride 1); an integer tensor [batch] gives each image its own seed, keyed by the element's index
     within the image (image_stride 0), so an image's noise does not depend on its place in the batch."""
     if isinstance(seed, torch.Tensor):
         if seed.dtype.is_floating_point or seed.dtype == torch.bool or seed.shape != (batch,):
-            raise ValueError(f"seed must be an int or an integer tensor of shape ({batch},), got {seed.dtype} "
+            raise ValueError(f"{op}: seed must be an int or an integer tensor of shape ({batch},), got {seed.dtype} "
                              f"{tuple(seed.shape)}")
         return seed.to(device=device, dtype=torch.int32), 0
     if isinstance(seed, bool) or not isinstance(seed, int):
-        raise TypeError(f"seed must be an int or an integer tensor, got {type(seed).__name__}")
+        raise TypeError(f"{op}: seed must be an int or an integer tensor, got {type(seed).__name__}")
     return torch.full((batch,), seed_int32(seed), dtype=torch.int32, device=device), 1
 
 
@@ -82,7 +83,7 @@ def _noise_inputs(raw, shot, read, seed, name):
     check_level(name, "shot", shot)
     check_level(name, "read", read)
     batch = raw.shape[0] if raw.dim() > 0 else 1
-    seeds, image_stride = noise_seeds(seed, batch, raw.device)
+    seeds, image_stride = noise_seeds(seed, batch, raw.device, name)
     raw, shot_t, read_t = prepare(raw, scalar_tensor(shot, raw), scalar_tensor(read, raw))
     return raw, shot_t, read_t, seeds, image_stride
 

@@ -87,7 +87,7 @@ def sensor_capture(rgb: torch.Tensor, phi: torch.Tensor, shot: float | torch.Ten
         check_quantize_arguments(bits, white_level, "full_well", "sensor_capture")
     if rgb.numel() >= 2**31:
         raise ValueError("sensor_capture: at most 2^31 - 1 elements per call (noise is keyed by an int32 index)")
-    seeds, image_stride = noise_seeds(seed, rgb.shape[0], rgb.device)
+    seeds, image_stride = noise_seeds(seed, rgb.shape[0], rgb.device, "sensor_capture")
     rgb, phi = prepare(rgb, phi)
     shot_t = scalar_tensor(shot if noisy else 0.0, rgb)
     read_t = scalar_tensor(read if noisy else 0.0, rgb)

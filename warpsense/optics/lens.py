@@ -139,6 +139,8 @@ def parse_lens(data: dict, source: str) -> LensSpec:
     for key in ("focal_length_mm", "f_number", "pixel_pitch_um", "learnable_bound_waves"):
         if not math.isfinite(values[key]) or values[key] > 1e4:
             raise LensFileError(f"{source}: {key} must be a finite value <= 1e4, got {values[key]}")
+    if values["learnable_bound_waves"] < 0:
+        raise LensFileError(f"{source}: learnable_bound_waves must be >= 0 (waves), got {values['learnable_bound_waves']}")
     terms = {}
     for index, entry in values["zernike_waves"].items():
         where = f"{source}: zernike_waves.{index}"

@@ -102,6 +102,37 @@ def load_system(checkpoint: str | Path, device) -> tuple[torch.nn.Module, object
     from warpsense.train.system import build_system
 
     config = config_from_dict(meta["config"], source=f"{checkpoint} config")
-    model = build_system(config, meta["state"]["num_classes"])
-    restore(tensors, model)
+    num_classes = meta["state"].get("num_classes")
+    if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 1:
+        raise CheckpointError(f"{checkpoint}: state.num_classes must be a positive int, got {num_classes!r}")
+    model = build_system(config, num_classes)
+    restore_checked(checkpoint, tensors, model)
     return model.to(device).eval(), config, meta["state"]
+
+
+RESUME_STATE = {"epoch": int, "step": int, "best_miou": float}
+
+
+def resume_state(checkpoint: str | Path, tensors: dict, meta: dict) -> dict:
+    """The training state a resume needs (epoch, step, best mIoU and the RNG tensor), checked: a checkpoint
+    without them is a one-line `CheckpointError`."""
+    state = meta["state"]
+    for key, kind in RESUME_STATE.items():
+        value = state.get(key)
+        if isinstance(value, bool) or not isinstance(value, (int, float) if kind is float else kind):
+            raise CheckpointError(f"{checkpoint}: state.{key} must be {'a number' if kind is float else 'an int'}, "
+                                  f"got {value!r} (not a checkpoint_last of a training run?)")
+    if "rng" not in tensors or tensors["rng"].dtype != torch.uint8:
+        raise CheckpointError(f"{checkpoint}: no RNG state (not a checkpoint_last of a training run?)")
+    return state
+
+
+def restore_checked(checkpoint: str | Path, tensors: dict, model: torch.nn.Module,
+                    optimizer: torch.optim.Optimizer | None = None) -> None:
+    """`restore`, with tensors that do not fit the model (names or shapes) a one-line `CheckpointError`."""
+    try:
+        restore(tensors, model, optimizer)
+    except (RuntimeError, KeyError, ValueError, IndexError) as error:
+        first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise CheckpointError(f"{checkpoint}: its tensors do not fit the model its config builds "
+                              f"({first_line[:200]})") from None
