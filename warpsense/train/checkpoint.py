@@ -24,6 +24,12 @@ class CheckpointError(ValueError):
     """A checkpoint that cannot be read or does not describe a warpsense run (message names the file)."""
 
 
+def _first_line(error: Exception) -> str:
+    """The first line of a library's error message, or its type when it has none."""
+    message = str(error).strip()
+    return message.splitlines()[0] if message else type(error).__name__
+
+
 def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict, state: dict,
                     optimizer: torch.optim.Optimizer | None = None, rng_state: torch.Tensor | None = None) -> None:
     """Write ``path`` (.safetensors, atomically) and a readable copy of its metadata at ``path.with_suffix('.json')``.
@@ -55,8 +61,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
             metadata = handle.metadata() or {}
         tensors = load_file(str(path))
     except Exception as error:  # safetensors raises several types for zero-byte, truncated or foreign files
-        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
-        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({reason})") from None
+        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({_first_line(error)})") from None
     if METADATA_KEY in metadata:
         text, source = metadata[METADATA_KEY], f"{path} metadata"
     else:
@@ -75,8 +80,18 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
     return tensors, meta
 
 
-def restore(tensors: dict, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None = None) -> None:
-    """Load model (and optimizer) state from `read_checkpoint` tensors."""
+def restore(tensors: dict, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None = None,
+            source: str | Path = "checkpoint") -> None:
+    """Load model (and optimizer) state from `read_checkpoint` tensors of the file ``source``; tensors that do not
+    fit the model (names or shapes) are a one-line `CheckpointError` naming it."""
+    try:
+        _load_states(tensors, model, optimizer)
+    except (RuntimeError, KeyError, ValueError, IndexError) as error:
+        raise CheckpointError(f"{source}: its tensors do not fit the model its config builds "
+                              f"({_first_line(error)[:200]})") from None
+
+
+def _load_states(tensors: dict, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None) -> None:
     model.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
     if optimizer is not None:
         state_dict = optimizer.state_dict()
@@ -106,7 +121,7 @@ def load_system(checkpoint: str | Path, device) -> tuple[torch.nn.Module, object
     if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 1:
         raise CheckpointError(f"{checkpoint}: state.num_classes must be a positive int, got {num_classes!r}")
     model = build_system(config, num_classes)
-    restore_checked(checkpoint, tensors, model)
+    restore(tensors, model, source=checkpoint)
     return model.to(device).eval(), config, meta["state"]
 
 
@@ -125,14 +140,3 @@ def resume_state(checkpoint: str | Path, tensors: dict, meta: dict) -> dict:
     if "rng" not in tensors or tensors["rng"].dtype != torch.uint8:
         raise CheckpointError(f"{checkpoint}: no RNG state (not a checkpoint_last of a training run?)")
     return state
-
-
-def restore_checked(checkpoint: str | Path, tensors: dict, model: torch.nn.Module,
-                    optimizer: torch.optim.Optimizer | None = None) -> None:
-    """`restore`, with tensors that do not fit the model (names or shapes) a one-line `CheckpointError`."""
-    try:
-        restore(tensors, model, optimizer)
-    except (RuntimeError, KeyError, ValueError, IndexError) as error:
-        first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise CheckpointError(f"{checkpoint}: its tensors do not fit the model its config builds "
-                              f"({first_line[:200]})") from None

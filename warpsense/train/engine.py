@@ -19,7 +19,7 @@ from warpsense.files import environment, write_json
 from warpsense.data.on_device import DeviceBatches, dataset_megabytes
 from warpsense.data.transforms import EpochSampler
 from warpsense.models import count_parameters
-from warpsense.train.checkpoint import read_checkpoint, restore_checked, resume_state, save_checkpoint
+from warpsense.train.checkpoint import read_checkpoint, restore, resume_state, save_checkpoint
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.evaluate import evaluate
 from warpsense.train.run_dir import LAST, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
@@ -193,7 +193,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     if resume:
         tensors, meta = read_checkpoint(run_dir / LAST)
         state = resume_state(run_dir / LAST, tensors, meta)
-        restore_checked(run_dir / LAST, tensors, model, optimizer)
+        restore(tensors, model, optimizer, source=run_dir / LAST)
         start_epoch, step, best_miou = state["epoch"] + 1, state["step"], state["best_miou"]
         torch.set_rng_state(tensors["rng"])
         history = read_metrics(run_dir / "metrics.jsonl", state["epoch"])
