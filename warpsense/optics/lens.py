@@ -340,9 +340,9 @@ class Lens(nn.Module):
         for channel, wavelength in enumerate(spec.wavelengths_um):
             # sample spacing lambda F# / Q = pitch / factor  ->  Q = lambda F# factor / pitch
             padding = wavelength * spec.f_number * factor / pitch
-            padding = max(padding, (size * factor + 2) / spec.pupil_samples)
             waves, noll = self.wavelength_coefficients(coefficients, field_height, channel)
-            fine = pupil_psf(waves, noll, azimuth, spec.pupil_samples, padding)
+            fine = pupil_psf(waves, noll, azimuth, pupil_samples_for(spec.pupil_samples, padding, size, factor),
+                             padding)
             per_wavelength.append(integrate_pixels(fine, size, factor))
         psf = torch.stack(per_wavelength)
         return psf / psf.sum(dim=(-2, -1), keepdim=True)
@@ -362,6 +362,15 @@ class Lens(nn.Module):
         psf = self.psf_at(height, azimuth, **options)
         size = psf.shape[-1]
         return psf.reshape(3, grid_y, grid_x, size, size)
+
+
+def pupil_samples_for(pupil_samples: int, zero_padding: float, kernel_size: int, factor: int) -> int:
+    """Samples across the pupil for a K x K kernel: the lens's D, raised where its image-plane window is too small.
+
+    The FFT's image plane spans D * lambda * F# (M = D * Q samples lambda F# / Q apart), whatever the padding Q, so a
+    kernel wider than that window needs a larger D; raising Q instead would shrink the sample spacing below
+    pitch / factor and magnify the PSF. Needs M >= K * factor + 2 (`integrate_pixels`)."""
+    return max(pupil_samples, math.ceil((kernel_size * factor + 2) / zero_padding))
 
 
 def integrate_pixels(fine: torch.Tensor, size: int, factor: int) -> torch.Tensor:
