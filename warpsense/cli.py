@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from warpsense import __version__
+from warpsense.bench import BENCH_SUITES
 from warpsense.config import preset_names
 from warpsense.files import check_output_file
 
@@ -43,7 +44,7 @@ def _eval(args) -> int:
 def _bench(args) -> int:
     from warpsense.commands.bench import run_bench_command
 
-    return run_bench_command(args.device, args.suite, args.quick, args.json, args.plot)
+    return run_bench_command(args.device, args.suite, args.quick, args.json, args.plot, args.camvid)
 
 
 def _convert(args) -> int:
@@ -112,12 +113,16 @@ def build_parser() -> argparse.ArgumentParser:
     bench = commands.add_parser("bench", help="kernel microbenchmarks: error against run time",
                                 description="Benchmark every Warp kernel against its plain-torch reference.")
     bench.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device to benchmark")
-    bench.add_argument("--suite", default="kernels", choices=["kernels", "train", "all"],
-                       help="kernels: each op vs its reference; train: training step and latency vs the plain-torch "
-                            "baseline; all: both (default: kernels)")
+    bench.add_argument("--suite", default="kernels", choices=BENCH_SUITES,
+                       help="kernels: each op vs its reference; accuracy: error against run time (three error norms, "
+                            "three scenes, the lens's discretisation against converged references); train: training "
+                            "step and latency vs the plain-torch baseline; all: every suite (default: %(default)s)")
     bench.add_argument("--quick", action="store_true", help="small sizes and few repeats (< 2 min on 2 CPU cores)")
     bench.add_argument("--json", metavar="OUT", help="write the records as JSON")
-    bench.add_argument("--plot", metavar="OUT.png", help="write the error-vs-time Pareto plot")
+    bench.add_argument("--plot", metavar="OUT.png",
+                       help="write the error-against-run-time plot, one Pareto panel per kernel (accuracy suite)")
+    bench.add_argument("--camvid", metavar="ROOT", help="CamVid folder (with val.txt): the accuracy suite's real "
+                       "frames (without it that scene is left out)")
     bench.set_defaults(handler=_bench)
 
     convert = commands.add_parser("convert", help="convert raw captures (DNG, Bayer raws) to RAW tensors",

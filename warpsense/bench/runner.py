@@ -14,6 +14,7 @@ import time
 import torch
 import torch.nn.functional as F
 
+from warpsense.bench import BENCH_SUITES
 from warpsense.bench.timing import _summary, _sync, time_cuda_graph, time_function
 from warpsense.files import environment, write_json
 from warpsense.ops import cfa_mosaic, poisson_gaussian, psf_conv, quantize_ste
@@ -62,9 +63,12 @@ class Bench:
         print(f"{kernel:>16s} {method:>12s} {dtype:>9s} {str(tuple(shape)):>22s} {pass_name:>4s} "
               f"{timing['median_ms']:9.3f} ms{error}", flush=True)
 
-    def case(self, kernel, method, shape, function, inputs64, bytes_fwd=None, bytes_bwd=None, precisions=("float32",)):
-        """Time ``function(*inputs)`` fwd and bwd in float32, errors vs float64, and bf16-input error."""
-        reference = function(*inputs64).detach()
+    def case(self, kernel, method, shape, function, inputs64, bytes_fwd=None, bytes_bwd=None, precisions=("float32",),
+             reference=None, compare=True):
+        """Time ``function(*inputs)`` fwd and bwd in float32, and the bf16-input error. Errors are against
+        ``reference(*inputs64)`` (default: ``function`` itself in float64); ``compare=False`` records none (random
+        outputs)."""
+        expected = (reference or function)(*inputs64).detach()
         for precision in precisions:
             if precision == "float32":
                 inputs = [x.detach().float().requires_grad_(x.requires_grad) for x in inputs64]
@@ -72,7 +76,7 @@ class Bench:
                 inputs = [x.detach().bfloat16().requires_grad_(x.requires_grad) for x in inputs64]
             with torch.autocast(self.device, dtype=torch.bfloat16, enabled=precision == "bf16_autocast"):
                 with torch.no_grad():
-                    errors = _errors(function(*inputs), reference)
+                    errors = _errors(function(*inputs), expected) if compare else None
                     timing = time_function(lambda: function(*inputs), self.device, self.repeats)
                 self.record(kernel, method, precision, shape, "fwd", timing, errors, bytes_fwd)
                 grads = [x for x in inputs if x.requires_grad]
@@ -85,20 +89,25 @@ class Bench:
                     self.record(kernel, method, precision, shape, "fwd+bwd", timing)
 
 
-BENCH_SUITES = ("kernels", "train", "all")
-
-
 def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = None, plot_out: str | None = None,
-              suite: str = "kernels") -> list[dict]:
-    """Run a benchmark suite ("kernels": every op against its reference; "train": training step and latency of
-    the whole system against the plain-torch baseline; "all") and write the JSON / plot."""
+              suite: str = "kernels", camvid_root: str | None = None) -> list[dict]:
+    """Run a benchmark suite ("kernels": every op against its reference; "accuracy": error against run time,
+    `warpsense.bench.accuracy`, with CamVid frames from ``camvid_root`` when given; "train": training step and
+    latency of the whole system against the plain-torch baseline; "all") and write the JSON / the accuracy plot."""
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda: no CUDA device available")
     if suite not in BENCH_SUITES:
         raise ValueError(f"--suite must be one of {BENCH_SUITES}, got {suite!r}")
+    if plot_out and suite not in ("accuracy", "all"):
+        raise ValueError(f"--plot draws the accuracy suite's error against run time: use --suite accuracy or all, "
+                         f"not {suite!r}")
     records, metadata = [], _metadata(device)
     if suite in ("kernels", "all"):
         records += _kernel_suite(device, quick)
+    if suite in ("accuracy", "all"):
+        from warpsense.bench.accuracy import run_accuracy_suite
+
+        records += run_accuracy_suite(device, quick, camvid_root)
     if suite in ("train", "all"):
         from warpsense.bench.train_suite import run_train_suite
 
@@ -106,7 +115,9 @@ def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = N
     if json_out:
         write_json(json_out, {"metadata": metadata, "records": records})
     if plot_out:
-        plot_pareto([r for r in records if "kernel" in r], plot_out)
+        from warpsense.bench.accuracy import plot_accuracy
+
+        plot_accuracy(records, plot_out)
     return records
 
 
@@ -133,8 +144,7 @@ def _kernel_suite(device: str, quick: bool) -> list[dict]:
                    8 * pixels, 12 * pixels, precisions)
         bench.case("poisson_gaussian", "torch_eager", raw_shape,
                    lambda r: poisson_gaussian_reference(r, 0.015, 0.002, torch.randn_like(r)), [raw], 8 * pixels,
-                   12 * pixels)
-        bench.records[-2]["max_abs_err"] = bench.records[-2]["max_rel_err"] = None  # different random draws
+                   12 * pixels, compare=False)  # its own random draws: no pointwise reference
         bench.case("quantize_ste", "warp", raw_shape, lambda r: quantize_ste(r, 10), [raw], 8 * pixels, 12 * pixels,
                    precisions)
         bench.case("quantize_ste", "torch_eager", raw_shape, lambda r: quantize_reference(r, 10), [raw], 8 * pixels,
@@ -160,40 +170,13 @@ def _kernel_suite(device: str, quick: bool) -> list[dict]:
                                          p[:, 0, 0].flip(-1, -2).unsqueeze(1), groups=3), [image, invariant])
         bench.case("psf_conv_invariant", "torch_fft", shape, lambda x, p: psf_conv_fft(x, p[:, 0, 0]), [image, invariant])
         bench.case("psf_conv_varying", "warp", shape, lambda x, p: psf_conv(x, p, "direct"), [image, varying])
-        bench.case("psf_conv_varying", "torch_patch", shape, psf_conv_patch, [image, varying])
+        # the approximation's error is against the exact varying result, not its own float64 run
+        bench.case("psf_conv_varying", "torch_patch", shape, psf_conv_patch, [image, varying],
+                   reference=psf_conv_reference)
         bench.case("psf_conv_varying", "torch_blend", shape, psf_conv_reference, [image, varying])
-        # the approximations' error is against the exact varying result, not their own float64 run
-        exact = psf_conv_reference(image.detach(), varying.detach())
-        for row in bench.records[-5:]:
-            if row["kernel"] == "psf_conv_varying" and row["pass"] == "fwd" and row["method"] == "torch_patch":
-                row.update(_errors(psf_conv_patch(image.detach().float(), varying.detach().float()), exact))
-    _psf_quality(bench, device, quick)
     if not quick:
         _end_to_end(bench, device)
     return bench.records
-
-
-def _psf_quality(bench: Bench, device: str, quick: bool) -> None:
-    """PSF generation time, and the error of a coarser PSF grid or smaller kernel against a dense rendering of the
-    lens (9x9 grid, K = 21), with the run time of psf_conv at that setting."""
-    from warpsense.optics import Lens
-
-    lens = Lens.from_json("phone_80deg")
-    timing = time_function(lambda: lens.psf_grid(), "cpu", 3 if quick else 10, warmup=1)
-    bench.record("psf_generation", "torch_fft", "float64", (3, 5, 5, 15, 15), "fwd", timing)
-    batch, height, width = (1, 48, 64) if quick else (1, 192, 640)
-    image = torch.rand(batch, 3, height, width, dtype=torch.float64, device=device)
-    dense_lens = Lens.from_json("phone_80deg")
-    dense_lens.spec.psf_kernel_size = 21
-    reference = psf_conv(image, dense_lens.psf_grid((9, 9)).to(device))
-    settings = [((g, g), 15) for g in (1, 3, 5, 7)] + [((5, 5), k) for k in (5, 9)]
-    for grid, size in settings:
-        lens.spec.psf_kernel_size = size
-        psf = lens.psf_grid(grid).to(device).float()
-        image32 = image.float()
-        timing = time_function(lambda: psf_conv(image32, psf), device, 3 if quick else 20, warmup=1)
-        bench.record("psf_quality", f"grid{grid[0]}x{grid[1]}_K{size}", "float32", (batch, 3, height, width), "fwd",
-                     timing, _errors(psf_conv(image32, psf), reference))
 
 
 def _end_to_end(bench: Bench, device: str) -> None:
@@ -227,22 +210,3 @@ def _end_to_end(bench: Bench, device: str) -> None:
         sensed = camera(radiance)
         bench.record("network_only", "dsunet", "bf16" if device == "cuda" else "float32", (1, 1, 192, 640), "fwd",
                      time_function(lambda: network(sensed), device, 50))
-
-
-def plot_pareto(records: list[dict], path: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows = [r for r in records if r["kernel"].startswith("psf") and r["pass"] == "fwd" and r["max_rel_err"]
-            and r["dtype"] == "float32"]
-    figure, axis = plt.subplots(figsize=(7, 4.5))
-    for row in rows:
-        axis.scatter(row["median_ms"], max(row["max_rel_err"], 1e-9), label=f"{row['kernel']}:{row['method']}")
-    axis.set_xscale("log"), axis.set_yscale("log")
-    axis.set_xlabel("median forward time (ms)"), axis.set_ylabel("max relative error")
-    axis.legend(fontsize=6, loc="best")
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)

@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from warpsense.files import check_output_file
 
 
-def run_bench_command(device: str, suite: str, quick: bool, json_out: str | None, plot_out: str | None) -> int:
-    """Run the suite (`warpsense.bench.runner.run_bench`) after checking where its outputs go."""
+def run_bench_command(device: str, suite: str, quick: bool, json_out: str | None, plot_out: str | None,
+                      camvid_root: str | None = None) -> int:
+    """Run the suite (`warpsense.bench.runner.run_bench`) after checking its inputs and where its outputs go."""
     from warpsense.bench.runner import run_bench
 
     check_output_file(json_out, "--json")
     check_output_file(plot_out, "--plot")
-    run_bench(device=device, quick=quick, json_out=json_out, plot_out=plot_out, suite=suite)
+    if camvid_root is not None and not (Path(camvid_root) / "val.txt").is_file():
+        raise ValueError(f"--camvid {camvid_root}: no val.txt there (expected a CamVid folder)")
+    run_bench(device=device, quick=quick, json_out=json_out, plot_out=plot_out, suite=suite, camvid_root=camvid_root)
     return 0
