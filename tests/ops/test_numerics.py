@@ -5,7 +5,9 @@ import pytest
 import torch
 
 from warpsense.ops import cfa_mosaic, poisson_gaussian, poisson_gaussian_exact, psf_conv, quantize_ste
+from warpsense.ops.sensor import sensor_capture
 from warpsense.ops.noise import POISSON_NORMAL_LIMIT
+from warpsense.ops.reference import quantize_reference
 
 
 @pytest.mark.parametrize("mean_count", [50.0, 1e6, 1e8, 1e9])
@@ -32,14 +34,29 @@ def test_white_level_outside_float32_rejected(white):
         quantize_ste(torch.rand(1, 4), 10, white)
 
 
-def test_high_bit_depth_codes_match_float64():
-    """Above 16 bits codes are computed in float64: no code flips against a float64 quantization."""
-    raw = torch.rand(4, 10_000)
-    for bits in (20, 24):
-        levels = (1 << bits) - 1
-        reference = torch.floor(raw.double().clamp(0, 1) * levels + 0.5)  # codes of the float32 values, in float64
-        codes = torch.round(quantize_ste(raw, bits).double() * levels)
-        assert torch.equal(codes, reference)
+def _near_thresholds(bits: int, count: int = 20_000) -> torch.Tensor:
+    """float32 values within a few ulps of code thresholds (k + 1/2) / L: where float32 arithmetic flips codes."""
+    generator = torch.Generator().manual_seed(bits)
+    levels = (1 << bits) - 1
+    codes = torch.randint(0, levels, (count,), generator=generator, dtype=torch.float64)
+    values = ((codes + 0.5) / levels).float()
+    steps = torch.randint(-3, 4, (count,), generator=generator)
+    return torch.nextafter(values, torch.where(steps > 0, 2.0, -1.0).float()).where(steps != 0, values)
+
+
+@pytest.mark.parametrize("bits", [1, 8, 10, 12, 16, 20, 24])
+def test_codes_are_the_exact_codes_of_float32_inputs(bits):
+    """Codes are computed in float64 inside the kernels (quantize_ste and the fused sensor kernel): no flips against
+    a float64 quantization, even for inputs an ulp from a threshold (float32 arithmetic flips many of those)."""
+    raw = _near_thresholds(bits).reshape(4, 1, 50, 100)
+    levels = (1 << bits) - 1
+    reference = torch.floor(raw.double().clamp(0, 1) * levels + 0.5)  # codes of the float32 values, in float64
+    assert torch.equal(torch.round(quantize_ste(raw, bits).double() * levels), reference)
+    rgb = raw.expand(4, 3, 50, 100).contiguous()
+    phi = torch.tensor([1.0, 0.0, 0.0]).repeat(2, 2, 1)  # the red channel alone: raw itself reaches the ADC
+    assert torch.equal(torch.round(sensor_capture(rgb, phi, bits=bits).double() * levels), reference)
+    if bits >= 16:  # the float32 formula does flip codes here, so the test can tell the two apart
+        assert not torch.equal(torch.round(quantize_reference(raw, bits).double() * levels), reference)
 
 
 def test_max_mode_ignores_infinite_pixels():

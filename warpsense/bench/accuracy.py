@@ -170,7 +170,7 @@ def run_accuracy_suite(device: str, quick: bool, camvid_root: str | None = None)
     """All kernels and lens axes; scenes of 64 x 96 (quick), 192 x 256 (CPU) or 352 x 480 (CUDA)."""
     torch.manual_seed(0)
     height, width = (64, 96) if quick else ((352, 480) if device == "cuda" else (192, 256))
-    bench = AccuracyBench(device, min_run_time=0.05 if quick else (1.0 if device == "cuda" else 0.5))
+    bench = AccuracyBench(device, min_run_time=0.05 if quick else 0.5)
     scenes = make_scenes(height, width, device, camvid_root)
     print(f"accuracy suite on {device}: scenes {sorted(scenes)} at {height} x {width}, torch threads "
           f"{bench.threads}", flush=True)
