@@ -243,3 +243,14 @@ def test_gradcheck_cudnn_invariant_with_warp_psf_gradient(device):
     grad = torch.rand(2, 2, 7, 9, dtype=torch.float64, device=device)
     assert_matches_reference(_psf_conv_cudnn, lambda x, k: psf_conv_reference(x, k[:, None, None]), (image, kernel),
                              grad)
+
+
+@pytest.mark.parametrize("grid,size", [((1, 1), 5), ((3, 4), 7), ((2, 2), 31)])
+def test_fft_blend_reference_equals_the_direct_blend(grid, size):
+    """The accuracy report's wide-kernel reference (node convolutions by FFT) against the direct blend, including a
+    kernel wider than the image."""
+    from warpsense.ops.reference import psf_conv_blend_fft
+
+    image = torch.rand(2, 3, 13, 22, dtype=torch.float64)
+    psf = torch.rand(3, *grid, size, size, dtype=torch.float64)
+    torch.testing.assert_close(psf_conv_blend_fft(image, psf), psf_conv_reference(image, psf), rtol=1e-12, atol=1e-12)
