@@ -36,7 +36,8 @@ def robustness_sweep(model, dataset, device, batch_size: int, class_names, amp: 
                 camera.quantizer.bits = value if factor == "bits" else bits
             metrics = evaluate(model, dataset, device, batch_size, class_names=class_names, amp=amp,
                                blur_sigma=value if factor == "blur_sigma_px" else 0.0)
-            rows.append({"factor": factor, "value": value, "miou": metrics["miou"]})
+            operating = {"blur_sigma_px": 0.0, "noise_scale": noise_scale, "bits": bits}[factor]
+            rows.append({"factor": factor, "value": value, "miou": metrics["miou"], "operating_point": value == operating})
     finally:
         if camera.noise is not None:
             camera.noise.scale = noise_scale

@@ -25,14 +25,21 @@ def colorize(label: np.ndarray, num_classes: int) -> np.ndarray:
 
 
 def plot_curves(records: list[dict], path: Path) -> None:
+    """Training losses and validation mIoU per epoch, with the warm-up / joint boundary (the camera starts to
+    learn there) drawn on both panels."""
     epochs = [r["epoch"] + 1 for r in records]
     figure, (left, right) = plt.subplots(1, 2, figsize=(10, 3.5))
     left.plot(epochs, [r["train_loss"] for r in records], label="total")
     for key in ("train_ohem", "train_lovasz"):
-        left.plot(epochs, [r[key] for r in records], label=key[6:], alpha=0.7)
-    left.set_xlabel("epoch"), left.set_ylabel("training loss"), left.legend()
+        if all(key in r for r in records):
+            left.plot(epochs, [r[key] for r in records], label=key[6:], alpha=0.7)
     evaluated = [r for r in records if "val_miou" in r]
     right.plot([r["epoch"] + 1 for r in evaluated], [r["val_miou"] for r in evaluated], marker="o")
+    joint = [r["epoch"] + 1 for r in records if r.get("phase") == "joint"]
+    if joint and any(r.get("phase") == "warmup" for r in records):
+        for axis in (left, right):
+            axis.axvline(min(joint) - 0.5, color="0.5", linestyle=":", label="warm-up | joint")
+    left.set_xlabel("epoch"), left.set_ylabel("training loss"), left.legend(fontsize=8)
     right.set_xlabel("epoch"), right.set_ylabel("validation mIoU")
     figure.tight_layout()
     figure.savefig(path, dpi=100)
@@ -72,34 +79,58 @@ def plot_camera(model, path: Path) -> None:
     plt.close(figure)
 
 
+def spread_indices(length: int, count: int) -> list[int]:
+    """``count`` indices spread evenly over ``range(length)`` (first and last included): frames from across a
+    dataset rather than neighbours of one sequence."""
+    count = min(count, length)
+    return sorted({round(i * (length - 1) / max(count - 1, 1)) for i in range(count)})
+
+
 @torch.no_grad()
 def plot_predictions(model, dataset, device, path: Path, count: int = 4) -> None:
+    """Input, sensor output, prediction and label for ``count`` frames spread over the dataset, with a legend of
+    the class colours."""
+    from matplotlib.patches import Patch
+
     model.eval()
-    count = min(count, len(dataset))
-    figure, axes = plt.subplots(count, 4, figsize=(12, 2.6 * count), squeeze=False)
+    rows = spread_indices(len(dataset), count)
+    figure, axes = plt.subplots(len(rows), 4, figsize=(12, 2.6 * len(rows) + 0.6), squeeze=False)
     num_classes = model.network.head.out_channels
-    for row in range(count):
-        image, label = dataset[row]
+    for row, index in enumerate(rows):
+        image, label = dataset[index]
         logits, sensed = model(image[None].to(device))
         prediction = logits.argmax(dim=1)[0].cpu().numpy()
         panels = [image.permute(1, 2, 0).numpy(), sensed[0].float().cpu().clamp(0, 1).permute(1, 2, 0).numpy().squeeze(),
                   colorize(prediction, num_classes), colorize(label.numpy(), num_classes)]
-        for axis, panel, title in zip(axes[row], panels, ("input (sRGB)", "sensor output", "prediction", "label")):
+        titles = (f"input (sRGB), frame {index}", "sensor output", "prediction", "label")
+        for axis, panel, title in zip(axes[row], panels, titles):
             axis.imshow(panel, cmap="gray" if panel.ndim == 2 else None)
             axis.set_title(title, fontsize=9)
             axis.axis("off")
-    figure.tight_layout()
+    names = getattr(dataset, "classes", None) or [f"class {c}" for c in range(num_classes)]
+    palette = colorize(np.arange(num_classes)[None], num_classes)[0] / 255.0
+    figure.legend(handles=[Patch(color=palette[c], label=names[c]) for c in range(min(num_classes, len(names)))],
+                  loc="lower center", ncol=min(num_classes, 10), fontsize=8, frameon=False)
+    figure.tight_layout(rect=(0, 0.6 / (2.6 * len(rows) + 0.6), 1, 1))
     figure.savefig(path, dpi=90)
     plt.close(figure)
 
 
 def plot_sweep(rows: list[dict], path: str | Path) -> None:
-    factors = sorted({r["factor"] for r in rows})
-    figure, axes = plt.subplots(1, len(factors), figsize=(4 * len(factors), 3.2), squeeze=False)
+    """mIoU against each swept factor, on one shared mIoU axis so the factors compare at a glance; the
+    checkpoint's operating point (rows with ``operating_point``) is starred."""
+    factors = list(dict.fromkeys(r["factor"] for r in rows))
+    figure, axes = plt.subplots(1, len(factors), figsize=(4 * len(factors), 3.2), squeeze=False, sharey=True)
     for axis, factor in zip(axes[0], factors):
         subset = [r for r in rows if r["factor"] == factor]
         axis.plot([r["value"] for r in subset], [r["miou"] for r in subset], marker="o")
-        axis.set_xlabel(factor), axis.set_ylabel("mIoU")
+        marked = [r for r in subset if r.get("operating_point")]
+        if marked:
+            axis.scatter([r["value"] for r in marked], [r["miou"] for r in marked], marker="*", s=180, color="C3",
+                         zorder=3, label="operating point")
+            axis.legend(fontsize=8)
+        axis.set_xlabel(factor)
+    axes[0][0].set_ylabel("mIoU")
     figure.tight_layout()
     figure.savefig(path, dpi=100)
     plt.close(figure)

@@ -1,0 +1,75 @@
+"""Run plots: the warm-up / joint boundary on the curves, frames spread over the dataset with a class legend,
+and sweeps on one mIoU axis with the operating point marked."""
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+import torch
+
+from warpsense.train import plots
+
+
+@pytest.fixture
+def figures(monkeypatch):
+    """The figures the plot functions close, kept for inspection."""
+    kept, close = [], plt.close
+    monkeypatch.setattr(plots.plt, "close", kept.append)
+    yield kept
+    for figure in kept:
+        close(figure)
+
+
+def test_spread_indices_cover_the_dataset():
+    assert plots.spread_indices(101, 4) == [0, 33, 67, 100]
+    assert plots.spread_indices(3, 4) == [0, 1, 2]
+    assert plots.spread_indices(1, 4) == [0]
+
+
+def test_curves_mark_the_start_of_joint_training(tmp_path, figures):
+    records = [{"epoch": e, "train_loss": 1.0 / (e + 1), "phase": "warmup" if e < 3 else "joint",
+                **({"val_miou": 0.1 * e} if e % 2 else {})} for e in range(6)]
+    plots.plot_curves(records, tmp_path / "curves.png")
+    for axis in figures[0].axes:
+        vertical = [line for line in axis.get_lines() if line.get_label() == "warm-up | joint"]
+        assert len(vertical) == 1 and vertical[0].get_xdata()[0] == 3.5  # between epochs 3 and 4 (1-based)
+    assert (tmp_path / "curves.png").stat().st_size > 0
+
+
+def test_sweep_panels_share_the_miou_axis_and_star_the_operating_point(tmp_path, figures):
+    rows = [{"factor": "blur_sigma_px", "value": v, "miou": 0.45 - 0.01 * v, "operating_point": v == 0.0}
+            for v in (0.0, 0.5, 1.0)]
+    rows += [{"factor": "bits", "value": b, "miou": 0.13 + 0.03 * b, "operating_point": b == 10} for b in (4, 8, 10)]
+    plots.plot_sweep(rows, tmp_path / "sweep.png")
+    first, second = figures[0].axes
+    assert first.get_ylim() == second.get_ylim()
+    starred = [axis.collections[0].get_offsets().tolist() for axis in (first, second)]
+    assert starred == [[[0.0, 0.45]], [[10.0, pytest.approx(0.43)]]]
+
+
+class _Model(torch.nn.Module):
+    class _Network(torch.nn.Module):
+        head = torch.nn.Conv2d(1, 3, 1)
+
+    network = _Network()
+
+    def forward(self, images):
+        logits = torch.zeros(1, 3, *images.shape[-2:])
+        logits[:, 1] = 1
+        return logits, images.float().mean(dim=1, keepdim=True)
+
+
+def test_predictions_show_spread_frames_and_a_class_legend(tmp_path, figures):
+    class Frames(torch.utils.data.Dataset):
+        classes = ("sky", "road", "car")
+
+        def __len__(self):
+            return 40
+
+        def __getitem__(self, index):
+            return torch.rand(3, 8, 12), torch.from_numpy(np.full((8, 12), index % 3))
+
+    plots.plot_predictions(_Model(), Frames(), "cpu", tmp_path / "predictions.png")
+    figure = figures[0]
+    titles = [axis.get_title() for axis in figure.axes if axis.get_title().startswith("input")]
+    assert titles == [f"input (sRGB), frame {i}" for i in (0, 13, 26, 39)]
+    assert [text.get_text() for text in figure.legends[0].get_texts()] == ["sky", "road", "car"]
