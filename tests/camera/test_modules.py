@@ -150,7 +150,7 @@ def test_nan_policy_camera_rejects_non_finite_radiance(bad):
     optics' normalisation would otherwise spread it over the frame and into every camera gradient)."""
     from warpsense.camera.camera import set_finite_check
     from warpsense.config import load_config
-    from warpsense.train.system import build_system
+    from warpsense.models.sensing import build_system
 
     torch.manual_seed(0)
     model = build_system(load_config("camvid_codesign", ["train.compile=off"]), 11)
@@ -180,3 +180,19 @@ def test_physical_sensor_preset_noise_matches_electron_counts():
     assert variance == pytest.approx((2250 + 4) / 4500**2, rel=0.05)
     with pytest.raises(ConfigError, match="noise.read_electrons needs noise.full_well_electrons"):
         load_config(None, ["noise.read_electrons=2"])
+
+
+def test_camera_from_a_preset_name_path_or_dict_equals_from_its_config(tmp_path):
+    reference = Camera.from_config(load_config("camvid_learned_cfa"))
+    path = tmp_path / "camera.toml"
+    path.write_text('base = "camvid_learned_cfa"\n')
+    for source in ("camvid_learned_cfa", path, load_config("camvid_learned_cfa").to_dict()):
+        camera = Camera.from_config(source)
+        assert [type(stage) for stage in camera.children()] == [type(stage) for stage in reference.children()]
+        for (name, value), (_, expected) in zip(camera.state_dict().items(), reference.state_dict().items()):
+            assert torch.equal(value, expected), name
+    assert Camera.from_config({"optics": {"enabled": False}}).optics is None  # a partial dict: the rest defaults
+    with pytest.raises(ConfigError, match="no_such_key"):
+        Camera.from_config({"optics": {"no_such_key": 1}})
+    with pytest.raises(TypeError, match="Camera.from_config"):
+        Camera.from_config(42)

@@ -10,7 +10,7 @@ from safetensors.torch import save_file
 
 from warpsense.config import load_config
 from warpsense.train.checkpoint import save_checkpoint
-from warpsense.train.system import build_system
+from warpsense.models.sensing import build_system
 
 from tests.reliability.conftest import assert_clean_failure
 from tests.train.test_checkpoint import _bad_files

@@ -60,6 +60,25 @@ def test_two_rank_gloo_matches_single_process(tmp_path):
 
 
 def load_initial(name):
-    from warpsense.train.system import build_system
+    from warpsense.models.sensing import build_system
 
     return build_system(load_config(), 11).state_dict()[name]
+
+
+def test_wrapping_warns_about_nothing_and_syncs_no_buffers_per_forward():
+    """torch 2.13 deprecates broadcast_buffers with a FutureWarning on every wrap (once per phase of a run)."""
+    import warnings
+
+    import torch.distributed as dist
+
+    from warpsense.train.distributed import wrap_data_parallel
+
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{_free_port()}", rank=0, world_size=1)
+    try:
+        module = torch.nn.BatchNorm1d(3)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            wrapped = wrap_data_parallel(module, torch.device("cpu"))
+        assert not wrapped.require_forward_param_sync or not getattr(wrapped, "broadcast_buffers", False)
+    finally:
+        dist.destroy_process_group()

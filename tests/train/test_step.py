@@ -12,8 +12,8 @@ from warpsense.train.distributed import DistributedContext
 from warpsense.train.engine import train
 from warpsense.train.step import TrainingStep, cosine_scale
 from warpsense.camera import Camera
-from warpsense.train.system import (SensingModel, build_system, camera_parameters, mark_learnable,
-                                    set_camera_trainable)
+from warpsense.models.sensing import SensingModel, build_system, cfa_flip, cfa_unflip
+from warpsense.train.camera_phases import camera_parameters, mark_learnable, set_camera_trainable
 
 from tests.conftest import device_params
 from tests.train.test_training import TINY
@@ -93,7 +93,6 @@ def test_cfa_flip_keeps_every_pixel_on_its_site():
     """A scene of one colour captured through RGGB: the raw depends only on the site, so a phase-keeping mirror of it
     is itself (a plain flip of an even-width frame swaps R and G columns)."""
     from warpsense.ops import cfa_mosaic
-    from warpsense.train.system import cfa_flip, cfa_unflip
 
     phi = torch.tensor([[[1.0, 0, 0], [0, 1, 0]], [[0, 1, 0], [0, 0, 1]]])
     for width in (8, 9):
@@ -114,7 +113,6 @@ def test_flip_tta_eval_runs(tmp_path):
     run, model = train(config, progress=False, return_model=True)
     from warpsense.data import build_dataset
     from warpsense.train.evaluate import evaluate
-    from warpsense.train.system import cfa_flip, cfa_unflip
 
     dataset = build_dataset(config.data, "val", train=False)
     assert evaluate(model, dataset, "cpu", flip=True)["num_images"] == len(dataset)

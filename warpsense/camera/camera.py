@@ -43,8 +43,24 @@ class Camera(nn.Module):
 
     @classmethod
     def from_config(cls, config) -> "Camera":
-        """Build from a `warpsense.config.Config` (only the enabled stages are constructed)."""
-        from warpsense.config import noise_levels
+        """Build from a config (only the enabled stages are constructed).
+
+        Args:
+            config: a `warpsense.config.Config`, a preset name ("camvid_codesign") or TOML path (read with
+                `load_config`, presets and ``base`` files resolved), or a dict of sections (as `Config.to_dict()`
+                gives; keys left out keep their defaults, unknown keys are errors).
+        """
+        from pathlib import Path
+
+        from warpsense.config import Config, config_from_dict, load_config, noise_levels
+
+        if isinstance(config, (str, Path)):
+            config = load_config(config)
+        elif isinstance(config, dict):
+            config = config_from_dict(config, "Camera.from_config")
+        elif not isinstance(config, Config):
+            raise TypeError(f"Camera.from_config: expected a Config, preset name, TOML path or dict, got "
+                            f"{type(config).__name__}")
 
         optics = exposure = cfa = noise = quantizer = None
         if config.optics.enabled:

@@ -23,7 +23,8 @@ def build_dataset(data_config, split: str, train: bool, seed: int = 0, part: str
         dataset = StreetScenes(count, data_config.scene_height, data_config.scene_width, seed=seed + (0 if train else 7919))
     else:
         if not data_config.root:
-            raise DatasetError(f"data.root is empty: set it to the {name} folder (--set data.root=PATH)")
+            raise DatasetError(f"data.root is empty: set it to the {name} folder (train: --set data.root=PATH; "
+                               f"eval: --data-root PATH)")
         limit = data_config.max_train_images if train else data_config.max_val_images
         dataset = DATASETS[name](data_config.root, split, limit=limit if part == "all" else 0)
     if part != "all":

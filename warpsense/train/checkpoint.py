@@ -114,7 +114,7 @@ def load_system(checkpoint: str | Path, device) -> tuple[torch.nn.Module, object
     """(model in eval mode, config, training state) from a checkpoint written by `warpsense train`."""
     tensors, meta = read_checkpoint(checkpoint)
     from warpsense.config import config_from_dict
-    from warpsense.train.system import build_system
+    from warpsense.models.sensing import build_system
 
     config = config_from_dict(meta["config"], source=f"{checkpoint} config")
     num_classes = meta["state"].get("num_classes")

@@ -54,3 +54,18 @@ class DistributedContext:
     def close(self) -> None:
         if self.enabled and dist.is_initialized():
             dist.destroy_process_group()
+
+
+def wrap_data_parallel(model: torch.nn.Module, device: torch.device) -> torch.nn.Module:
+    """DDP without the per-forward buffer broadcast (the camera's and network's buffers are constants; the
+    broadcast would cost a collective per step). torch >= 2.13 spells this ``forward_sync_buffers=False`` (buffers
+    still synced once at construction) and warns about ``broadcast_buffers``; older versions take
+    ``broadcast_buffers=False``."""
+    import inspect
+
+    from torch.nn.parallel import DistributedDataParallel
+
+    device_ids = [device.index] if device.type == "cuda" else None
+    if "forward_sync_buffers" in inspect.signature(DistributedDataParallel.__init__).parameters:
+        return DistributedDataParallel(model, device_ids=device_ids, forward_sync_buffers=False)
+    return DistributedDataParallel(model, device_ids=device_ids, broadcast_buffers=False)

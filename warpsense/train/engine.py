@@ -9,7 +9,6 @@ import time
 from pathlib import Path
 
 import torch
-from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler
 from tqdm import tqdm
 
@@ -20,11 +19,12 @@ from warpsense.data.on_device import DeviceBatches, dataset_megabytes
 from warpsense.data.transforms import EpochSampler
 from warpsense.models import count_parameters
 from warpsense.train.checkpoint import read_checkpoint, restore, resume_state, save_checkpoint
-from warpsense.train.distributed import DistributedContext
+from warpsense.train.distributed import DistributedContext, wrap_data_parallel
 from warpsense.train.evaluate import evaluate
 from warpsense.train.run_dir import LAST, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
 from warpsense.train.step import TrainingStep
-from warpsense.train.system import build_system, camera_parameters, mark_learnable, set_camera_trainable
+from warpsense.models.sensing import build_system
+from warpsense.train.camera_phases import camera_parameters, mark_learnable, set_camera_trainable
 
 BEST = "checkpoint_best.safetensors"
 
@@ -223,8 +223,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         joint = epoch >= config.train.warmup_epochs
         set_camera_trainable(model, joint)
         if context.enabled and wrapped_phase != joint:  # DDP buckets the parameters that take gradients
-            wrapped = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
-                                              broadcast_buffers=False)
+            wrapped = wrap_data_parallel(model, device)
             wrapped_phase = joint
         if model.camera.cfa is not None:
             model.camera.cfa.set_temperature(temperature_at(epoch, config))

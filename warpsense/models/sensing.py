@@ -1,4 +1,5 @@
-"""The co-designed system: camera -> (fixed ISP) -> segmentation network, as one nn.Module."""
+"""The model users load: camera -> (fixed ISP) -> segmentation network, as one nn.Module (`SensingModel`), and
+`build_system`, which builds it from a config."""
 
 from __future__ import annotations
 
@@ -93,22 +94,3 @@ def build_system(config, num_classes: int) -> SensingModel:
                           num_classes=config.model.num_classes or num_classes, width=config.model.width,
                           tile=camera.tile, channels_last=config.model.channels_last)
     return SensingModel(camera, network, isp, unprocess_input=config.data.unprocess)
-
-
-def camera_parameters(model: SensingModel) -> list[nn.Parameter]:
-    """Learnable camera parameters (those constructed as learnable)."""
-    return [p for p in model.camera.parameters() if getattr(p, "_learnable", p.requires_grad)]
-
-
-def mark_learnable(model: SensingModel) -> None:
-    """Remember which camera parameters the config made learnable, before phases toggle requires_grad."""
-    for p in model.camera.parameters():
-        p._learnable = p.requires_grad
-
-
-def set_camera_trainable(model: SensingModel, trainable: bool) -> None:
-    """Phase switch: freeze (warm-up) or unfreeze (joint) every learnable camera parameter."""
-    for p in model.camera.parameters():
-        p.requires_grad_(trainable and p._learnable)
-    if model.camera.optics is not None:
-        model.camera.optics.invalidate_cache()
