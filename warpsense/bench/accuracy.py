@@ -180,18 +180,24 @@ def run_accuracy_suite(device: str, quick: bool, camvid_root: str | None = None)
     return bench.records
 
 
-def _lens_psf(device: str, **overrides) -> torch.Tensor:
+def _lens(device: str, field: str | None = None, value=None):
+    """The studied lens, with one spec field set (a PSF grid value G means G x G)."""
     from warpsense.optics import Lens
 
     lens = Lens.from_json(LENS_NAME)
-    for field, value in overrides.items():
-        setattr(lens.spec, field, value)
-    return lens.to(device).psf_grid()
+    if field is not None:
+        setattr(lens.spec, field, (value, value) if field == "psf_grid" else value)
+    return lens.to(device)
+
+
+def _render_time(bench: AccuracyBench, lens) -> float:
+    with torch.no_grad():
+        return bench.measure(lens.psf_grid)
 
 
 def _psf_methods(bench: AccuracyBench, scenes: dict) -> None:
     """The varying convolution (the lens's 5 x 5 grid, K = 15) and the invariant one (its centre PSF)."""
-    varying64 = _lens_psf(bench.device)
+    varying64 = _lens(bench.device).psf_grid()
     invariant64 = varying64[:, 2:3, 2:3].contiguous()
     cases = {
         "psf_conv": (varying64, psf_conv_reference, {
@@ -248,32 +254,23 @@ def _lens_axes(bench: AccuracyBench, scenes: dict, axes: dict) -> None:
             _kernel_size_axis(bench, scenes, settings, converged)
             continue
         values = list(settings) + [converged]
-        psfs = {value: _lens_psf(bench.device, **{field: (value, value) if field == "psf_grid" else value})
-                for value in values}
-        _lens_records(bench, scenes, axis, values, psfs, {value: _render_time(bench, field, value) for value in
+        lenses = {value: _lens(bench.device, field, value) for value in values}
+        psfs = {value: lens.psf_grid() for value, lens in lenses.items()}
+        _lens_records(bench, scenes, axis, values, psfs, {value: _render_time(bench, lenses[value]) for value in
                                                            settings})
-
-
-def _render_time(bench: AccuracyBench, field: str, value) -> float:
-    from warpsense.optics import Lens
-
-    lens = Lens.from_json(LENS_NAME).to(bench.device)
-    setattr(lens.spec, field, (value, value) if field == "psf_grid" else value)
-    with torch.no_grad():
-        return bench.measure(lens.psf_grid)
 
 
 def _kernel_size_axis(bench: AccuracyBench, scenes: dict, settings, converged: int) -> None:
     """K: each kernel the renormalised centre crop of one K = ``converged`` rendering (the same pupil sampling for
     every K), with the energy each leaves outside that window."""
-    wide = _lens_psf(bench.device, psf_kernel_size=converged)
+    wide = _lens(bench.device, "psf_kernel_size", converged).psf_grid()
     psfs, outside = {}, {}
     for size in list(settings) + [converged]:
         start = (converged - size) // 2
         window = wide[..., start : start + size, start : start + size]
         outside[size] = float((1 - window.sum(dim=(-2, -1))).amax())
         psfs[size] = window / window.sum(dim=(-2, -1), keepdim=True)
-    render = {size: _render_time(bench, "psf_kernel_size", size) for size in settings}
+    render = {size: _render_time(bench, _lens(bench.device, "psf_kernel_size", size)) for size in settings}
     _lens_records(bench, scenes, "kernel_size", list(settings) + [converged], psfs, render,
                   {size: {"energy_outside": outside[size]} for size in outside})
 

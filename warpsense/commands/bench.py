@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from warpsense.files import check_output_file
 
 
@@ -14,7 +12,9 @@ def run_bench_command(device: str, suite: str, quick: bool, json_out: str | None
 
     check_output_file(json_out, "--json")
     check_output_file(plot_out, "--plot")
-    if camvid_root is not None and not (Path(camvid_root) / "val.txt").is_file():
-        raise ValueError(f"--camvid {camvid_root}: no val.txt there (expected a CamVid folder)")
+    if camvid_root is not None:  # the dataset's own checks, before minutes of other suites
+        from warpsense.data.datasets import CamVid
+
+        CamVid(camvid_root, "val", limit=1)
     run_bench(device=device, quick=quick, json_out=json_out, plot_out=plot_out, suite=suite, camvid_root=camvid_root)
     return 0

@@ -57,10 +57,10 @@ class DistributedContext:
 
 
 def wrap_data_parallel(model: torch.nn.Module, device: torch.device) -> torch.nn.Module:
-    """DDP without the per-forward buffer broadcast (the camera's and network's buffers are constants; the
-    broadcast would cost a collective per step). torch >= 2.13 spells this ``forward_sync_buffers=False`` (buffers
-    still synced once at construction) and warns about ``broadcast_buffers``; older versions take
-    ``broadcast_buffers=False``."""
+    """DDP without the per-forward buffer broadcast, as the runs have always trained: each rank keeps its own
+    BatchNorm statistics (on CUDA they are synchronised by SyncBatchNorm instead) and checkpoints hold rank 0's.
+    torch >= 2.13 spells this ``forward_sync_buffers=False`` (buffers still broadcast once at construction, where
+    they are equal anyway) and warns about ``broadcast_buffers``; older versions take ``broadcast_buffers=False``."""
     import inspect
 
     from torch.nn.parallel import DistributedDataParallel
