@@ -7,6 +7,7 @@ import sys
 
 from warpsense import __version__
 from warpsense.bench import BENCH_SUITES
+from warpsense.choices import DATASETS, DEVICES
 from warpsense.config import preset_names
 from warpsense.files import check_output_file
 
@@ -93,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = commands.add_parser("eval", help="evaluate a checkpoint (mIoU, per-class IoU, sweeps, latency)",
                                    description="Evaluate a trained checkpoint on a dataset split.")
     evaluate.add_argument("--checkpoint", required=True, help="checkpoint .safetensors (with its .json beside it)")
-    evaluate.add_argument("--data", default="scenes", choices=["camvid", "cityscapes", "kitti360", "scenes"],
+    evaluate.add_argument("--data", default="scenes", choices=DATASETS,
                           help="dataset kind")
     evaluate.add_argument("--data-root", default="", help="dataset folder (not needed for scenes)")
     evaluate.add_argument("--split", default="val", help="split name (e.g. val)")
@@ -107,12 +108,12 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--latency-batch", type=int, default=1, help="batch size for --latency")
     evaluate.add_argument("--batch-size", type=int, default=4, help="evaluation batch size")
     evaluate.add_argument("--limit", type=int, default=0, help="evaluate only the first N images (0 = all)")
-    evaluate.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="device")
+    evaluate.add_argument("--device", default="auto", choices=DEVICES, help="device")
     evaluate.set_defaults(handler=_eval)
 
     bench = commands.add_parser("bench", help="kernel microbenchmarks: error against run time",
                                 description="Benchmark every Warp kernel against its plain-torch reference.")
-    bench.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device to benchmark")
+    bench.add_argument("--device", default="cpu", choices=DEVICES[1:], help="device to benchmark")
     bench.add_argument("--suite", default="kernels", choices=BENCH_SUITES,
                        help="kernels: each op vs its reference; accuracy: error against run time (three error norms, "
                             "three scenes, the lens's discretisation against converged references); train: training "
@@ -142,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
                          help="output image, as large as the capture; its type follows the suffix (.png, .jpg, ...)")
     predict.add_argument("--overlay", action="store_true", help="blend the class colours over the capture")
     predict.add_argument("--no-legend", action="store_true", help="leave out the strip naming the class colours")
-    predict.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="device")
+    predict.add_argument("--device", default="auto", choices=DEVICES, help="device")
     predict.set_defaults(handler=_predict)
 
     lens = commands.add_parser("lens", help="a lens's energy outside its PSF kernel and pixel-integration error",

@@ -16,6 +16,18 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from warpsense.choices import (
+    CFA_LAYOUTS,
+    CFA_MODES,
+    COMPILE_MODES,
+    DATASETS,
+    DEVICES,
+    ON_DEVICE_MODES,
+    PSF_METHODS,
+    QUANTIZE_MODES,
+    SELF_CAPTURING_COMPILE_MODES,
+)
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
@@ -24,12 +36,6 @@ else:  # pragma: no cover
 
 class ConfigError(ValueError):
     """A config file or override is malformed; the message names the file and key."""
-
-
-# torch.compile modes of the training step; the self-capturing ones record CUDA graphs themselves, so a whole-step
-# capture (train.cuda_graph) cannot contain them
-COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
-SELF_CAPTURING_COMPILE_MODES = ("reduce-overhead", "max-autotune")
 
 
 def _choices(*values: str) -> dict:
@@ -41,12 +47,12 @@ class RunConfig:
     name: str = "default"
     output_dir: str = "runs"
     seed: int = 0
-    device: str = field(default="auto", metadata=_choices("auto", "cpu", "cuda"))
+    device: str = field(default="auto", metadata=_choices(*DEVICES))
 
 
 @dataclass
 class DataConfig:
-    dataset: str = field(default="scenes", metadata=_choices("scenes", "camvid", "cityscapes", "kitti360"))
+    dataset: str = field(default="scenes", metadata=_choices(*DATASETS))
     root: str = ""
     train_split: str = "train"
     val_split: str = "val"
@@ -58,7 +64,7 @@ class DataConfig:
     batch_size: int = 8
     num_workers: int = 0
     holdout_prefix: str = ""
-    on_device: str = field(default="auto", metadata=_choices("auto", "always", "never"))
+    on_device: str = field(default="auto", metadata=_choices(*ON_DEVICE_MODES))
     on_device_max_mb: int = 2048
     max_train_images: int = 0
     max_val_images: int = 0
@@ -75,7 +81,7 @@ class OpticsConfig:
     lens: str = "phone_68deg"
     learnable: bool = False
     normalize_mean: float = 0.5
-    method: str = field(default="auto", metadata=_choices("auto", "direct", "conv2d", "fft", "patch"))
+    method: str = field(default="auto", metadata=_choices(*PSF_METHODS))
     energy_eps: float = 1e-3
     field_tolerance: float = 1e-3
 
@@ -90,9 +96,9 @@ class ExposureConfig:
 @dataclass
 class CFAConfig:
     enabled: bool = True
-    pattern: str = field(default="RGGB", metadata=_choices("RGGB", "BGGR", "GRBG", "GBRG", "RCCC", "RCCB"))
+    pattern: str = field(default="RGGB", metadata=_choices(*CFA_LAYOUTS))
     tile: int = 2
-    mode: str = field(default="softmax", metadata=_choices("softmax", "free", "fixed"))
+    mode: str = field(default="softmax", metadata=_choices(*CFA_MODES))
     init_logit: float = 4.0
     temperature_start: float = 1.0
     temperature_end: float = 0.05
@@ -123,7 +129,7 @@ class QuantizeConfig:
     enabled: bool = True
     bits: int = 10
     white_level: float = 1.0
-    mode: str = field(default="full_well", metadata=_choices("full_well", "max"))
+    mode: str = field(default="full_well", metadata=_choices(*QUANTIZE_MODES))
 
 
 @dataclass

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from tests.conftest import assert_matches_reference, device_params
-from warpsense.camera.cfa import LAYOUTS, layout_letters, letters_to_phi
+from warpsense.camera.cfa import CFA_LAYOUTS, layout_letters, letters_to_phi
 from warpsense.ops import cfa_mosaic
 from warpsense.ops.reference import cfa_mosaic_reference
 
@@ -36,7 +36,7 @@ def test_feature_vs_reference(device, dtype):
     torch.testing.assert_close(cfa_mosaic(rgb, phi), cfa_mosaic_reference(rgb, phi))
 
 
-@pytest.mark.parametrize("pattern", list(LAYOUTS))
+@pytest.mark.parametrize("pattern", list(CFA_LAYOUTS))
 def test_layout_puts_right_channel_on_right_site(pattern):
     # distinct constant colour planes: the mosaic value tells which filter sits on each site
     rgb = torch.stack([torch.full((4, 6), 1.0), torch.full((4, 6), 10.0), torch.full((4, 6), 100.0)])[None]
@@ -44,7 +44,7 @@ def test_layout_puts_right_channel_on_right_site(pattern):
     value = {"R": 1.0, "G": 10.0, "B": 100.0, "C": 111.0}
     for y in range(4):
         for x in range(6):
-            assert raw[y, x] == value[LAYOUTS[pattern][y % 2][x % 2]], (pattern, y, x)
+            assert raw[y, x] == value[CFA_LAYOUTS[pattern][y % 2][x % 2]], (pattern, y, x)
 
 
 def test_gradcheck():

@@ -13,7 +13,7 @@ from warpsense.train.engine import train
 from warpsense.train.step import TrainingStep, cosine_scale
 from warpsense.camera import Camera
 from warpsense.models.sensing import SensingModel, build_system, cfa_flip, cfa_unflip
-from warpsense.train.camera_phases import camera_parameters, mark_learnable, set_camera_trainable
+from warpsense.train.camera_phases import camera_parameters, set_camera_trainable
 
 from tests.conftest import device_params
 from tests.train.test_training import TINY
@@ -167,7 +167,6 @@ def test_cuda_graph_steps_match_eager_steps():
             network = torch.nn.Sequential(torch.nn.Conv2d(1, 8, 3, padding=1), torch.nn.BatchNorm2d(8),
                                           torch.nn.ReLU(), torch.nn.Conv2d(8, 11, 3, padding=1))
             model = SensingModel(Camera.from_config(config), network).cuda().train()
-            mark_learnable(model)
             camera = camera_parameters(model)
             optimizer = torch.optim.AdamW([{"params": list(network.parameters()), "lr": 3e-3},
                                            {"params": camera, "lr": 1e-3}], fused=True)
@@ -200,7 +199,6 @@ def test_compiled_step_trains_the_camera_after_warm_up(device):
     torch.manual_seed(0)
     network = torch.nn.Sequential(torch.nn.Conv2d(1, 4, 3, padding=1), torch.nn.ReLU(), torch.nn.Conv2d(4, 11, 1))
     model = SensingModel(Camera.from_config(config), network).to(device).train()
-    mark_learnable(model)
     camera = camera_parameters(model)
     optimizer = torch.optim.AdamW([{"params": list(network.parameters())}, {"params": camera}], lr=1e-2)
     step = TrainingStep(config.loss, optimizer, camera, total_steps=8, amp=False, compile_mode="default")

@@ -190,7 +190,7 @@ def _end_to_end(bench: Bench, device: str) -> None:
     camera = Camera.from_config(config).to(device).eval()
     network = build_model("dsunet", in_channels=1, num_classes=19, width=16, channels_last=True).to(device).eval()
     radiance = torch.rand(1, 3, 192, 640, device=device)
-    phi = camera.cfa.phi() * camera.exposure.gain()
+    phi = camera.responses()
 
     def baseline():
         raw = cfa_mosaic_reference(radiance, phi)

@@ -10,9 +10,15 @@ from warpsense.camera.exposure import Exposure
 from warpsense.camera.noise import SensorNoise
 from warpsense.camera.optics import Optics
 from warpsense.camera.quantizer import Quantizer
+from warpsense.camera.stage import Stage
 from warpsense.ops.cfa import cfa_mosaic
 from warpsense.ops.sensor import sensor_capture
-from warpsense.optics.lens import Lens
+
+STAGES: dict[str, type[Stage]] = {
+    "optics": Optics, "exposure": Exposure, "cfa": CFA, "noise": SensorNoise, "quantizer": Quantizer,
+}
+"""The camera's stages in data-path order: attribute name on `Camera` -> stage class (its ``config_section``
+names the config section that enables and configures it)."""
 
 
 class Camera(nn.Module):
@@ -40,6 +46,8 @@ class Camera(nn.Module):
         self.noise = noise
         self.quantizer = quantizer
         self.register_buffer("mono_phi", torch.full((1, 1, 3), 1 / 3), persistent=False)
+        # which parameters the config made learnable; training phases toggle requires_grad within this set
+        self.learnable_names = frozenset(name for name, p in self.named_parameters() if p.requires_grad)
 
     @classmethod
     def from_config(cls, config) -> "Camera":
@@ -52,7 +60,7 @@ class Camera(nn.Module):
         """
         from pathlib import Path
 
-        from warpsense.config import Config, config_from_dict, load_config, noise_levels
+        from warpsense.config import Config, config_from_dict, load_config
 
         if isinstance(config, (str, Path)):
             config = load_config(config)
@@ -62,22 +70,21 @@ class Camera(nn.Module):
             raise TypeError(f"Camera.from_config: expected a Config, preset name, TOML path or dict, got "
                             f"{type(config).__name__}")
 
-        optics = exposure = cfa = noise = quantizer = None
-        if config.optics.enabled:
-            lens = Lens.from_json(config.optics.lens, learnable=config.optics.learnable)
-            optics = Optics(lens, learnable=config.optics.learnable, normalize_mean=config.optics.normalize_mean,
-                            method=config.optics.method, energy_eps=config.optics.energy_eps,
-                            field_tolerance=config.optics.field_tolerance)
-        if config.exposure.enabled:
-            exposure = Exposure(config.exposure.gain_logit, learnable=config.exposure.learnable)
-        if config.cfa.enabled:
-            cfa = CFA(config.cfa.pattern, config.cfa.tile, config.cfa.mode, config.cfa.init_logit)
-        if config.noise.enabled:
-            shot, read = noise_levels(config.noise)
-            noise = SensorNoise(shot, read, config.noise.learnable, config.noise.eval_seed)
-        if config.quantize.enabled:
-            quantizer = Quantizer(config.quantize.bits, config.quantize.white_level, config.quantize.mode)
-        return cls(optics, exposure, cfa, noise, quantizer)
+        sections = {name: getattr(config, stage.config_section) for name, stage in STAGES.items()}
+        return cls(**{name: stage.from_config(sections[name]) for name, stage in STAGES.items()
+                      if sections[name].enabled})
+
+    def stages(self) -> list[tuple[str, Stage]]:
+        """The constructed stages in data-path order, as (attribute name, module)."""
+        return [(name, getattr(self, name)) for name in STAGES if getattr(self, name) is not None]
+
+    def summary(self) -> dict:
+        """The learned state of every stage (`Stage.summary`), merged: JSON-ready values."""
+        return {key: value for _, stage in self.stages() for key, value in stage.summary().items()}
+
+    def learnable_parameters(self) -> list[nn.Parameter]:
+        """The parameters the config made learnable (whether or not a training phase freezes them now)."""
+        return [p for name, p in self.named_parameters() if name in self.learnable_names]
 
     @property
     def tile(self) -> int:

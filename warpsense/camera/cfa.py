@@ -6,23 +6,20 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from warpsense.camera.stage import Stage
+from warpsense.choices import CFA_LAYOUTS, CFA_MODES
 from warpsense.ops.cfa import cfa_mosaic
 
 # Candidate filters as RGB transmissions. "C" (clear) passes all three bands, as on RCCC automotive sensors.
 FILTERS = {"R": (1.0, 0.0, 0.0), "G": (0.0, 1.0, 0.0), "B": (0.0, 0.0, 1.0), "C": (1.0, 1.0, 1.0)}
 FILTER_NAMES = tuple(FILTERS)
-LAYOUTS = {
-    "RGGB": ("RG", "GB"), "BGGR": ("BG", "GR"), "GRBG": ("GR", "BG"), "GBRG": ("GB", "RG"),
-    "RCCC": ("RC", "CC"), "RCCB": ("RC", "CB"),
-}
-CFA_MODES = ("softmax", "free", "fixed")
 
 
 def layout_letters(pattern: str, tile: int) -> list[list[str]]:
     """T x T filter letters of a 2x2 layout tiled (and cropped) to a T x T tile."""
-    if pattern not in LAYOUTS:
-        raise KeyError(f"unknown CFA layout {pattern!r}; valid layouts: {', '.join(LAYOUTS)}")
-    rows = LAYOUTS[pattern]
+    if pattern not in CFA_LAYOUTS:
+        raise KeyError(f"unknown CFA layout {pattern!r}; valid layouts: {', '.join(CFA_LAYOUTS)}")
+    rows = CFA_LAYOUTS[pattern]
     return [[rows[y % 2][x % 2] for x in range(tile)] for y in range(tile)]
 
 
@@ -31,7 +28,7 @@ def letters_to_phi(letters: list[list[str]]) -> torch.Tensor:
     return torch.tensor([[FILTERS[letter] for letter in row] for row in letters], dtype=torch.float32)
 
 
-class CFA(nn.Module):
+class CFA(Stage):
     """Learnable colour filter array producing phi [T, T, 3] and the RAW mosaic.
 
     Modes:
@@ -40,6 +37,8 @@ class CFA(nn.Module):
         free: phi[site] = softplus(raw[site]) (any non-negative response), initialised at the layout.
         fixed: phi is the layout, not learnable.
     """
+
+    config_section = "cfa"
 
     def __init__(self, pattern: str = "RGGB", tile: int = 2, mode: str = "softmax", init_logit: float = 4.0):
         super().__init__()
@@ -60,6 +59,15 @@ class CFA(nn.Module):
             self.responses = nn.Parameter(target + torch.log(-torch.expm1(-target)))  # softplus^-1
         else:
             self.register_buffer("fixed_phi", letters_to_phi(letters))
+
+    @classmethod
+    def from_config(cls, section) -> "CFA":
+        return cls(section.pattern, section.tile, section.mode, section.init_logit)
+
+    def summary(self) -> dict:
+        """The exported layout (letters row by row, e.g. "RGGB") and the responses phi [T, T, 3] in use."""
+        return {"cfa_layout": "".join("".join(row) for row in self.hard_letters()),
+                "cfa_phi": self.phi().detach().cpu().tolist()}
 
     def set_temperature(self, value: float) -> None:
         self.temperature.fill_(float(value))

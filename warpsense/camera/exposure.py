@@ -5,15 +5,26 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from warpsense.camera.stage import Stage
 from warpsense.ops.exposure import exposure, exposure_gain
 
 
-class Exposure(nn.Module):
+class Exposure(Stage):
     """Global gain a(g) = 0.25 + 3.75 sigmoid(g) in [0.25, 4]; owns the logit g."""
+
+    config_section = "exposure"
 
     def __init__(self, gain_logit: float = 0.0, learnable: bool = True):
         super().__init__()
         self.gain_logit = nn.Parameter(torch.tensor(float(gain_logit)), requires_grad=learnable)
+
+    @classmethod
+    def from_config(cls, section) -> "Exposure":
+        return cls(section.gain_logit, learnable=section.learnable)
+
+    def summary(self) -> dict:
+        """The gain a(g) (dimensionless, in [0.25, 4])."""
+        return {"exposure_gain": float(self.gain().detach())}
 
     def gain(self) -> torch.Tensor:
         return exposure_gain(self.gain_logit)

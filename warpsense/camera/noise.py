@@ -5,10 +5,12 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from warpsense.camera.stage import Stage
+from warpsense.config import noise_levels
 from warpsense.ops.noise import poisson_gaussian, poisson_gaussian_exact
 
 
-class SensorNoise(nn.Module):
+class SensorNoise(Stage):
     """Poisson-Gaussian noise with shot (variance coefficient) and read (std) levels.
 
     Seeds are per image and live on the device (no host round trip, and a captured CUDA graph draws new noise on
@@ -19,6 +21,8 @@ class SensorNoise(nn.Module):
     their initial values: level = 2 * init * sigmoid(p). ``exact=True`` samples true Poisson photon counts (eval
     only, not differentiable).
     """
+
+    config_section = "noise"
 
     def __init__(self, shot: float = 0.015, read: float = 0.002, learnable: bool = False, eval_seed: int = 1234):
         super().__init__()
@@ -32,6 +36,17 @@ class SensorNoise(nn.Module):
         self.eval_seed = eval_seed
         self.scale = 1.0
         self.exact = False
+
+    @classmethod
+    def from_config(cls, section) -> "SensorNoise":
+        """From the [noise] section; the levels come from `warpsense.config.noise_levels` (electrons or direct)."""
+        shot, read = noise_levels(section)
+        return cls(shot, read, section.learnable, section.eval_seed)
+
+    def summary(self) -> dict:
+        """The levels in use: shot variance coefficient and read standard deviation (units of the white level)."""
+        shot, read = self.levels()
+        return {"noise_shot": float(shot.detach()), "noise_read": float(read.detach())}
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
                               error_msgs):

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import torch
-from torch import nn
 
+from warpsense.camera.stage import Stage
 from warpsense.ops.psf import psf_conv
 from warpsense.optics.lens import Lens
 from warpsense.optics.psf_support import collapse_grid, crop_to_energy
 
 
-class Optics(nn.Module):
+class Optics(Stage):
     """Spatially varying blur from a lens file.
 
     A frozen lens renders its PSF grid once, cropped to the smallest odd support holding >= 1 - energy_eps of the
@@ -18,6 +18,8 @@ class Optics(nn.Module):
     re-renders the full grid from its (bounded) Zernike coefficients while they train. ``normalize_mean`` > 0 rescales each output image to
     that mean (paper section 4.4).
     """
+
+    config_section = "optics"
 
     def __init__(self, lens: Lens, learnable: bool = False, normalize_mean: float = 0.5, method: str = "direct",
                  energy_eps: float = 1e-3, field_tolerance: float = 1e-3):
@@ -35,6 +37,19 @@ class Optics(nn.Module):
         self._cached_psf: torch.Tensor | None = None
         self._cache_valid = False
         self._register_load_state_dict_pre_hook(lambda *args, **kwargs: self.invalidate_cache())
+
+    @classmethod
+    def from_config(cls, section) -> "Optics":
+        """From the [optics] section: the lens file (a name in configs/lenses or a path) and how it is applied."""
+        lens = Lens.from_json(section.lens, learnable=section.learnable)
+        return cls(lens, learnable=section.learnable, normalize_mean=section.normalize_mean, method=section.method,
+                   energy_eps=section.energy_eps, field_tolerance=section.field_tolerance)
+
+    def summary(self) -> dict:
+        """A learnable lens's Zernike coefficients (waves, as `Lens.coefficients`); nothing for a fixed lens."""
+        if not self.learnable:
+            return {}
+        return {"zernike_waves": self.lens.coefficients().detach().cpu().tolist()}
 
     def invalidate_cache(self) -> None:
         """Mark the cached PSF grid stale (call after changing the lens coefficients or their requires_grad)."""

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
-from torch import nn
+from warpsense.camera.stage import Stage
+from warpsense.choices import QUANTIZE_MODES
+from warpsense.ops.quantize import quantize_ste
 
-from warpsense.ops.quantize import QUANTIZE_MODES, quantize_ste
 
-
-class Quantizer(nn.Module):
+class Quantizer(Stage):
     """b-bit quantization on [0, w] with a clipped straight-through gradient; no parameters."""
+
+    config_section = "quantize"
 
     def __init__(self, bits: int = 10, white_level: float = 1.0, mode: str = "full_well"):
         super().__init__()
@@ -17,6 +19,10 @@ class Quantizer(nn.Module):
         self.bits = bits
         self.white_level = white_level
         self.mode = mode
+
+    @classmethod
+    def from_config(cls, section) -> "Quantizer":
+        return cls(section.bits, section.white_level, section.mode)
 
     def forward(self, raw):
         return quantize_ste(raw, self.bits, self.white_level, self.mode)

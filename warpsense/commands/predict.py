@@ -8,7 +8,8 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from warpsense.data.raw import BAYER_PATTERNS, load_raw, read_raw_file
+from warpsense.choices import BAYER_LAYOUTS
+from warpsense.data.raw import load_raw, read_raw_file
 from warpsense.files import atomic_write
 
 
@@ -105,11 +106,11 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
     file_format = image_format(out_image)
     torch_device = torch.device("cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu")
     model, config, state = load_system(checkpoint, torch_device)
-    cfa = model.camera.cfa
-    model_pattern = "".join("".join(row) for row in cfa.hard_letters()) if cfa is not None else ""
-    if cfa is None or cfa.tile != 2 or model_pattern not in BAYER_PATTERNS:
+    learned = model.camera.summary()
+    model_pattern = learned.get("cfa_layout", "")
+    if model_pattern not in BAYER_LAYOUTS:  # a 2 x 2 R/G/B layout: the only kind a DNG holds
         raise ValueError(f"{checkpoint}: the checkpoint's CFA ({model_pattern or 'none'}) is not a Bayer layout; "
-                         f"predict needs one of {', '.join(BAYER_PATTERNS)}")
+                         f"predict needs one of {', '.join(BAYER_LAYOUTS)}")
     mosaic_np, metadata = read_capture(raw_path)
     capture_height, capture_width = mosaic_np.shape
     dy, dx = phase_offset(metadata["cfa_pattern"], model_pattern)
@@ -117,8 +118,8 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
     mosaic = mosaic[: mosaic.shape[0] // 2 * 2, : mosaic.shape[1] // 2 * 2]
     factor = max(1, round(mosaic.shape[1] / target_width))
     mosaic = bin_mosaic(mosaic, factor)
-    if model.camera.exposure is not None:
-        level = float(model.camera.exposure.gain()) * (config.optics.normalize_mean if config.optics.enabled else 0.25)
+    if "exposure_gain" in learned:
+        level = learned["exposure_gain"] * (config.optics.normalize_mean if config.optics.enabled else 0.25)
         mosaic = mosaic * (level * 0.5 / max(float(mosaic.mean()), 1e-6))
     sensed = mosaic.clamp(0, 1)[None, None].to(torch_device)
     if model.isp is not None:

@@ -19,10 +19,10 @@ import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
+from warpsense.choices import BAYER_LAYOUTS
 from warpsense.files import atomic_write
 
 RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw"}
-BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 
 
 class RawFileError(ValueError):
@@ -84,9 +84,9 @@ def _decode(raw, path: Path, rawpy) -> tuple[np.ndarray, dict]:
     tile = raw.raw_pattern.shape[0]
     letters = ["".join(description[colors[y, x]] for x in range(tile)) for y in range(tile)]
     pattern = "".join(letters)
-    if pattern not in BAYER_PATTERNS:
+    if pattern not in BAYER_LAYOUTS:
         raise RawFileError(f"{path}: CFA pattern {pattern!r} (tile {tile}) is not supported; supported: "
-                           f"{', '.join(BAYER_PATTERNS)}")
+                           f"{', '.join(BAYER_LAYOUTS)}")
     black = np.asarray(raw.black_level_per_channel, dtype=np.float32)
     white = float(raw.white_level)
     black_map = black[colors]
@@ -201,8 +201,8 @@ def write_dng(path: str | Path, mosaic: np.ndarray, pattern: str, black_level: i
     """
     import tifffile
 
-    if pattern not in BAYER_PATTERNS:
-        raise ValueError(f"write_dng: pattern must be one of {BAYER_PATTERNS}, got {pattern!r}")
+    if pattern not in BAYER_LAYOUTS:
+        raise ValueError(f"write_dng: pattern must be one of {BAYER_LAYOUTS}, got {pattern!r}")
     mosaic = np.asarray(mosaic)
     if mosaic.ndim != 2:
         raise ValueError(f"write_dng: mosaic must be [H, W], got {mosaic.shape}")

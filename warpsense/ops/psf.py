@@ -14,12 +14,11 @@ import time
 import torch
 import torch.nn.functional as F
 
+from warpsense.choices import PSF_METHODS
 from warpsense.kernels import psf as kernels
 from warpsense.ops.arguments import check_same_device, check_tensor
 from warpsense.ops._warp import Vectors, launch, prepare, save_inputs, warp_op
 
-PSF_METHODS = ("auto", "direct", "conv2d", "fft", "patch")
-INVARIANT_METHODS = ("direct", "conv2d", "fft")
 _THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill an H100; serial CPU)
 
 

@@ -1,4 +1,4 @@
-"""Training-time control of the camera: which of its parameters learn, and the warm-up / joint phase switch."""
+"""Training-time control of the camera: the warm-up / joint phase switch (paper Alg. 1)."""
 
 from __future__ import annotations
 
@@ -8,19 +8,13 @@ from warpsense.models.sensing import SensingModel
 
 
 def camera_parameters(model: SensingModel) -> list[nn.Parameter]:
-    """Learnable camera parameters (those constructed as learnable)."""
-    return [p for p in model.camera.parameters() if getattr(p, "_learnable", p.requires_grad)]
-
-
-def mark_learnable(model: SensingModel) -> None:
-    """Remember which camera parameters the config made learnable, before phases toggle requires_grad."""
-    for p in model.camera.parameters():
-        p._learnable = p.requires_grad
+    """The camera parameters the config made learnable (`Camera.learnable_parameters`), frozen or not."""
+    return model.camera.learnable_parameters()
 
 
 def set_camera_trainable(model: SensingModel, trainable: bool) -> None:
-    """Phase switch: freeze (warm-up) or unfreeze (joint) every learnable camera parameter."""
-    for p in model.camera.parameters():
-        p.requires_grad_(trainable and p._learnable)
+    """Phase switch: freeze (warm-up) or unfreeze (joint) every learnable camera parameter; the others stay fixed."""
+    for parameter in model.camera.learnable_parameters():
+        parameter.requires_grad_(trainable)
     if model.camera.optics is not None:
         model.camera.optics.invalidate_cache()

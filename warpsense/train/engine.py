@@ -7,6 +7,7 @@ import itertools
 import json
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from torch.utils.data import DataLoader, DistributedSampler
@@ -14,63 +15,43 @@ from tqdm import tqdm
 
 from warpsense.camera.camera import set_finite_check
 from warpsense.data import build_dataset
-from warpsense.files import environment, write_json
 from warpsense.data.on_device import DeviceBatches, dataset_megabytes
 from warpsense.data.transforms import EpochSampler
+from warpsense.files import environment, write_json
 from warpsense.models import count_parameters
+from warpsense.models.sensing import build_system
+from warpsense.train.camera_phases import camera_parameters, set_camera_trainable
 from warpsense.train.checkpoint import read_checkpoint, restore, resume_state, save_checkpoint
 from warpsense.train.distributed import DistributedContext, wrap_data_parallel
 from warpsense.train.evaluate import evaluate
 from warpsense.train.run_dir import LAST, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
+from warpsense.train.schedule import Schedule
 from warpsense.train.step import TrainingStep
-from warpsense.models.sensing import build_system
-from warpsense.train.camera_phases import camera_parameters, mark_learnable, set_camera_trainable
 
 BEST = "checkpoint_best.safetensors"
 
 
-def temperature_at(epoch: int, config) -> float:
-    """CFA softmax temperature: temperature_start through warm-up, then geometric annealing to temperature_end at the
-    last epoch."""
-    start, end = config.cfa.temperature_start, config.cfa.temperature_end
-    joint_epochs = config.train.epochs - config.train.warmup_epochs
-    if epoch < config.train.warmup_epochs or joint_epochs <= 1:
-        return start if epoch < config.train.warmup_epochs else end
-    progress = (epoch - config.train.warmup_epochs) / (joint_epochs - 1)
-    return start * (end / start) ** progress
-
-
-def camera_summary(model) -> dict:
-    camera = model.camera
-    summary = {}
-    if camera.exposure is not None:
-        summary["exposure_gain"] = float(camera.exposure.gain().detach())
-    if camera.cfa is not None:
-        summary["cfa_layout"] = "".join("".join(row) for row in camera.cfa.hard_letters())
-        summary["cfa_phi"] = camera.cfa.phi().detach().cpu().tolist()
-    if camera.noise is not None:
-        shot, read = camera.noise.levels()
-        summary["noise_shot"], summary["noise_read"] = float(shot), float(read)
-    if camera.optics is not None and camera.optics.learnable:
-        summary["zernike_waves"] = camera.optics.lens.coefficients().detach().cpu().tolist()
-    return summary
-
-
-def _fit_time_budget(config, epoch_seconds: float, context) -> None:
-    """Shrink epochs (and warm-up in proportion) so the run fits train.time_budget_minutes, judged from the first
-    epoch (evaluation included by a 10% margin). All ranks take rank 0's decision."""
-    budget = config.train.time_budget_minutes * 60
-    fitted = torch.tensor([max(2, min(config.train.epochs, int(budget / (epoch_seconds * 1.1))))],
-                          dtype=torch.float64, device=context.device)
+def _fit_time_budget(schedule: Schedule, budget_minutes: float, epoch_seconds: float, context) -> Schedule:
+    """The plan shortened to fit ``budget_minutes``, judged from the first epoch; all ranks take rank 0's count."""
+    fitted = torch.tensor([schedule.epochs_within(budget_minutes * 60, epoch_seconds)], dtype=torch.float64,
+                          device=context.device)
     if context.enabled:
         torch.distributed.broadcast(fitted, src=0)
-    epochs = int(fitted.item())
-    if epochs < config.train.epochs:
-        config.train.warmup_epochs = max(1, round(config.train.warmup_epochs * epochs / config.train.epochs))
-        if context.is_main:
-            print(f"time budget {config.train.time_budget_minutes} min: {config.train.epochs} -> {epochs} epochs "
-                  f"(warm-up {config.train.warmup_epochs})", flush=True)
-        config.train.epochs = epochs
+    shortened = schedule.shortened(int(fitted.item()))
+    if shortened != schedule and context.is_main:
+        print(f"time budget {budget_minutes} min: {schedule.epochs} -> {shortened.epochs} epochs "
+              f"(warm-up {shortened.warmup_epochs})", flush=True)
+    return shortened
+
+
+def _resumed_schedule(state: dict, config) -> Schedule:
+    """The plan a resumed run continues: the one saved in its checkpoint (a time budget may have shortened it),
+    unless the resumed config requests another number of epochs (``--allow-config-change``)."""
+    requested = Schedule.from_config(config.train)
+    saved = state.get("schedule")
+    if saved and tuple(saved["requested"]) == (requested.epochs, requested.warmup_epochs):
+        return Schedule(saved["epochs"], saved["warmup_epochs"])
+    return requested
 
 
 def _check_finite(model, statistics: dict, epoch: int, run_dir: Path) -> None:
@@ -157,52 +138,89 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
         lock.release()
 
 
-def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_model: bool):
-    device = context.device
-    torch.manual_seed(config.run.seed)
+class _Datasets(NamedTuple):
+    train: object
+    val: object
+    selection: object | None  # training images held out by prefix (model selection), or None: select on val
+
+
+def _datasets(config) -> _Datasets:
     holdout = "rest" if config.data.holdout_prefix else "all"
-    train_set = build_dataset(config.data, config.data.train_split, train=True, seed=config.run.seed, part=holdout)
-    val_set = build_dataset(config.data, config.data.val_split, train=False, seed=config.run.seed)
-    # model selection on training images held out by prefix (a sequence the training never sees), else on val
-    selection_set = build_dataset(config.data, config.data.train_split, train=False, seed=config.run.seed,
-                                  part="holdout") if config.data.holdout_prefix else None
-    num_classes = config.model.num_classes or len(train_set.classes)
-    model = build_system(config, num_classes).to(device)
-    set_finite_check(model, False)  # 8-bit inputs; the loss and parameters are checked each epoch (_check_finite)
-    mark_learnable(model)
-    if context.enabled and device.type == "cuda":
-        model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
+    seed = config.run.seed
+    return _Datasets(
+        build_dataset(config.data, config.data.train_split, train=True, seed=seed, part=holdout),
+        build_dataset(config.data, config.data.val_split, train=False, seed=seed),
+        build_dataset(config.data, config.data.train_split, train=False, seed=seed, part="holdout")
+        if config.data.holdout_prefix else None)
+
+
+def _optimizer(config, model, device) -> torch.optim.AdamW:
+    """AdamW with two groups: the network (weight decay) and the learnable camera parameters (``lr`` scaled by
+    ``train.camera_lr_scale``, no decay); frozen camera parameters are left out."""
     camera_params = camera_parameters(model)
     camera_ids = {id(p) for p in camera_params}
     network_params = [p for p in model.parameters() if id(p) not in camera_ids and p.requires_grad]
-    optimizer = torch.optim.AdamW([
+    return torch.optim.AdamW([
         {"params": network_params, "lr": config.train.lr, "weight_decay": config.train.weight_decay},
         {"params": camera_params, "lr": config.train.lr * config.train.camera_lr_scale, "weight_decay": 0.0},
     ], fused=device.type == "cuda")
+
+
+def _validate(model, datasets: _Datasets, config, context, amp: bool, progress: bool) -> dict:
+    """Validation metrics of one epoch (and the held-out selection set's, when there is one)."""
+    evaluation = dict(device=context.device, batch_size=max(1, config.data.batch_size // 2), context=context,
+                      class_names=datasets.train.classes, amp=amp, progress=progress and context.is_main)
+    metrics = evaluate(model, datasets.val, **evaluation)
+    record = {"val_miou": metrics["miou"], "val_pixel_accuracy": metrics["pixel_accuracy"],
+              "val_per_class_iou": metrics["per_class_iou"]}
+    if datasets.selection is not None:
+        selection = evaluate(model, datasets.selection, **evaluation)
+        record.update({"selection_miou": selection["miou"], "selection_per_class_iou": selection["per_class_iou"]})
+    return record
+
+
+def _epoch_line(record: dict, schedule: Schedule, config) -> str:
+    miou = f"{record['val_miou']:.4f}" if "val_miou" in record else "-"
+    if "selection_miou" in record:
+        miou += f" (held-out {config.data.holdout_prefix}: {record['selection_miou']:.4f})"
+    return (f"epoch {record['epoch'] + 1}/{schedule.epochs} {record['phase']}: loss {record['train_loss']:.4f} "
+            f"val mIoU {miou} ({record['images_per_s']:.1f} img/s)")
+
+
+def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_model: bool):
+    device = context.device
+    torch.manual_seed(config.run.seed)
+    datasets = _datasets(config)
+    num_classes = config.model.num_classes or len(datasets.train.classes)
+    model = build_system(config, num_classes).to(device)
+    set_finite_check(model, False)  # 8-bit inputs; the loss and parameters are checked each epoch (_check_finite)
+    if context.enabled and device.type == "cuda":
+        model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
+    optimizer = _optimizer(config, model, device)
     if config.data.batch_size % context.world_size:
         raise ValueError(f"data.batch_size={config.data.batch_size} must be divisible by {context.world_size} ranks")
-    loader = build_train_batches(config, train_set, context, progress)
-    steps_per_epoch = len(loader)
-    if config.train.max_steps_per_epoch:
-        steps_per_epoch = min(steps_per_epoch, config.train.max_steps_per_epoch)
+    loader = build_train_batches(config, datasets.train, context, progress)
+    steps_per_epoch = min(len(loader), config.train.max_steps_per_epoch or len(loader))
     if steps_per_epoch == 0:
-        raise ValueError(f"training set of {len(train_set)} images gives no batch of {config.data.batch_size}")
-    total_steps = config.train.epochs * steps_per_epoch
+        raise ValueError(f"training set of {len(datasets.train)} images gives no batch of {config.data.batch_size}")
     amp = config.train.amp and device.type == "cuda"
 
+    schedule = Schedule.from_config(config.train)
     if resume:
         tensors, meta = read_checkpoint(run_dir / LAST)
         state = resume_state(run_dir / LAST, tensors, meta)
         restore(tensors, model, optimizer, source=run_dir / LAST)
         start_epoch, step, best_miou = state["epoch"] + 1, state["step"], state["best_miou"]
+        schedule = _resumed_schedule(state, config)
         torch.set_rng_state(tensors["rng"])
         history = read_metrics(run_dir / "metrics.jsonl", state["epoch"])
         if context.is_main:
-            print(f"resuming {run_dir} from epoch {start_epoch + 1}/{config.train.epochs}")
+            print(f"resuming {run_dir} from epoch {start_epoch + 1}/{schedule.epochs}")
     else:
         start_epoch, step, best_miou, history = 0, 0, -1.0, []
         # each rank draws its own noise seeds from here on (parameters stay identical: DDP syncs gradients)
         torch.manual_seed(config.run.seed * 1000 + context.rank + 1)
+    requested = Schedule.from_config(config.train)
     if context.is_main:
         config.save(run_dir / "config.json")
         versions = environment()
@@ -210,34 +228,31 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in history))
         print(f"run directory: {run_dir}")
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
-              f"{sum(p.numel() for p in camera_params):,}; device: {device}; ranks: {context.world_size}")
+              f"{sum(p.numel() for p in camera_parameters(model)):,}; device: {device}; ranks: {context.world_size}")
 
     if config.train.cuda_graph and context.enabled:
         raise ValueError("train.cuda_graph captures one GPU's step; with several ranks (DDP) leave it false")
-    training_step = TrainingStep(config.loss, optimizer, camera_params, total_steps, amp,
-                                 config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph)
+    training_step = TrainingStep(config.loss, optimizer, camera_parameters(model), schedule.epochs * steps_per_epoch,
+                                 amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph)
     wrapped, wrapped_phase = model, None
-    for epoch in itertools.count(start_epoch):
-        if epoch >= config.train.epochs:  # re-read each epoch: the time budget may shorten the run
-            break
-        joint = epoch >= config.train.warmup_epochs
+    epoch = start_epoch
+    while epoch < schedule.epochs:  # a while loop: the time budget may shorten the schedule after the first epoch
+        joint = schedule.is_joint(epoch)
         set_camera_trainable(model, joint)
         if context.enabled and wrapped_phase != joint:  # DDP buckets the parameters that take gradients
             wrapped = wrap_data_parallel(model, device)
             wrapped_phase = joint
         if model.camera.cfa is not None:
-            model.camera.cfa.set_temperature(temperature_at(epoch, config))
+            model.camera.cfa.set_temperature(schedule.temperature(epoch, config.cfa.temperature_start,
+                                                                  config.cfa.temperature_end))
         loader.set_epoch(epoch)
         model.train()
         started = time.perf_counter()
-        bar = tqdm(total=steps_per_epoch, desc=f"epoch {epoch + 1}/{config.train.epochs} ({'joint' if joint else 'warm-up'})",
+        bar = tqdm(total=steps_per_epoch, desc=f"epoch {epoch + 1}/{schedule.epochs} ({schedule.phase(epoch)})",
                    disable=not (progress and context.is_main), leave=False)
-        for batch_index, (images, labels) in enumerate(loader):
-            if batch_index >= steps_per_epoch:
-                break
-            images = images.to(device, non_blocking=True)
-            labels = labels.to(device, non_blocking=True)
-            training_step(wrapped, images, labels, step, joint)
+        for images, labels in itertools.islice(loader, steps_per_epoch):
+            training_step(wrapped, images.to(device, non_blocking=True), labels.to(device, non_blocking=True),
+                          step, joint)
             step += 1
             bar.update(1)
         bar.close()
@@ -245,29 +260,18 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         elapsed = time.perf_counter() - started
         _check_finite(model, statistics, epoch, run_dir)
         if epoch == 0 and config.train.time_budget_minutes > 0:
-            _fit_time_budget(config, elapsed, context)
-            training_step.total_steps = config.train.epochs * steps_per_epoch
-            if context.is_main:
-                config.save(run_dir / "config.json")
+            schedule = _fit_time_budget(schedule, config.train.time_budget_minutes, elapsed, context)
+            training_step.total_steps = schedule.epochs * steps_per_epoch
         record = {
-            "epoch": epoch, "step": step, "phase": "joint" if joint else "warmup",
+            "epoch": epoch, "step": step, "phase": schedule.phase(epoch),
             "lr": float(optimizer.param_groups[0]["lr"]), **statistics,
             "images_per_s": steps_per_epoch * config.data.batch_size / elapsed, "epoch_time_s": elapsed,
         }
         if model.camera.cfa is not None:
             record["temperature"] = float(model.camera.cfa.temperature)
-        last_epoch = epoch == config.train.epochs - 1
-        if (epoch + 1) % config.train.eval_every == 0 or last_epoch:
-            evaluation = dict(device=device, batch_size=max(1, config.data.batch_size // 2), context=context,
-                              class_names=train_set.classes, amp=amp, progress=progress and context.is_main)
-            metrics = evaluate(model, val_set, **evaluation)
-            record.update({"val_miou": metrics["miou"], "val_pixel_accuracy": metrics["pixel_accuracy"],
-                           "val_per_class_iou": metrics["per_class_iou"]})
-            if selection_set is not None:
-                selection = evaluate(model, selection_set, **evaluation)
-                record.update({"selection_miou": selection["miou"],
-                               "selection_per_class_iou": selection["per_class_iou"]})
-        record.update(camera_summary(model))
+        if (epoch + 1) % config.train.eval_every == 0 or epoch == schedule.epochs - 1:
+            record.update(_validate(model, datasets, config, context, amp, progress))
+        record.update(model.camera.summary())
         score = record.get("selection_miou", record.get("val_miou", -1.0))
         is_best = score > best_miou
         best_miou = max(best_miou, score)
@@ -275,20 +279,18 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             with open(run_dir / "metrics.jsonl", "a") as log:
                 log.write(json.dumps(record) + "\n")
             state = {"epoch": epoch, "step": step, "best_miou": best_miou, "num_classes": num_classes,
-                     "class_names": list(train_set.classes), "record": record, "environment": versions}
+                     "class_names": list(datasets.train.classes), "record": record, "environment": versions,
+                     "schedule": {**schedule.to_dict(), "requested": [requested.epochs, requested.warmup_epochs]}}
             if is_best:
                 save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
             save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state())
-            miou = f"{record['val_miou']:.4f}" if "val_miou" in record else "-"
-            if "selection_miou" in record:
-                miou += f" (held-out {config.data.holdout_prefix}: {record['selection_miou']:.4f})"
-            print(f"epoch {epoch + 1}/{config.train.epochs} {record['phase']}: loss {record['train_loss']:.4f} "
-                  f"val mIoU {miou} ({record['images_per_s']:.1f} img/s)", flush=True)
+            print(_epoch_line(record, schedule, config), flush=True)
         context.barrier()
+        epoch += 1
     if context.is_main and config.train.plots:
         from warpsense.train.plots import write_run_plots
 
-        write_run_plots(run_dir, model, val_set, device)
+        write_run_plots(run_dir, model, datasets.val, device)
     if context.is_main:
         print(run_summary(run_dir, config))
     context.barrier()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch.nn import functional as F
 
-IGNORE_INDEX = 255
+from warpsense.data.labels import IGNORE_INDEX
 
 
 def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: float = 0.25,

@@ -46,34 +46,41 @@ def plot_curves(records: list[dict], path: Path) -> None:
     plt.close(figure)
 
 
+def _draw_cfa(axis, cfa) -> None:
+    phi = cfa.phi().detach().cpu().numpy()
+    axis.imshow(np.clip(phi / max(phi.max(), 1e-6), 0, 1), interpolation="nearest")
+    for y, row in enumerate(cfa.hard_letters()):
+        for x, letter in enumerate(row):
+            axis.text(x, y, letter, ha="center", va="center", color="white", fontsize=14)
+    axis.set_title("learned CFA (phi, export letters)")
+
+
+def _draw_psf_grid(axis, optics) -> None:
+    psf = optics.psf().detach().cpu().numpy()[1]  # green channel [Gy, Gx, K, K]
+    grid_y, grid_x, size, _ = psf.shape
+    mosaic = np.zeros((grid_y * (size + 1), grid_x * (size + 1)))
+    for i in range(grid_y):
+        for j in range(grid_x):
+            mosaic[i * (size + 1) : i * (size + 1) + size, j * (size + 1) : j * (size + 1) + size] = \
+                psf[i, j] / psf[i, j].max()
+    axis.imshow(mosaic ** 0.5, cmap="magma")
+    axis.set_title("PSF grid (green, sqrt, per-PSF max)")
+
+
+CAMERA_PANELS = {"optics": _draw_psf_grid, "cfa": _draw_cfa}
+"""Stages with a picture (`Camera.stages` names) -> a function drawing the stage on a matplotlib axis."""
+
+
 def plot_camera(model, path: Path) -> None:
-    camera = model.camera
-    panels = (camera.cfa is not None) + (camera.optics is not None)
-    if panels == 0:
+    """One panel per camera stage that has a picture (`CAMERA_PANELS`), in data-path order; nothing is written
+    for a camera without one."""
+    panels = [(CAMERA_PANELS[name], stage) for name, stage in model.camera.stages() if name in CAMERA_PANELS]
+    if not panels:
         return
-    figure, axes = plt.subplots(1, panels, figsize=(4 * panels, 4), squeeze=False)
-    axes = list(axes[0])
-    if camera.cfa is not None:
-        phi = camera.cfa.phi().detach().cpu().numpy()
-        axes[0].imshow(np.clip(phi / max(phi.max(), 1e-6), 0, 1), interpolation="nearest")
-        letters = camera.cfa.hard_letters()
-        for y, row in enumerate(letters):
-            for x, letter in enumerate(row):
-                axes[0].text(x, y, letter, ha="center", va="center", color="white", fontsize=14)
-        axes[0].set_title("learned CFA (phi, export letters)")
-        axes[0].axis("off")
-        axes = axes[1:]
-    if camera.optics is not None:
-        psf = camera.optics.psf().detach().cpu().numpy()[1]  # green channel [Gy, Gx, K, K]
-        grid_y, grid_x, size, _ = psf.shape
-        mosaic = np.zeros((grid_y * (size + 1), grid_x * (size + 1)))
-        for i in range(grid_y):
-            for j in range(grid_x):
-                mosaic[i * (size + 1) : i * (size + 1) + size, j * (size + 1) : j * (size + 1) + size] = \
-                    psf[i, j] / psf[i, j].max()
-        axes[0].imshow(mosaic ** 0.5, cmap="magma")
-        axes[0].set_title("PSF grid (green, sqrt, per-PSF max)")
-        axes[0].axis("off")
+    figure, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 4), squeeze=False)
+    for axis, (draw, stage) in zip(axes[0], panels):
+        draw(axis, stage)
+        axis.axis("off")
     figure.tight_layout()
     figure.savefig(path, dpi=100)
     plt.close(figure)

@@ -8,7 +8,7 @@ import math
 
 import torch
 
-from warpsense.config import COMPILE_MODES, SELF_CAPTURING_COMPILE_MODES
+from warpsense.choices import COMPILE_MODES, SELF_CAPTURING_COMPILE_MODES
 from warpsense.train.losses import segmentation_loss
 
 EAGER_STEPS_BEFORE_CAPTURE = 3  # side-stream steps that initialise optimizer state, cuDNN and `auto` choices

@@ -1,0 +1,50 @@
+import json
+
+import pytest
+
+from warpsense.config import load_config
+from warpsense.train.checkpoint import read_checkpoint
+from warpsense.train.engine import LAST, train
+from warpsense.train.schedule import Schedule
+
+from tests.train.test_training import TINY
+
+
+def test_phases_and_temperature_follow_the_plan():
+    schedule = Schedule(epochs=6, warmup_epochs=2)
+    assert [schedule.phase(e) for e in range(6)] == ["warmup"] * 2 + ["joint"] * 4
+    temperatures = [schedule.temperature(e, 1.0, 0.05) for e in range(6)]
+    assert temperatures[:3] == [1.0, 1.0, 1.0] and temperatures[-1] == pytest.approx(0.05)
+    ratios = [b / a for a, b in zip(temperatures[2:], temperatures[3:])]
+    assert ratios == pytest.approx([0.05 ** (1 / 3)] * 3)  # geometric over the joint epochs
+    assert Schedule(3, 2).temperature(2, 1.0, 0.05) == 0.05  # one joint epoch: already the end value
+    assert Schedule(3, 3).temperature(2, 1.0, 0.05) == 1.0  # no joint phase: never annealed
+
+
+@pytest.mark.parametrize("plan, epochs, expected", [
+    ((100, 4), 10, (10, 1)), ((100, 40), 10, (10, 4)), ((10, 0), 5, (5, 0)), ((10, 10), 4, (4, 4)),
+    ((10, 9), 2, (2, 1)), ((10, 3), 10, (10, 3)), ((10, 3), 20, (10, 3))])
+def test_shortening_keeps_the_phases_the_plan_has(plan, epochs, expected):
+    shortened = Schedule(*plan).shortened(epochs)
+    assert (shortened.epochs, shortened.warmup_epochs) == expected
+
+
+def test_epochs_within_a_budget():
+    schedule = Schedule(100, 4)
+    assert schedule.epochs_within(111.0, 1.0) == 100  # everything fits
+    assert schedule.epochs_within(56.0, 1.0) == 50  # an epoch plus 10% for evaluation
+    assert schedule.epochs_within(1.0, 1.0) == 2  # never below two epochs
+
+
+def test_time_budget_shortens_the_run_not_its_config_and_resume_keeps_the_shortened_plan(tmp_path):
+    config = load_config(None, TINY + ["train.epochs=5", "train.warmup_epochs=2", "train.time_budget_minutes=1e-6",
+                                       f"run.output_dir={tmp_path}"])
+    run = train(config, progress=False)
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["phase"] for r in records] == ["warmup", "joint"]  # 5 epochs (2 warm-up) cut to 2 (1 warm-up)
+    assert config.train.epochs == 5 and config.train.warmup_epochs == 2  # the caller's config is untouched
+    assert json.loads((run / "config.json").read_text())["train"]["epochs"] == 5  # the run's request, as given
+    state = read_checkpoint(run / LAST)[1]["state"]
+    assert state["schedule"] == {"epochs": 2, "warmup_epochs": 1, "requested": [5, 2]}
+    train(config, resume=run, progress=False)  # the same request: the run is complete under its shortened plan
+    assert len((run / "metrics.jsonl").read_text().splitlines()) == 2
