@@ -11,8 +11,11 @@ def test_lens_report_numbers_agree_with_the_lens(capsys, monkeypatch):
     assert [[round(float(v), 5) for v in row] for row in outside] == report["energy_outside_kernel"]
     assert report["kernel_size_for"]["0.01"] >= report["kernel_size"]
     assert report["pixel_integration_l1"] > 0
+    file_terms = {j: [round(v, 5) for v in waves] for j, waves in lens.spec.zernike_waves.items()}
+    assert {term["noll"]: term["waves"] for term in report["aberrations"]} == file_terms
+    assert {term["noll"]: term["name"] for term in report["aberrations"]}.get(4) == "defocus"
     text = format_report(report)
-    assert "energy outside the K x K kernel" in text and f"{report['pixel_integration_l1']:.4f}" in text
+    assert "energy outside the K x K kernel" in text and "defocus" in text and f"{report['pixel_integration_l1']:.4f}" in text
     monkeypatch.setattr("warpsense.optics.report.lens_report", lambda lens: report)
     assert main(["lens", "phone_80deg", "--json"]) == 0
     assert '"kernel_size": 9' in capsys.readouterr().out
