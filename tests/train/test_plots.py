@@ -73,3 +73,15 @@ def test_predictions_show_spread_frames_and_a_class_legend(tmp_path, figures):
     titles = [axis.get_title() for axis in figure.axes if axis.get_title().startswith("input")]
     assert titles == [f"input (sRGB), frame {i}" for i in (0, 13, 26, 39)]
     assert [text.get_text() for text in figure.legends[0].get_texts()] == ["sky", "road", "car"]
+
+
+def test_psf_display_window_holds_every_pixel_above_one_percent():
+    from warpsense.train.plots import display_half_width
+
+    offsets = np.arange(31) - 15
+    radius2 = offsets[:, None] ** 2 + offsets[None, :] ** 2
+    narrow, wide = np.exp(-radius2 / (2 * 1.5**2)), np.exp(-radius2 / (2 * 3.0**2))
+    # 1% of the peak lies at 3.03 sigma: offsets up to 4 (sigma 1.5) and 9 (sigma 3), plus one pixel of margin
+    assert display_half_width(narrow[None, None]) == 5
+    assert display_half_width(np.stack([narrow, wide])[None]) == 10  # the widest PSF of the grid decides
+    assert display_half_width(np.ones((1, 1, 31, 31))) == 15  # never beyond the kernel

@@ -55,16 +55,31 @@ def _draw_cfa(axis, cfa) -> None:
     axis.set_title("learned CFA (phi, export letters)")
 
 
+def display_half_width(psf: np.ndarray, level: float = 1e-2) -> int:
+    """Half width of the central window shown for a PSF grid [..., K, K] (each PSF scaled to peak 1): one pixel
+    beyond the farthest pixel above ``level`` in any PSF, at most K // 2. Without it the tails of a large K shrink
+    the cores to dots."""
+    centre = psf.shape[-1] // 2
+    visible = np.argwhere(psf.reshape(-1, *psf.shape[-2:]).max(axis=0) > level)
+    if not len(visible):
+        return centre
+    return min(int(np.abs(visible - centre).max()) + 1, centre)
+
+
 def _draw_psf_grid(axis, optics) -> None:
     psf = optics.psf().detach().cpu().numpy()[1]  # green channel [Gy, Gx, K, K]
+    psf = psf / np.maximum(psf.max(axis=(2, 3), keepdims=True), 1e-12)
+    kernel_size, centre = psf.shape[-1], psf.shape[-1] // 2
+    half = display_half_width(psf)
+    psf = psf[..., centre - half : centre + half + 1, centre - half : centre + half + 1]
     grid_y, grid_x, size, _ = psf.shape
     mosaic = np.zeros((grid_y * (size + 1), grid_x * (size + 1)))
     for i in range(grid_y):
         for j in range(grid_x):
             mosaic[i * (size + 1) : i * (size + 1) + size, j * (size + 1) : j * (size + 1) + size] = \
-                psf[i, j] / psf[i, j].max()
+                psf[i, j]
     axis.imshow(mosaic ** 0.5, cmap="magma")
-    axis.set_title("PSF grid (green, sqrt, per-PSF max)")
+    axis.set_title(f"PSF grid (green, sqrt, per-PSF max; central {size} of K = {kernel_size})", fontsize=10)
 
 
 CAMERA_PANELS = {"optics": _draw_psf_grid, "cfa": _draw_cfa}
