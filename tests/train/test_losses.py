@@ -40,3 +40,23 @@ def test_smoothness_lower_across_image_edges():
     edge_guide = flat_guide.clone()
     edge_guide[..., 2:] = 1.0  # an image edge at the same place
     assert edge_aware_smoothness(logits, edge_guide) < 0.01 * edge_aware_smoothness(logits, flat_guide)
+
+
+def test_lovasz_grad_equals_the_papers_algorithm_row_by_row():
+    """Berman et al. 2018, alg. 1, per row in NumPy: the flattened int32 running count must give each row's own."""
+    import numpy as np
+
+    from warpsense.train.losses import lovasz_grad
+
+    generator = torch.Generator().manual_seed(3)
+    labels = (torch.rand(2, 5, 257, generator=generator) < 0.3).float()
+    labels[0, 1] = 0  # a class absent from the batch
+    labels[1, 2] = 1  # a class everywhere
+    expected = np.empty(labels.shape)
+    for index in np.ndindex(labels.shape[:-1]):
+        row = labels[index].numpy().astype(np.float64)
+        gts = row.sum()
+        jaccard = 1 - (gts - np.cumsum(row)) / (gts + np.cumsum(1 - row))
+        expected[index] = np.concatenate([jaccard[:1], np.diff(jaccard)])
+    np.testing.assert_allclose(lovasz_grad(labels).numpy(), expected, atol=1e-6)
+    np.testing.assert_allclose(lovasz_grad(labels.double()).numpy(), expected, atol=1e-12)

@@ -1,0 +1,106 @@
+"""How fast the training step could be without the camera: the same step (`TrainingStep`, the config's compile and
+CUDA-graph settings) for the network alone with cross-entropy, the network alone with the config's losses, and the
+whole system (camera + network + losses), in one run (issue 11: an upper bound for the training throughput).
+
+    python tools/bench_train_bound.py [--config camvid_codesign] [--set KEY=VALUE ...] [--device cuda]
+        [--size 352x480] [--batch 16] [--steps 60] [--json OUT]
+
+Inputs are random uint8 images and labels of the given size (the training crop); every step is a joint-phase
+step (camera parameters learn). Throughput is images per second over ``--steps`` steps after 8 warm-up steps
+(compilation and graph capture happen there). One JSON record per variant is printed; ``--json`` writes them with
+the device and versions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import torch
+
+CROSS_ENTROPY_ONLY = ["loss.ohem_weight=1", "loss.ohem_fraction=1", "loss.lovasz_weight=0", "loss.smooth_weight=0"]
+WARM_UP_STEPS = 8
+
+
+def step_rate(config, device: torch.device, size: tuple[int, int], batch: int, steps: int, network_only: bool) -> float:
+    """Images per second of joint-phase training steps."""
+    from warpsense.models.sensing import SensingModel, build_system
+    from warpsense.train.camera_phases import camera_parameters, set_camera_trainable
+    from warpsense.train.step import TrainingStep
+
+    class NetworkOnly(SensingModel):
+        def sense(self, image, image_index=None):  # the mosaic a camera would give, at no cost: the first channel
+            return image[:, :1].float() * (1 / 255)
+
+    torch.compiler.reset()
+    torch.manual_seed(0)
+    model = build_system(config, 11)
+    if network_only:
+        model = NetworkOnly(model.camera, model.network)
+    model = model.to(device).train()
+    set_camera_trainable(model, True)
+    camera = [] if network_only else camera_parameters(model)
+    camera_ids = {id(p) for p in camera}
+    optimizer = torch.optim.AdamW([
+        {"params": [p for p in model.parameters() if id(p) not in camera_ids], "lr": config.train.lr},
+        {"params": camera, "lr": config.train.lr}], fused=device.type == "cuda")
+    amp = config.train.amp and device.type == "cuda"
+    step = TrainingStep(config.loss, optimizer, camera, 10_000, amp, config.train.camera_grad_clip,
+                        config.train.compile, config.train.cuda_graph)
+    images = torch.randint(0, 256, (batch, 3, *size), dtype=torch.uint8, device=device)
+    labels = torch.randint(0, 11, (batch, *size), device=device)
+
+    def run(count: int, start: int) -> None:
+        for index in range(count):
+            step(model, images, labels, start + index, True)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+
+    run(WARM_UP_STEPS, 0)
+    started = time.perf_counter()
+    run(steps, WARM_UP_STEPS)
+    return steps * batch / (time.perf_counter() - started)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from warpsense.config import ConfigError, load_config
+    from warpsense.files import environment
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", default="camvid_codesign", help="preset name or TOML file")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=("cpu", "cuda"))
+    parser.add_argument("--size", default="352x480", help="HxW of the training crop")
+    parser.add_argument("--batch", type=int, default=16)
+    parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--json", metavar="OUT")
+    args = parser.parse_args(argv)
+    try:
+        height, width = (int(part) for part in args.size.lower().split("x"))
+    except ValueError:
+        parser.error(f"--size must be HxW, e.g. 352x480, got {args.size!r}")
+    variants = (("network only, cross-entropy", CROSS_ENTROPY_ONLY, True),
+                ("network only, the config's losses", [], True),
+                ("camera + network, the config's losses", [], False))
+    records = []
+    for label, overrides, network_only in variants:
+        try:
+            config = load_config(args.config, args.set + overrides)
+        except ConfigError as error:
+            print(f"bench_train_bound: {error}", file=sys.stderr)
+            return 2
+        rate = step_rate(config, torch.device(args.device), (height, width), args.batch, args.steps, network_only)
+        records.append({"variant": label, "config": args.config, "overrides": args.set + overrides,
+                        "size": [height, width], "batch": args.batch, "images_per_s": round(rate, 1)})
+        print(json.dumps(records[-1]), flush=True)
+    if args.json:
+        device_name = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
+        with open(args.json, "w") as out:
+            json.dump({"device": device_name, "environment": environment(), "records": records}, out, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
