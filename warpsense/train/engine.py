@@ -179,6 +179,26 @@ def _validate(model, datasets: _Datasets, config, context, amp: bool, progress: 
     return record
 
 
+def _run_epoch(training_step, model, batches, steps: int, step: int, joint: bool, device, bar) -> int:
+    """Train ``steps`` batches from ``batches`` (a ``bar`` ticks per step, closed at the end); the next step index."""
+    for images, labels in itertools.islice(batches, steps):
+        training_step(model, images.to(device, non_blocking=True), labels.to(device, non_blocking=True), step, joint)
+        step += 1
+        bar.update(1)
+    bar.close()
+    return step
+
+
+def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: bool) -> None:
+    """Append the epoch's record to metrics.jsonl, then write the checkpoints: the best one when the epoch scored
+    best, and the last one (with optimizer and RNG state, for resuming) always."""
+    with open(run_dir / "metrics.jsonl", "a") as log:
+        log.write(json.dumps(state["record"]) + "\n")
+    if is_best:
+        save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
+    save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state())
+
+
 def _epoch_line(record: dict, schedule: Schedule, config) -> str:
     miou = f"{record['val_miou']:.4f}" if "val_miou" in record else "-"
     if "selection_miou" in record:
@@ -248,14 +268,10 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         loader.set_epoch(epoch)
         model.train()
         started = time.perf_counter()
-        bar = tqdm(total=steps_per_epoch, desc=f"epoch {epoch + 1}/{schedule.epochs} ({schedule.phase(epoch)})",
-                   disable=not (progress and context.is_main), leave=False)
-        for images, labels in itertools.islice(loader, steps_per_epoch):
-            training_step(wrapped, images.to(device, non_blocking=True), labels.to(device, non_blocking=True),
-                          step, joint)
-            step += 1
-            bar.update(1)
-        bar.close()
+        description = f"epoch {epoch + 1}/{schedule.epochs} ({schedule.phase(epoch)})"
+        step = _run_epoch(training_step, wrapped, loader, steps_per_epoch, step, joint, device,
+                          tqdm(total=steps_per_epoch, desc=description, disable=not (progress and context.is_main),
+                               leave=False))
         statistics = training_step.epoch_statistics(context)
         elapsed = time.perf_counter() - started
         _check_finite(model, statistics, epoch, run_dir)
@@ -276,14 +292,10 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         is_best = score > best_miou
         best_miou = max(best_miou, score)
         if context.is_main:
-            with open(run_dir / "metrics.jsonl", "a") as log:
-                log.write(json.dumps(record) + "\n")
             state = {"epoch": epoch, "step": step, "best_miou": best_miou, "num_classes": num_classes,
                      "class_names": list(datasets.train.classes), "record": record, "environment": versions,
                      "schedule": {**schedule.to_dict(), "requested": [requested.epochs, requested.warmup_epochs]}}
-            if is_best:
-                save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
-            save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state())
+            _write_epoch(run_dir, model, optimizer, config, state, is_best)
             print(_epoch_line(record, schedule, config), flush=True)
         context.barrier()
         epoch += 1
