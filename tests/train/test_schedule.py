@@ -48,3 +48,20 @@ def test_time_budget_shortens_the_run_not_its_config_and_resume_keeps_the_shorte
     assert state["schedule"] == {"epochs": 2, "warmup_epochs": 1, "requested": [5, 2]}
     train(config, resume=run, progress=False)  # the same request: the run is complete under its shortened plan
     assert len((run / "metrics.jsonl").read_text().splitlines()) == 2
+
+
+def test_a_resumed_run_takes_the_saved_plan_only_for_the_same_request_and_checks_it():
+    from pathlib import Path
+
+    from warpsense.train.checkpoint import CheckpointError
+    from warpsense.train.engine import _resumed_schedule
+
+    config = load_config(None, ["train.epochs=10", "train.warmup_epochs=4"])
+    saved = {"epochs": 6, "warmup_epochs": 2, "requested": [10, 4]}
+    checkpoint = Path("run/checkpoint_last.safetensors")
+    assert _resumed_schedule({"schedule": saved}, config, checkpoint) == Schedule(6, 2)
+    assert _resumed_schedule({}, config, checkpoint) == Schedule(10, 4)  # written before schedules were saved
+    changed = load_config(None, ["train.epochs=20", "train.warmup_epochs=4"])  # --allow-config-change
+    assert _resumed_schedule({"schedule": saved}, changed, checkpoint) == Schedule(20, 4)
+    with pytest.raises(CheckpointError, match="checkpoint_last.safetensors: state.schedule"):
+        _resumed_schedule({"schedule": {**saved, "warmup_epochs": 7}}, config, checkpoint)

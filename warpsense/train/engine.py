@@ -21,7 +21,7 @@ from warpsense.files import environment, write_json
 from warpsense.models import count_parameters
 from warpsense.models.sensing import build_system
 from warpsense.train.camera_phases import camera_parameters, set_camera_trainable
-from warpsense.train.checkpoint import read_checkpoint, restore, resume_state, save_checkpoint
+from warpsense.train.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
 from warpsense.train.distributed import DistributedContext, wrap_data_parallel
 from warpsense.train.evaluate import evaluate
 from warpsense.train.run_dir import LAST, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
@@ -44,14 +44,17 @@ def _fit_time_budget(schedule: Schedule, budget_minutes: float, epoch_seconds: f
     return shortened
 
 
-def _resumed_schedule(state: dict, config) -> Schedule:
+def _resumed_schedule(state: dict, config, checkpoint: Path) -> Schedule:
     """The plan a resumed run continues: the one saved in its checkpoint (a time budget may have shortened it),
     unless the resumed config requests another number of epochs (``--allow-config-change``)."""
     requested = Schedule.from_config(config.train)
-    saved = state.get("schedule")
-    if saved and tuple(saved["requested"]) == (requested.epochs, requested.warmup_epochs):
-        return Schedule(saved["epochs"], saved["warmup_epochs"])
-    return requested
+    saved = state.get("schedule")  # absent from checkpoints written before schedules were recorded
+    if not isinstance(saved, dict) or saved.get("requested") != [requested.epochs, requested.warmup_epochs]:
+        return requested
+    epochs, warmup_epochs = saved.get("epochs"), saved.get("warmup_epochs")
+    if not (isinstance(epochs, int) and isinstance(warmup_epochs, int) and 0 <= warmup_epochs <= epochs):
+        raise CheckpointError(f"{checkpoint}: state.schedule must hold epochs >= warmup_epochs >= 0, got {saved!r}")
+    return Schedule(epochs, warmup_epochs)
 
 
 def _check_finite(model, statistics: dict, epoch: int, run_dir: Path) -> None:
@@ -231,7 +234,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         state = resume_state(run_dir / LAST, tensors, meta)
         restore(tensors, model, optimizer, source=run_dir / LAST)
         start_epoch, step, best_miou = state["epoch"] + 1, state["step"], state["best_miou"]
-        schedule = _resumed_schedule(state, config)
+        schedule = _resumed_schedule(state, config, run_dir / LAST)
         torch.set_rng_state(tensors["rng"])
         history = read_metrics(run_dir / "metrics.jsonl", state["epoch"])
         if context.is_main:
