@@ -23,10 +23,14 @@ LADDER = ("camvid_fixed_isp", "camvid_raw_fixed", "camvid_learned_cfa", "camvid_
 
 
 def run_state(run_dir: Path) -> str:
-    """"new", "partial" (a checkpoint to continue from) or "done" (its last configured epoch is logged)."""
+    """"new", "partial" (a checkpoint to continue from) or "done" (the last epoch of its plan is logged). The plan
+    is the one its last checkpoint records (a time budget may have shortened it), else the config's epochs."""
     if not (run_dir / "checkpoint_last.safetensors").is_file():
         return "new"
-    epochs = json.loads((run_dir / "config.json").read_text())["train"]["epochs"]
+    state = json.loads((run_dir / "checkpoint_last.json").read_text())["state"]
+    epochs = state.get("schedule", {}).get("epochs")
+    if epochs is None:
+        epochs = json.loads((run_dir / "config.json").read_text())["train"]["epochs"]
     lines = [line for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
     logged = [json.loads(line)["epoch"] for line in lines]
     return "done" if logged and max(logged) + 1 >= epochs else "partial"

@@ -22,3 +22,17 @@ def test_matrix_trains_goes_on_past_a_failure_and_skips_finished_runs(tmp_path, 
     assert [r["epoch"] for r in records] == [0]
     assert tool.main(arguments)["default-s0"] == "done before"  # resumable: nothing retrained
     assert "finished earlier, skipped" in capsys.readouterr().out
+
+
+def test_a_run_shortened_by_its_time_budget_counts_as_done(tmp_path, load_tool):
+    """config.json keeps the requested epochs; the shortened plan is in the last checkpoint's state."""
+    tool = load_tool("ablation_matrix")
+    run = tmp_path / "camvid_codesign-s0"
+    run.mkdir()
+    (run / "checkpoint_last.safetensors").write_bytes(b"")
+    (run / "config.json").write_text(json.dumps({"train": {"epochs": 5}}))
+    (run / "metrics.jsonl").write_text("".join(json.dumps({"epoch": e}) + "\n" for e in (0, 1)))
+    (run / "checkpoint_last.json").write_text(json.dumps({"state": {"epoch": 1, "schedule": {"epochs": 2}}}))
+    assert tool.run_state(run) == "done"
+    (run / "checkpoint_last.json").write_text(json.dumps({"state": {"epoch": 1}}))  # written before schedules
+    assert tool.run_state(run) == "partial"
