@@ -12,7 +12,7 @@ class Schedule:
     """Epochs of a run; the first ``warmup_epochs`` train the network on a frozen camera, the rest jointly.
 
     The run's config states the requested plan; a time budget (``train.time_budget_minutes``) may shorten it after
-    the first epoch (`fitted`). The config is never changed: the plan in use is this object, saved in each
+    the first epoch (`shortened`, with `epochs_within`). The config is never changed: the plan in use is this object, saved in each
     checkpoint so a resumed run keeps it.
     """
 
