@@ -20,6 +20,7 @@ from warpsense.camera import Camera
 from warpsense.camera.camera import set_finite_check
 from warpsense.config import load_config
 from warpsense.data.color import srgb_to_linear
+from warpsense.errors import first_line
 from warpsense.models import build_model
 from warpsense.ops import psf_conv
 from warpsense.ops.reference import (cfa_mosaic_reference, poisson_gaussian_reference, psf_conv_reference,
@@ -152,7 +153,7 @@ def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
             except Exception as error:  # a compiler failure is a result to report, not the end of the suite
                 if compile_mode == "off" and not cuda_graph:
                     raise
-                record["error"] = f"{type(error).__name__}: {str(error).splitlines()[0][:300]}"
+                record["error"] = f"{type(error).__name__}: {first_line(error)[:300]}"
             add(record)
     for method, camera_name in cases:
         for graph in ((False, True) if device == "cuda" else (False,)):

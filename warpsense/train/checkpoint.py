@@ -15,6 +15,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
+from warpsense.errors import first_line
 from warpsense.files import atomic_write, write_json
 
 METADATA_KEY = "warpsense"
@@ -22,12 +23,6 @@ METADATA_KEY = "warpsense"
 
 class CheckpointError(ValueError):
     """A checkpoint that cannot be read or does not describe a warpsense run (message names the file)."""
-
-
-def _first_line(error: Exception) -> str:
-    """The first line of a library's error message, or its type when it has none."""
-    message = str(error).strip()
-    return message.splitlines()[0] if message else type(error).__name__
 
 
 def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict, state: dict,
@@ -61,7 +56,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
             metadata = handle.metadata() or {}
         tensors = load_file(str(path))
     except Exception as error:  # safetensors raises several types for zero-byte, truncated or foreign files
-        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({_first_line(error)})") from None
+        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({first_line(error)})") from None
     if METADATA_KEY in metadata:
         text, source = metadata[METADATA_KEY], f"{path} metadata"
     else:
@@ -88,7 +83,7 @@ def restore(tensors: dict, model: torch.nn.Module, optimizer: torch.optim.Optimi
         _load_states(tensors, model, optimizer)
     except (RuntimeError, KeyError, ValueError, IndexError) as error:
         raise CheckpointError(f"{source}: its tensors do not fit the model its config builds "
-                              f"({_first_line(error)[:200]})") from None
+                              f"({first_line(error)[:200]})") from None
 
 
 def _load_states(tensors: dict, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None) -> None:

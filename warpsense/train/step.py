@@ -9,6 +9,7 @@ import math
 import torch
 
 from warpsense.choices import COMPILE_MODES, SELF_CAPTURING_COMPILE_MODES
+from warpsense.errors import first_line
 from warpsense.train.losses import segmentation_loss
 
 EAGER_STEPS_BEFORE_CAPTURE = 3  # side-stream steps that initialise optimizer state, cuDNN and `auto` choices
@@ -141,8 +142,7 @@ class TrainingStep:
             with torch.cuda.graph(graph):
                 self._forward_backward_update(model, static_images, static_labels, joint)
         except RuntimeError as error:  # a host read or synchronisation inside the step: name it, not the CUDA code
-            first_line = str(error).splitlines()[0] if str(error) else type(error).__name__
-            raise RuntimeError(f"train.cuda_graph: the training step could not be captured ({first_line}); "
+            raise RuntimeError(f"train.cuda_graph: the training step could not be captured ({first_line(error)}); "
                                "run with train.cuda_graph=false") from error
         return _CapturedStep(graph, static_images, static_labels)
 
