@@ -83,3 +83,13 @@ def test_wrapping_warns_about_nothing_and_syncs_no_buffers_per_forward():
         assert getattr(wrapped, "forward_sync_buffers", getattr(wrapped, "broadcast_buffers", None)) is False
     finally:
         dist.destroy_process_group()
+
+
+def test_device_choices_resolve_as_the_config_documents(monkeypatch):
+    from warpsense.train.distributed import resolve_device
+
+    for available in (False, True):
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: available)
+        assert resolve_device("cpu") == torch.device("cpu")
+        assert resolve_device("cuda") == torch.device("cuda")
+        assert resolve_device("auto") == torch.device("cuda" if available else "cpu")

@@ -8,6 +8,7 @@ import torch
 
 from warpsense.files import write_json
 from warpsense.train.checkpoint import load_system
+from warpsense.train.distributed import resolve_device
 from warpsense.train.evaluate import evaluate
 
 
@@ -73,7 +74,7 @@ def run_eval(checkpoint: str, data: str, data_root: str, split: str, json_out: s
     ``sweep``) only times the model: no dataset is read and no mIoU computed."""
     from warpsense.data import build_dataset
 
-    torch_device = torch.device("cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu")
+    torch_device = resolve_device(device)
     model, config, state = load_system(checkpoint, torch_device)
     if latency and not sweep:
         payload = {"checkpoint": str(checkpoint), "latency": measure_latency(model, torch_device, *latency_size,

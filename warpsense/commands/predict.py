@@ -11,6 +11,7 @@ from torch.nn import functional as F
 from warpsense.choices import BAYER_LAYOUTS
 from warpsense.data.raw import load_raw, read_raw_file
 from warpsense.files import atomic_write
+from warpsense.train.distributed import resolve_device
 
 
 def phase_offset(file_pattern: str, model_pattern: str) -> tuple[int, int]:
@@ -104,7 +105,7 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
     from warpsense.train.plots import colorize
 
     file_format = image_format(out_image)
-    torch_device = torch.device("cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu")
+    torch_device = resolve_device(device)
     model, config, state = load_system(checkpoint, torch_device)
     learned = model.camera.summary()
     model_pattern = learned.get("cfa_layout", "")

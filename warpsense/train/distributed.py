@@ -9,6 +9,12 @@ import torch
 import torch.distributed as dist
 
 
+def resolve_device(choice: str) -> torch.device:
+    """The device a `warpsense.choices.DEVICES` choice names: "cuda", or "auto" where torch sees a GPU -> cuda;
+    otherwise cpu."""
+    return torch.device("cuda" if choice == "cuda" or (choice == "auto" and torch.cuda.is_available()) else "cpu")
+
+
 @dataclass
 class DistributedContext:
     rank: int = 0
@@ -31,7 +37,7 @@ class DistributedContext:
         world_size = int(os.environ.get("WORLD_SIZE", "1"))
         rank = int(os.environ.get("RANK", "0"))
         local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-        use_cuda = device_choice == "cuda" or (device_choice == "auto" and torch.cuda.is_available())
+        use_cuda = resolve_device(device_choice).type == "cuda"
         if device_choice == "cuda" and not torch.cuda.is_available():
             raise RuntimeError("run.device = cuda but no CUDA device is available")
         device = torch.device("cuda", local_rank if world_size > 1 else torch.cuda.current_device()) if use_cuda \
