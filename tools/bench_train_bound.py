@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 
 import torch
 
@@ -26,6 +25,7 @@ WARM_UP_STEPS = 8
 
 def step_rate(config, device: torch.device, size: tuple[int, int], batch: int, steps: int, network_only: bool) -> float:
     """Images per second of joint-phase training steps."""
+    from warpsense.bench.train_suite import step_throughput
     from warpsense.models.sensing import SensingModel, build_system
     from warpsense.train.camera_phases import camera_parameters, set_camera_trainable
     from warpsense.train.step import TrainingStep
@@ -49,19 +49,7 @@ def step_rate(config, device: torch.device, size: tuple[int, int], batch: int, s
     amp = config.train.amp and device.type == "cuda"
     step = TrainingStep(config.loss, optimizer, camera, 10_000, amp, config.train.camera_grad_clip,
                         config.train.compile, config.train.cuda_graph)
-    images = torch.randint(0, 256, (batch, 3, *size), dtype=torch.uint8, device=device)
-    labels = torch.randint(0, 11, (batch, *size), device=device)
-
-    def run(count: int, start: int) -> None:
-        for index in range(count):
-            step(model, images, labels, start + index, True)
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-
-    run(WARM_UP_STEPS, 0)
-    started = time.perf_counter()
-    run(steps, WARM_UP_STEPS)
-    return steps * batch / (time.perf_counter() - started)
+    return step_throughput(step, model, batch, *size, steps, WARM_UP_STEPS, device)
 
 
 def main(argv: list[str] | None = None) -> int:

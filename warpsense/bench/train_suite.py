@@ -92,14 +92,22 @@ def training_throughput(method, camera_name, loss_name, device, batch, height, w
     torch._dynamo.reset()
     step = TrainingStep(loss_config, optimizer, [], steps + warmup, amp=cuda, compile_mode=compile_mode,
                         cuda_graph=cuda_graph)
+    return step_throughput(step, system, batch, height, width, steps, warmup, device)
+
+
+def step_throughput(step: TrainingStep, model, batch: int, height: int, width: int, steps: int, warmup: int,
+                    device) -> float:
+    """Images per second of joint-phase ``step``s of ``model`` on random uint8 frames [batch, 3, height, width]
+    and 11-class labels, timed over ``steps`` after ``warmup`` steps (where compilation and graph capture
+    happen)."""
     images = torch.randint(0, 256, (batch, 3, height, width), dtype=torch.uint8, device=device)
     labels = torch.randint(0, 11, (batch, height, width), device=device)
     for index in range(warmup):
-        step(system, images, labels, index, joint=True)
+        step(model, images, labels, index, joint=True)
     _sync(device)
     start = time.perf_counter()
     for index in range(steps):
-        step(system, images, labels, warmup + index, joint=True)
+        step(model, images, labels, warmup + index, joint=True)
     _sync(device)
     return steps * batch / (time.perf_counter() - start)
 
