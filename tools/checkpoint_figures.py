@@ -31,11 +31,8 @@ def draw(checkpoint: Path, out_dir: Path, data_root: str | None, count: int, dev
         config.data.root = data_root
     val_set = build_dataset(config.data, config.data.val_split, train=False, seed=config.run.seed)
     stem = checkpoint.name.removesuffix(".safetensors")
-    written = []
     camera_path, predictions_path = out_dir / f"{stem}_camera.png", out_dir / f"{stem}_predictions.png"
-    plot_camera(model, camera_path)
-    if camera_path.is_file():
-        written.append(camera_path)
+    written = [camera_path] if plot_camera(model, camera_path) else []
     plot_predictions(model, val_set, torch.device(device), predictions_path, count=count)
     return written + [predictions_path]
 

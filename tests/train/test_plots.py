@@ -85,3 +85,20 @@ def test_psf_display_window_holds_every_pixel_above_one_percent():
     assert display_half_width(narrow[None, None]) == 5
     assert display_half_width(np.stack([narrow, wide])[None]) == 10  # the widest PSF of the grid decides
     assert display_half_width(np.ones((1, 1, 31, 31))) == 15  # never beyond the kernel
+
+
+def test_camera_figure_has_a_panel_per_pictured_stage_and_says_whether_it_wrote(tmp_path):
+    from types import SimpleNamespace
+
+    from PIL import Image
+
+    from warpsense.camera import Camera
+    from warpsense.config import load_config
+
+    both = SimpleNamespace(camera=Camera.from_config(load_config(None, ["optics.enabled=true"])))
+    assert plots.plot_camera(both, tmp_path / "both.png")
+    cfa_only = SimpleNamespace(camera=Camera.from_config(load_config(None, [])))
+    assert plots.plot_camera(cfa_only, tmp_path / "cfa.png")
+    assert Image.open(tmp_path / "both.png").width > 1.5 * Image.open(tmp_path / "cfa.png").width  # two panels
+    bare = SimpleNamespace(camera=Camera.from_config(load_config(None, ["cfa.enabled=false"])))
+    assert not plots.plot_camera(bare, tmp_path / "bare.png") and not (tmp_path / "bare.png").exists()

@@ -56,12 +56,12 @@ def test_a_resumed_run_takes_the_saved_plan_only_for_the_same_request_and_checks
     from warpsense.train.checkpoint import CheckpointError
     from warpsense.train.engine import _resumed_schedule
 
-    config = load_config(None, ["train.epochs=10", "train.warmup_epochs=4"])
+    requested = Schedule.from_config(load_config(None, ["train.epochs=10", "train.warmup_epochs=4"]).train)
     saved = {"epochs": 6, "warmup_epochs": 2, "requested": [10, 4]}
     checkpoint = Path("run/checkpoint_last.safetensors")
-    assert _resumed_schedule({"schedule": saved}, config, checkpoint) == Schedule(6, 2)
-    assert _resumed_schedule({}, config, checkpoint) == Schedule(10, 4)  # written before schedules were saved
+    assert _resumed_schedule({"schedule": saved}, requested, checkpoint) == Schedule(6, 2)
+    assert _resumed_schedule({}, requested, checkpoint) == Schedule(10, 4)  # written before schedules were saved
     changed = load_config(None, ["train.epochs=20", "train.warmup_epochs=4"])  # --allow-config-change
-    assert _resumed_schedule({"schedule": saved}, changed, checkpoint) == Schedule(20, 4)
+    assert _resumed_schedule({"schedule": saved}, Schedule.from_config(changed.train), checkpoint) == Schedule(20, 4)
     with pytest.raises(CheckpointError, match="checkpoint_last.safetensors: state.schedule"):
-        _resumed_schedule({"schedule": {**saved, "warmup_epochs": 7}}, config, checkpoint)
+        _resumed_schedule({"schedule": {**saved, "warmup_epochs": 7}}, requested, checkpoint)

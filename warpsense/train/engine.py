@@ -44,10 +44,9 @@ def _fit_time_budget(schedule: Schedule, budget_minutes: float, epoch_seconds: f
     return shortened
 
 
-def _resumed_schedule(state: dict, config, checkpoint: Path) -> Schedule:
+def _resumed_schedule(state: dict, requested: Schedule, checkpoint: Path) -> Schedule:
     """The plan a resumed run continues: the one saved in its checkpoint (a time budget may have shortened it),
-    unless the resumed config requests another number of epochs (``--allow-config-change``)."""
-    requested = Schedule.from_config(config.train)
+    unless the resumed config requests another plan (``--allow-config-change``)."""
     saved = state.get("schedule")  # absent from checkpoints written before schedules were recorded
     if not isinstance(saved, dict) or saved.get("requested") != [requested.epochs, requested.warmup_epochs]:
         return requested
@@ -228,13 +227,13 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         raise ValueError(f"training set of {len(datasets.train)} images gives no batch of {config.data.batch_size}")
     amp = config.train.amp and device.type == "cuda"
 
-    schedule = Schedule.from_config(config.train)
+    requested = schedule = Schedule.from_config(config.train)
     if resume:
         tensors, meta = read_checkpoint(run_dir / LAST)
         state = resume_state(run_dir / LAST, tensors, meta)
         restore(tensors, model, optimizer, source=run_dir / LAST)
         start_epoch, step, best_miou = state["epoch"] + 1, state["step"], state["best_miou"]
-        schedule = _resumed_schedule(state, config, run_dir / LAST)
+        schedule = _resumed_schedule(state, requested, run_dir / LAST)
         torch.set_rng_state(tensors["rng"])
         history = read_metrics(run_dir / "metrics.jsonl", state["epoch"])
         if context.is_main:
@@ -243,7 +242,6 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         start_epoch, step, best_miou, history = 0, 0, -1.0, []
         # each rank draws its own noise seeds from here on (parameters stay identical: DDP syncs gradients)
         torch.manual_seed(config.run.seed * 1000 + context.rank + 1)
-    requested = Schedule.from_config(config.train)
     if context.is_main:
         config.save(run_dir / "config.json")
         versions = environment()

@@ -86,12 +86,12 @@ CAMERA_PANELS = {"optics": _draw_psf_grid, "cfa": _draw_cfa}
 """Stages with a picture (`Camera.stages` names) -> a function drawing the stage on a matplotlib axis."""
 
 
-def plot_camera(model, path: Path) -> None:
-    """One panel per camera stage that has a picture (`CAMERA_PANELS`), in data-path order; nothing is written
-    for a camera without one."""
+def plot_camera(model, path: Path) -> bool:
+    """One panel per camera stage that has a picture (`CAMERA_PANELS`), in data-path order; whether ``path`` was
+    written (not for a camera without such a stage)."""
     panels = [(CAMERA_PANELS[name], stage) for name, stage in model.camera.stages() if name in CAMERA_PANELS]
     if not panels:
-        return
+        return False
     figure, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 4), squeeze=False)
     for axis, (draw, stage) in zip(axes[0], panels):
         draw(axis, stage)
@@ -99,6 +99,7 @@ def plot_camera(model, path: Path) -> None:
     figure.tight_layout()
     figure.savefig(path, dpi=100)
     plt.close(figure)
+    return True
 
 
 def spread_indices(length: int, count: int) -> list[int]:
