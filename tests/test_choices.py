@@ -25,11 +25,15 @@ def test_config_choices_are_the_shared_tuples():
         "run.device": choices.DEVICES, "data.dataset": choices.DATASETS, "data.on_device": choices.ON_DEVICE_MODES,
         "optics.method": choices.PSF_METHODS, "cfa.pattern": tuple(choices.CFA_LAYOUTS),
         "cfa.mode": choices.CFA_MODES, "quantize.mode": choices.QUANTIZE_MODES, "train.compile": choices.COMPILE_MODES,
+        "model.name": choices.MODEL_NAMES,
     }
 
 
 def test_registries_implement_exactly_the_named_choices():
+    from warpsense.models import MODELS
+
     assert set(DATASETS) == set(choices.DATASETS)
+    assert set(MODELS) == set(choices.MODEL_NAMES)
     for pattern in choices.CFA_LAYOUTS:
         assert len(layout_letters(pattern, 2)) == 2
     for mode in choices.CFA_MODES:

@@ -26,8 +26,8 @@ WARM_UP_STEPS = 8
 def step_rate(config, device: torch.device, size: tuple[int, int], batch: int, steps: int, network_only: bool) -> float:
     """Images per second of joint-phase training steps."""
     from warpsense.bench.train_suite import step_throughput
-    from warpsense.models.sensing import SensingModel, build_system
-    from warpsense.train.camera_phases import camera_parameters, set_camera_trainable
+    from warpsense.system import SensingModel, build_system
+    from warpsense.train.schedule import Schedule
     from warpsense.train.step import TrainingStep
 
     class NetworkOnly(SensingModel):
@@ -40,8 +40,8 @@ def step_rate(config, device: torch.device, size: tuple[int, int], batch: int, s
     if network_only:
         model = NetworkOnly(model.camera, model.network)
     model = model.to(device).train()
-    set_camera_trainable(model, True)
-    camera = [] if network_only else camera_parameters(model)
+    model.camera.on_epoch(Schedule(2, 1), int(True))  # epoch 1 of 2 is joint
+    camera = [] if network_only else model.camera.learnable_parameters()
     camera_ids = {id(p) for p in camera}
     optimizer = torch.optim.AdamW([
         {"params": [p for p in model.parameters() if id(p) not in camera_ids], "lr": config.train.lr},

@@ -23,7 +23,7 @@ import torch
 def draw(checkpoint: Path, out_dir: Path, data_root: str | None, count: int, device: str) -> list[Path]:
     """Write ``<stem>_camera.png`` (when the camera has a picture) and ``<stem>_predictions.png``; the paths."""
     from warpsense.data import build_dataset
-    from warpsense.train.checkpoint import load_system
+    from warpsense.system import load_system
     from warpsense.train.plots import plot_camera, plot_predictions
 
     model, config, _ = load_system(checkpoint, torch.device(device))

@@ -39,3 +39,6 @@ COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
 
 SELF_CAPTURING_COMPILE_MODES = ("reduce-overhead", "max-autotune")
 """Compile modes that capture CUDA graphs themselves (not combinable with ``train.cuda_graph``)."""
+
+MODEL_NAMES = ("dsunet",)
+"""Segmentation networks (`warpsense.models.MODELS`)."""

@@ -63,6 +63,15 @@ def _predict(args) -> int:
     return 0
 
 
+def _study(args) -> int:
+    from warpsense.commands.study import report_study, run_study
+
+    if args.study_command == "run":
+        return run_study(args.plan, args.out, args.overrides, args.cell, args.plan_only, args.gpus, args.per_gpu,
+                         progress=args.progress)
+    return report_study(args.study_dir, args.json, args.plot, args.split, args.resamples)
+
+
 def _lens(args) -> int:
     from warpsense.commands.lens import run_lens
 
@@ -146,6 +155,39 @@ def build_parser() -> argparse.ArgumentParser:
     predict.add_argument("--device", default="auto", choices=DEVICES, help="device")
     predict.set_defaults(handler=_predict)
 
+    study = commands.add_parser("study", help="compare cameras: cameras x light levels x seeds, with intervals",
+                                description="Run a study plan (one training run per camera, light level and seed, "
+                                "judged at its final epoch) and report which camera wins, by how much, with what "
+                                "confidence.")
+    study_commands = study.add_subparsers(dest="study_command", metavar="run|report", required=True)
+    study_run = study_commands.add_parser(
+        "run", help="run the plan's cells (resumable; finished cells are never retrained)",
+        description="Run every cell of a plan into OUT/runs/<camera>.<light>.seed<N>. Finished cells are skipped, "
+        "interrupted ones resume, failed ones are reported and the others go on. With GPUs the cells run as a local "
+        "pool of processes (--per-gpu at once on each GPU).", epilog="shipped plans: configs/studies/")
+    study_run.add_argument("plan", help="a study plan TOML file or a shipped plan name (configs/studies/)")
+    study_run.add_argument("--out", required=True, help="the study directory")
+    study_run.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                           help="override one config key of every cell (repeatable)")
+    study_run.add_argument("--cell", metavar="CAMERA/LIGHT/SEED", help="run this cell only (what --plan-only prints)")
+    study_run.add_argument("--plan-only", action="store_true",
+                           help="print one command per cell, for a scheduler (a Slurm job array, ...), and exit")
+    study_run.add_argument("--gpus", default="auto",
+                           help="GPUs of the local pool: auto (all torch sees), none (this process), or ids 0,1 "
+                                "(default: %(default)s)")
+    study_run.add_argument("--per-gpu", type=int, default=1, help="cells at once on each GPU (default: %(default)s)")
+    study_run.add_argument("--progress", action="store_true", help="show each cell's progress bars")
+    study_report = study_commands.add_parser(
+        "report", help="per camera and light: mIoU with intervals, differences to the reference",
+        description="Mean mIoU and per-class IoU with 95%% t intervals over seeds, the seed-paired difference to "
+        "the reference camera with an image-level bootstrap interval, and the learned camera of every run.")
+    study_report.add_argument("study_dir", metavar="DIR", help="a study directory (warpsense study run --out)")
+    study_report.add_argument("--json", metavar="OUT", help="write the report's record as JSON")
+    study_report.add_argument("--plot", metavar="OUT.png", help="scores with intervals and per-class differences")
+    study_report.add_argument("--split", help="the split the plot shows (default: the first, val)")
+    study_report.add_argument("--resamples", type=int, default=2000, help="bootstrap resamples (default: %(default)s)")
+    study.set_defaults(handler=_study)
+
     lens = commands.add_parser("lens", help="a lens's energy outside its PSF kernel and pixel-integration error",
                                description="Report, per PSF grid node, the energy the lens's K x K kernel leaves out "
                                "(renormalised into the core), the K a tolerance needs, and the pixel-integration "
@@ -165,10 +207,11 @@ def main(argv: list[str] | None = None) -> int:
     from warpsense.config import ConfigError
     from warpsense.data.datasets import DatasetError
     from warpsense.optics.lens import LensFileError
+    from warpsense.study.plan import PlanError
 
     try:
         return args.handler(args)
-    except (ConfigError, DatasetError, LensFileError, OSError, KeyError, ValueError) as error:
+    except (ConfigError, DatasetError, LensFileError, PlanError, OSError, KeyError, ValueError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"warpsense {args.command}: error: {message}", file=sys.stderr)
         return 2

@@ -12,7 +12,6 @@ import dataclasses
 import math
 import sys
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -22,11 +21,13 @@ from warpsense.choices import (
     COMPILE_MODES,
     DATASETS,
     DEVICES,
+    MODEL_NAMES,
     ON_DEVICE_MODES,
     PSF_METHODS,
     QUANTIZE_MODES,
     SELF_CAPTURING_COMPILE_MODES,
 )
+from warpsense.resources import CONFIG_DIR
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -38,40 +39,48 @@ class ConfigError(ValueError):
     """A config file or override is malformed; the message names the file and key."""
 
 
-def _choices(*values: str) -> dict:
-    return {"choices": values}
+def _field(default, *, choices: tuple | None = None, minimum: float | None = None, maximum: float | None = None,
+           exclusive: bool = False):
+    """A config key with its valid values: one of ``choices``, or within [``minimum``, ``maximum``] (``exclusive``:
+    the minimum itself excluded); every float must also be finite."""
+    metadata = {}
+    if choices is not None:
+        metadata["choices"] = tuple(choices)
+    if minimum is not None or maximum is not None:
+        metadata["range"] = (minimum, maximum, exclusive)
+    return field(default=default, metadata=metadata)
 
 
 @dataclass
 class RunConfig:
     name: str = "default"
     output_dir: str = "runs"
-    seed: int = 0
-    device: str = field(default="auto", metadata=_choices(*DEVICES))
+    seed: int = _field(0, minimum=0)
+    device: str = _field("auto", choices=DEVICES)
 
 
 @dataclass
 class DataConfig:
-    dataset: str = field(default="scenes", metadata=_choices(*DATASETS))
+    dataset: str = _field("scenes", choices=DATASETS)
     root: str = ""
     train_split: str = "train"
     val_split: str = "val"
-    crop_height: int = 96
-    crop_width: int = 128
-    scale_min: float = 1.0
-    scale_max: float = 1.0
+    crop_height: int = _field(96, minimum=1)
+    crop_width: int = _field(128, minimum=1)
+    scale_min: float = _field(1.0, minimum=0, exclusive=True)
+    scale_max: float = _field(1.0, minimum=0, exclusive=True)
     hflip: bool = True
-    batch_size: int = 8
-    num_workers: int = 0
+    batch_size: int = _field(8, minimum=1)
+    num_workers: int = _field(0, minimum=0, maximum=256)
     holdout_prefix: str = ""
-    on_device: str = field(default="auto", metadata=_choices(*ON_DEVICE_MODES))
-    on_device_max_mb: int = 2048
-    max_train_images: int = 0
-    max_val_images: int = 0
-    scenes_train: int = 256
-    scenes_val: int = 32
-    scene_height: int = 96
-    scene_width: int = 128
+    on_device: str = _field("auto", choices=ON_DEVICE_MODES)
+    on_device_max_mb: int = _field(2048, minimum=0)
+    max_train_images: int = _field(0, minimum=0)
+    max_val_images: int = _field(0, minimum=0)
+    scenes_train: int = _field(256, minimum=1)
+    scenes_val: int = _field(32, minimum=1)
+    scene_height: int = _field(96, minimum=8, maximum=8192)
+    scene_width: int = _field(128, minimum=8, maximum=8192)
     unprocess: bool = False
 
 
@@ -80,10 +89,10 @@ class OpticsConfig:
     enabled: bool = False
     lens: str = "phone_68deg"
     learnable: bool = False
-    normalize_mean: float = 0.5
-    method: str = field(default="auto", metadata=_choices(*PSF_METHODS))
-    energy_eps: float = 1e-3
-    field_tolerance: float = 1e-3
+    normalize_mean: float = _field(0.5, minimum=0)
+    method: str = _field("auto", choices=PSF_METHODS)
+    energy_eps: float = _field(0.001, minimum=0, maximum=1)
+    field_tolerance: float = _field(0.001, minimum=0)
 
 
 @dataclass
@@ -96,78 +105,69 @@ class ExposureConfig:
 @dataclass
 class CFAConfig:
     enabled: bool = True
-    pattern: str = field(default="RGGB", metadata=_choices(*CFA_LAYOUTS))
-    tile: int = 2
-    mode: str = field(default="softmax", metadata=_choices(*CFA_MODES))
+    pattern: str = _field("RGGB", choices=tuple(CFA_LAYOUTS))
+    tile: int = _field(2, minimum=1, maximum=8)
+    mode: str = _field("softmax", choices=CFA_MODES)
     init_logit: float = 4.0
-    temperature_start: float = 1.0
-    temperature_end: float = 0.05
+    temperature_start: float = _field(1.0, minimum=0, exclusive=True)
+    temperature_end: float = _field(0.05, minimum=0, exclusive=True)
 
 
 @dataclass
 class NoiseConfig:
     enabled: bool = True
-    shot: float = 0.015
-    read: float = 0.002
-    full_well_electrons: float = 0.0
-    read_electrons: float = 0.0
+    shot: float = _field(0.015, minimum=0)
+    read: float = _field(0.002, minimum=0)
+    full_well_electrons: float = _field(0.0, minimum=0, maximum=10000000.0)
+    read_electrons: float = _field(0.0, minimum=0, maximum=10000.0)
     learnable: bool = False
     eval_seed: int = 1234
-
-
-def noise_levels(noise: NoiseConfig) -> tuple[float, float]:
-    """(shot variance coefficient, read std) in units of the white level. With ``full_well_electrons`` set the
-    sensor is stated physically: a signal of s (white level = 1) holds s * FWC electrons, so its shot variance is
-    s / FWC (shot = 1 / FWC) and the read noise is read_electrons / FWC; ``shot`` and ``read`` are then ignored."""
-    if noise.full_well_electrons > 0:
-        return 1.0 / noise.full_well_electrons, noise.read_electrons / noise.full_well_electrons
-    return noise.shot, noise.read
 
 
 @dataclass
 class QuantizeConfig:
     enabled: bool = True
-    bits: int = 10
-    white_level: float = 1.0
-    mode: str = field(default="full_well", metadata=_choices(*QUANTIZE_MODES))
+    bits: int = _field(10, minimum=1, maximum=24)
+    white_level: float = _field(1.0, minimum=0, exclusive=True)
+    mode: str = _field("full_well", choices=QUANTIZE_MODES)
 
 
 @dataclass
 class ISPConfig:
     enabled: bool = False
-    gamma: float = 2.2
+    gamma: float = _field(2.2, minimum=0, exclusive=True)
 
 
 @dataclass
 class ModelConfig:
-    name: str = "dsunet"
-    width: int = 16
-    num_classes: int = 0
+    name: str = _field("dsunet", choices=MODEL_NAMES)
+    width: int = _field(16, minimum=1, maximum=512)
+    num_classes: int = _field(0, minimum=0, maximum=1024)
     channels_last: bool = True
 
 
 @dataclass
 class LossConfig:
-    ohem_weight: float = 0.6
-    ohem_fraction: float = 0.25
-    lovasz_weight: float = 0.4
-    smooth_weight: float = 0.01
+    ohem_weight: float = _field(0.6, minimum=0)
+    ohem_fraction: float = _field(0.25, minimum=0, maximum=1, exclusive=True)
+    lovasz_weight: float = _field(0.4, minimum=0)
+    smooth_weight: float = _field(0.01, minimum=0)
 
 
 @dataclass
 class TrainConfig:
-    epochs: int = 12
-    warmup_epochs: int = 4
-    lr: float = 2e-3
-    weight_decay: float = 1e-4
-    camera_lr_scale: float = 0.1
-    camera_grad_clip: float = 0.1
+    epochs: int = _field(12, minimum=1)
+    warmup_epochs: int = _field(4, minimum=0)
+    lr: float = _field(0.002, minimum=0, exclusive=True)
+    weight_decay: float = _field(0.0001, minimum=0)
+    camera_lr_scale: float = _field(0.1, minimum=0)
+    camera_grad_clip: float = _field(0.1, minimum=0)
     amp: bool = True
-    compile: str = field(default="off", metadata=_choices(*COMPILE_MODES))
+    compile: str = _field("off", choices=COMPILE_MODES)
     cuda_graph: bool = False
-    max_steps_per_epoch: int = 0
-    time_budget_minutes: float = 0.0
-    eval_every: int = 1
+    max_steps_per_epoch: int = _field(0, minimum=0)
+    time_budget_minutes: float = _field(0.0, minimum=0)
+    eval_every: int = _field(1, minimum=1)
     plots: bool = True
 
 
@@ -195,45 +195,16 @@ class Config:
         write_json(path, self.to_dict(), sort_keys=True)
 
 
-CONFIG_DIR = resources.files("warpsense.configs")
-
-
 def preset_names() -> list[str]:
     return sorted(p.name[:-5] for p in (CONFIG_DIR / "presets").iterdir() if p.name.endswith(".toml"))
 
 
-# value ranges per key: (minimum, maximum, minimum excluded); None = unbounded. Every float must also be finite.
-RANGES = {
-    "run.seed": (0, None, False),
-    "data.crop_height": (1, None, False), "data.crop_width": (1, None, False),
-    "data.scale_min": (0, None, True), "data.scale_max": (0, None, True), "data.batch_size": (1, None, False),
-    "data.num_workers": (0, 256, False), "data.on_device_max_mb": (0, None, False),
-    "data.max_train_images": (0, None, False), "data.max_val_images": (0, None, False),
-    "data.scenes_train": (1, None, False), "data.scenes_val": (1, None, False),
-    "data.scene_height": (8, 8192, False), "data.scene_width": (8, 8192, False),
-    "optics.normalize_mean": (0, None, False), "optics.energy_eps": (0, 1, False),
-    "optics.field_tolerance": (0, None, False),
-    "cfa.tile": (1, 8, False), "cfa.temperature_start": (0, None, True), "cfa.temperature_end": (0, None, True),
-    "noise.shot": (0, None, False), "noise.read": (0, None, False),
-    "noise.full_well_electrons": (0, 1e7, False), "noise.read_electrons": (0, 1e4, False),
-    "quantize.bits": (1, 24, False), "quantize.white_level": (0, None, True),
-    "isp.gamma": (0, None, True),
-    "model.width": (1, 512, False), "model.num_classes": (0, 1024, False),
-    "loss.ohem_weight": (0, None, False), "loss.ohem_fraction": (0, 1, True), "loss.lovasz_weight": (0, None, False),
-    "loss.smooth_weight": (0, None, False),
-    "train.epochs": (1, None, False), "train.warmup_epochs": (0, None, False), "train.lr": (0, None, True),
-    "train.weight_decay": (0, None, False), "train.camera_lr_scale": (0, None, False),
-    "train.camera_grad_clip": (0, None, False), "train.max_steps_per_epoch": (0, None, False),
-    "train.time_budget_minutes": (0, None, False), "train.eval_every": (1, None, False),
-}
-
-
-def _check_range(value: Any, key: str, where: str) -> None:
+def _check_range(value: Any, spec: dataclasses.Field, where: str) -> None:
     if isinstance(value, float) and not math.isfinite(value):
         raise ConfigError(f"{where}: must be finite, got {value}")
-    if key not in RANGES:
+    if "range" not in spec.metadata:
         return
-    minimum, maximum, excluded = RANGES[key]
+    minimum, maximum, excluded = spec.metadata["range"]
     if minimum is not None and (value <= minimum if excluded else value < minimum):
         raise ConfigError(f"{where}: must be {'>' if excluded else '>='} {minimum}, got {value}")
     if maximum is not None and value > maximum:
@@ -248,23 +219,9 @@ def validate(config: "Config", source: str) -> "Config":
     if config.data.scale_min > config.data.scale_max:
         raise ConfigError(f"{source}: data.scale_min ({config.data.scale_min}) must be <= data.scale_max "
                           f"({config.data.scale_max})")
-    if config.noise.read_electrons > 0 and config.noise.full_well_electrons == 0:
-        raise ConfigError(f"{source}: noise.read_electrons needs noise.full_well_electrons (electrons at the white "
-                          "level)")
     if config.train.cuda_graph and config.train.compile in SELF_CAPTURING_COMPILE_MODES:
         raise ConfigError(f"{source}: train.cuda_graph captures the whole step; train.compile = "
                           f"{config.train.compile!r} captures graphs itself (use \"off\" or \"default\" with it)")
-    from warpsense.models import MODELS
-    from warpsense.optics.lens import LensFileError, read_lens_spec
-
-    if config.model.name not in MODELS:
-        raise ConfigError(f"{source}: model.name: unknown model {config.model.name!r}; valid models: "
-                          f"{', '.join(sorted(MODELS))}")
-
-    try:  # a lens file is read even while optics is off: the saved config must run when it is turned on
-        read_lens_spec(config.optics.lens)
-    except LensFileError as error:
-        raise ConfigError(f"{source}: optics.lens: {error}") from None
     name = config.run.name
     if not name or name in (".", "..") or "/" in name or "\\" in name or name != name.strip():
         raise ConfigError(f"{source}: run.name must be a plain folder name (no path separators), got {name!r}")
@@ -304,7 +261,7 @@ def _apply(config: Config, overrides: dict, source: str) -> None:
             choices = spec.metadata.get("choices")
             if choices and value not in choices:
                 raise ConfigError(f"{where}: {value!r} is not one of {', '.join(choices)}")
-            _check_range(value, f"{section_name}.{key}", where)
+            _check_range(value, spec, where)
             setattr(section, key, value)
 
 
@@ -353,19 +310,22 @@ def _apply_file(config: Config, name_or_path: str | Path, depth: int) -> None:
     _apply(config, data, label)
 
 
-def load_config(config: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+def load_config(config: str | Path | list | tuple | None = None,
+                overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """Resolve a config: dataclass defaults, then a preset or TOML file, then ``--set`` overrides.
 
     Args:
-        config: a preset name (see `preset_names()`), a path to a TOML file, or None for the defaults.
+        config: a preset name (see `preset_names()`), a path to a TOML file, a list of them (applied in order, each
+            over the last), or None for the defaults.
         overrides: ``section.key=value`` strings applied in order.
     """
     resolved = Config()
-    if config is not None:
-        _apply_file(resolved, config, depth=0)
+    files = [] if config is None else list(config) if isinstance(config, (list, tuple)) else [config]
+    for name_or_path in files:
+        _apply_file(resolved, name_or_path, depth=0)
     for text in overrides:
         _apply(resolved, parse_override(text), f"--set {text}")
-    return validate(resolved, f"config {config}" if config is not None else "config")
+    return validate(resolved, f"config {' + '.join(map(str, files))}" if files else "config")
 
 
 def with_overrides(config: Config, overrides: list[str] | tuple[str, ...]) -> Config:

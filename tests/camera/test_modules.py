@@ -25,13 +25,20 @@ def test_cfa_module_equals_functional(mode):
 
 
 def test_cfa_softmax_anneals_to_one_hot_and_learns():
-    module = CFA("RCCC", 2, "softmax", init_logit=2.0)
-    module.set_temperature(1.0)
+    from warpsense.train.schedule import Schedule
+
+    module = CFA("RCCC", 2, "softmax", init_logit=2.0, temperature_start=1.0, temperature_end=0.01)
+    schedule = Schedule(epochs=3, warmup_epochs=1)
+    module.on_epoch(schedule, 0)  # warm-up: the start temperature
+    assert float(module.temperature) == 1.0
     soft = module.phi().detach().clone()
-    module.set_temperature(0.01)
+    module.on_epoch(schedule, 1)  # geometric annealing: start * (end / start) ** 0 at the first joint epoch
+    assert float(module.temperature) == pytest.approx(1.0)
+    module.on_epoch(schedule, 2)  # the last epoch reaches the end temperature
+    assert float(module.temperature) == pytest.approx(0.01)
     torch.testing.assert_close(module.phi(), module.hard_phi(), atol=1e-6, rtol=0)
     assert not torch.allclose(soft, module.hard_phi())
-    module.set_temperature(1.0)
+    module.on_epoch(schedule, 0)
     module(torch.rand(1, 3, 4, 4)).sum().backward()
     assert module.logits.grad is not None and module.logits.grad.abs().sum() > 0
 
@@ -150,7 +157,7 @@ def test_nan_policy_camera_rejects_non_finite_radiance(bad):
     optics' normalisation would otherwise spread it over the frame and into every camera gradient)."""
     from warpsense.camera.camera import set_finite_check
     from warpsense.config import load_config
-    from warpsense.models.sensing import build_system
+    from warpsense.system import build_system
 
     torch.manual_seed(0)
     model = build_system(load_config("camvid_codesign", ["train.compile=off"]), 11)
@@ -169,17 +176,19 @@ def test_physical_sensor_preset_noise_matches_electron_counts():
     """Issue 13: a 4500 e- full well with 2 e- read noise. A flat field at half the white level holds 2250 e-; its
     variance in white-level units is (2250 + 2^2) / 4500^2."""
     from warpsense.camera import SensorNoise
-    from warpsense.config import noise_levels
 
     config = load_config("camvid_codesign_phone")
-    shot, read = noise_levels(config.noise)
+    stage = SensorNoise.from_config(config.noise)
+    shot, read = (float(level) for level in stage.levels())
     assert shot == pytest.approx(1 / 4500) and read == pytest.approx(2 / 4500)
     noise = SensorNoise(shot, read).train()
     flat = torch.full((4, 1, 128, 128), 0.5, dtype=torch.float64)
     variance = noise(flat).var().item()
     assert variance == pytest.approx((2250 + 4) / 4500**2, rel=0.05)
+    from warpsense.system import check_config
+
     with pytest.raises(ConfigError, match="noise.read_electrons needs noise.full_well_electrons"):
-        load_config(None, ["noise.read_electrons=2"])
+        check_config(load_config(None, ["noise.read_electrons=2"]))
 
 
 def test_camera_from_a_preset_name_path_or_dict_equals_from_its_config(tmp_path):

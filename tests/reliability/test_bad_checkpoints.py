@@ -9,8 +9,8 @@ import torch
 from safetensors.torch import save_file
 
 from warpsense.config import load_config
-from warpsense.train.checkpoint import save_checkpoint
-from warpsense.models.sensing import build_system
+from warpsense.system.checkpoint import save_checkpoint
+from warpsense.system import build_system
 
 from tests.reliability.conftest import assert_clean_failure
 from tests.train.test_checkpoint import _bad_files

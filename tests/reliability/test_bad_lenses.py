@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from warpsense.config import CONFIG_DIR
+from warpsense.resources import CONFIG_DIR
 from warpsense.optics.lens import OPTIONAL_KEYS, REQUIRED_KEYS
 
 from tests.reliability.conftest import assert_clean_failure

@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from warpsense.config import load_config
-from warpsense.train import checkpoint, engine
+from warpsense.system import checkpoint
+from warpsense.train import engine
 from warpsense.train.engine import train
 
 from tests.train.test_training import TINY

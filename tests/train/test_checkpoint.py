@@ -9,8 +9,8 @@ import torch
 from safetensors.torch import save_file
 
 from warpsense.cli import main
-from warpsense.train import checkpoint
-from warpsense.train.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
+from warpsense.system import checkpoint
+from warpsense.system.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 
 
 def _model(value):

@@ -60,7 +60,7 @@ def test_two_rank_gloo_matches_single_process(tmp_path):
 
 
 def load_initial(name):
-    from warpsense.models.sensing import build_system
+    from warpsense.system import build_system
 
     return build_system(load_config(), 11).state_dict()[name]
 
@@ -86,7 +86,7 @@ def test_wrapping_warns_about_nothing_and_syncs_no_buffers_per_forward():
 
 
 def test_device_choices_resolve_as_the_config_documents(monkeypatch):
-    from warpsense.train.distributed import resolve_device
+    from warpsense.system import resolve_device
 
     for available in (False, True):
         monkeypatch.setattr(torch.cuda, "is_available", lambda: available)

@@ -76,7 +76,7 @@ def test_predictions_show_spread_frames_and_a_class_legend(tmp_path, figures):
 
 
 def test_psf_display_window_holds_every_pixel_above_one_percent():
-    from warpsense.train.plots import display_half_width
+    from warpsense.optics.psf_support import display_half_width
 
     offsets = np.arange(31) - 15
     radius2 = offsets[:, None] ** 2 + offsets[None, :] ** 2

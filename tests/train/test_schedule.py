@@ -3,7 +3,7 @@ import json
 import pytest
 
 from warpsense.config import load_config
-from warpsense.train.checkpoint import read_checkpoint
+from warpsense.system.checkpoint import read_checkpoint
 from warpsense.train.engine import LAST, train
 from warpsense.train.schedule import Schedule
 
@@ -53,7 +53,7 @@ def test_time_budget_shortens_the_run_not_its_config_and_resume_keeps_the_shorte
 def test_a_resumed_run_takes_the_saved_plan_only_for_the_same_request_and_checks_it():
     from pathlib import Path
 
-    from warpsense.train.checkpoint import CheckpointError
+    from warpsense.system.checkpoint import CheckpointError
     from warpsense.train.engine import _resumed_schedule
 
     requested = Schedule.from_config(load_config(None, ["train.epochs=10", "train.warmup_epochs=4"]).train)

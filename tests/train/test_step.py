@@ -12,8 +12,8 @@ from warpsense.train.distributed import DistributedContext
 from warpsense.train.engine import train
 from warpsense.train.step import TrainingStep, cosine_scale
 from warpsense.camera import Camera
-from warpsense.models.sensing import SensingModel, build_system, cfa_flip, cfa_unflip
-from warpsense.train.camera_phases import camera_parameters, set_camera_trainable
+from warpsense.system import SensingModel, build_system, cfa_flip, cfa_unflip
+from warpsense.train.schedule import Schedule
 
 from tests.conftest import device_params
 from tests.train.test_training import TINY
@@ -36,7 +36,7 @@ def test_cosine_scale():
 
 def test_statistics_are_the_mean_of_the_step_losses():
     config, model, optimizer, images, labels = _step_and_batch()
-    step = TrainingStep(config.loss, optimizer, camera_parameters(model), total_steps=4, amp=False)
+    step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), total_steps=4, amp=False)
     losses = []
     for index in range(3):
         before = [p.detach().clone() for p in model.network.parameters()]
@@ -53,15 +53,15 @@ def test_statistics_are_the_mean_of_the_step_losses():
 def test_camera_gradient_is_clipped_in_the_joint_phase():
     config, model, optimizer, images, labels = _step_and_batch()
     clip = 1e-4
-    step = TrainingStep(config.loss, optimizer, camera_parameters(model), 4, False, camera_grad_clip=clip)
+    step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), 4, False, camera_grad_clip=clip)
     step(model, images, labels, 0, joint=True)
-    norm = math.sqrt(sum(float(p.grad.square().sum()) for p in camera_parameters(model) if p.grad is not None))
+    norm = math.sqrt(sum(float(p.grad.square().sum()) for p in model.camera.learnable_parameters() if p.grad is not None))
     assert norm == pytest.approx(clip, rel=1e-4)
 
 
 def test_non_finite_loss_is_counted():
     config, model, optimizer, images, labels = _step_and_batch()
-    step = TrainingStep(config.loss, optimizer, camera_parameters(model), 4, False)
+    step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), 4, False)
     with torch.no_grad():
         next(model.network.parameters()).fill_(float("nan"))
     step(model, images, labels, 0, joint=False)
@@ -146,7 +146,7 @@ def test_holdout_prefix_selects_on_a_sequence_training_never_sees(shared_data, t
 def test_exception_cuda_graph_needs_cuda():
     config, model, optimizer, images, labels = _step_and_batch()
     with pytest.raises(ValueError, match="needs a CUDA device"):
-        TrainingStep(config.loss, optimizer, camera_parameters(model), 4, False, cuda_graph=True)
+        TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), 4, False, cuda_graph=True)
 
 
 @pytest.mark.cuda
@@ -167,7 +167,7 @@ def test_cuda_graph_steps_match_eager_steps():
             network = torch.nn.Sequential(torch.nn.Conv2d(1, 8, 3, padding=1), torch.nn.BatchNorm2d(8),
                                           torch.nn.ReLU(), torch.nn.Conv2d(8, 11, 3, padding=1))
             model = SensingModel(Camera.from_config(config), network).cuda().train()
-            camera = camera_parameters(model)
+            camera = model.camera.learnable_parameters()
             optimizer = torch.optim.AdamW([{"params": list(network.parameters()), "lr": 3e-3},
                                            {"params": camera, "lr": 1e-3}], fused=True)
             step = TrainingStep(config.loss, optimizer, camera, total_steps=12, amp=True, camera_grad_clip=0.5,
@@ -176,7 +176,7 @@ def test_cuda_graph_steps_match_eager_steps():
             for index, (images, labels) in enumerate(batches):
                 joint = index >= 6
                 if index in (0, 6):
-                    set_camera_trainable(model, joint)
+                    model.camera.on_epoch(Schedule(2, 1), int(joint))  # epoch 1 of 2 is joint
                 step(model, images, labels, index, joint)
                 if index in (5, 11):
                     statistics.append(step.epoch_statistics(DistributedContext()))
@@ -199,16 +199,16 @@ def test_compiled_step_trains_the_camera_after_warm_up(device):
     torch.manual_seed(0)
     network = torch.nn.Sequential(torch.nn.Conv2d(1, 4, 3, padding=1), torch.nn.ReLU(), torch.nn.Conv2d(4, 11, 1))
     model = SensingModel(Camera.from_config(config), network).to(device).train()
-    camera = camera_parameters(model)
+    camera = model.camera.learnable_parameters()
     optimizer = torch.optim.AdamW([{"params": list(network.parameters())}, {"params": camera}], lr=1e-2)
     step = TrainingStep(config.loss, optimizer, camera, total_steps=8, amp=False, compile_mode="default")
     images = torch.randint(0, 256, (2, 3, 16, 24), dtype=torch.uint8, device=device)
     labels = torch.randint(0, 11, (2, 16, 24), device=device)
-    set_camera_trainable(model, False)
+    model.camera.on_epoch(Schedule(2, 1), int(False))  # epoch 1 of 2 is joint
     for index in range(2):
         step(model, images, labels, index, joint=False)
     before = [p.detach().clone() for p in camera]
-    set_camera_trainable(model, True)
+    model.camera.on_epoch(Schedule(2, 1), int(True))  # epoch 1 of 2 is joint
     for index in range(2, 4):
         step(model, images, labels, index, joint=True)
     assert all(not torch.equal(a, p.detach()) for a, p in zip(before, camera))

@@ -26,7 +26,7 @@ from warpsense.ops import psf_conv
 from warpsense.ops.reference import (cfa_mosaic_reference, poisson_gaussian_reference, psf_conv_reference,
                                      quantize_reference)
 from warpsense.train.step import TrainingStep
-from warpsense.models.sensing import SensingModel
+from warpsense.system import SensingModel
 
 
 def gaussian_psf(size: int = 7, sigma: float = 1.2, channels: int = 3) -> torch.Tensor:

@@ -1,6 +1,12 @@
-"""The camera: optics -> exposure -> CFA -> noise -> quantization, built from a config."""
+"""The camera: optics -> exposure -> CFA -> noise -> quantization, built from a config. The only module that
+talks to the stages."""
 
 from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from torch import nn
@@ -10,98 +16,212 @@ from warpsense.camera.exposure import Exposure
 from warpsense.camera.noise import SensorNoise
 from warpsense.camera.optics import Optics
 from warpsense.camera.quantizer import Quantizer
-from warpsense.camera.stage import Stage
+from warpsense.camera.stage import SensorArguments, Stage
 from warpsense.ops.cfa import cfa_mosaic
 from warpsense.ops.sensor import sensor_capture
 
 STAGES: dict[str, type[Stage]] = {
-    "optics": Optics, "exposure": Exposure, "cfa": CFA, "noise": SensorNoise, "quantizer": Quantizer,
+    "optics": Optics,
+    "exposure": Exposure,
+    "cfa": CFA,
+    "noise": SensorNoise,
+    "quantizer": Quantizer,
 }
 """The camera's stages in data-path order: attribute name on `Camera` -> stage class (its ``config_section``
 names the config section that enables and configures it)."""
+
+SCENE_MEAN_WITHOUT_OPTICS = 0.25
+"""Mean linear irradiance assumed for a capture when no optics stage normalises it (about a street frame's)."""
+
+
+@dataclass(frozen=True)
+class LearnedCamera:
+    """What a camera has learned (or was fixed at), typed; None where the camera has no such stage.
+
+    Attributes:
+        cfa_layout: exported filter letters row by row ("RGGB", "RCCB", ...).
+        cfa_responses: [T][T][3] responses in use.
+        exposure_gain: the exposure gain a(g), in [0.25, 4].
+        zernike_waves: a learnable lens's Zernike coefficients (waves).
+        noise_shot, noise_read: noise levels (variance coefficient, standard deviation; units of the white level).
+    """
+
+    cfa_layout: str | None = None
+    cfa_responses: list | None = None
+    exposure_gain: float | None = None
+    zernike_waves: list | None = None
+    noise_shot: float | None = None
+    noise_read: float | None = None
+
+    @classmethod
+    def from_summary(cls, summary: dict) -> "LearnedCamera":
+        """From `Camera.summary` (also as recorded in metrics.jsonl and checkpoints)."""
+        return cls(summary.get("cfa_layout"), summary.get("cfa_phi"), summary.get("exposure_gain"),
+                   summary.get("zernike_waves"), summary.get("noise_shot"), summary.get("noise_read"))
 
 
 class Camera(nn.Module):
     """Radiance [B, 3, H, W] (linear, >= 0) -> RAW [B, 1, H, W] in units of the white level.
 
-    Stages the config leaves out are None and cost nothing. Exposure is folded into the CFA responses, and
-    exposure -> CFA -> noise -> quantization run as one fused Warp kernel (`fusable`). Without a CFA the sensor is
-    monochrome (the mean of the three channels).
+    Stages the config leaves out are None and cost nothing. The optics stages run first; the sensor chain runs as
+    one fused Warp kernel when every sensor stage can supply its part of it (`Stage.fuse`), otherwise stage by
+    stage. Without a CFA the sensor is monochrome (the mean of the three channels).
 
-    NaN policy (issue 15, D10): radiance must be finite. A NaN or inf pixel would not stay local (the optics'
-    mean normalisation spreads it over the frame and into the lens, gain and CFA gradients), so the camera rejects
-    it with a ValueError. The check costs one host synchronisation per call; `check_finite = False` skips it
-    (the training loop does: its radiance comes from 8-bit images, and it checks the loss and parameters each
-    epoch instead). Skipped while compiling or capturing a CUDA graph, where a host read is not allowed.
+    NaN policy: radiance must be finite. A NaN or inf pixel would not stay local (the optics' mean normalisation
+    spreads it over the frame and into the lens, gain and CFA gradients), so the camera rejects it with a
+    ValueError. The check costs one host synchronisation per call; `check_finite = False` skips it (the training
+    loop does: its radiance comes from 8-bit images, and it checks the loss and parameters each epoch instead).
+    Skipped while compiling or capturing a CUDA graph, where a host read is not allowed.
     """
 
     check_finite: bool = True
 
-    def __init__(self, optics: Optics | None = None, exposure: Exposure | None = None, cfa: CFA | None = None,
-                 noise: SensorNoise | None = None, quantizer: Quantizer | None = None):
+    def __init__(self, **stages: Stage | None):
+        """Args:
+            **stages: stage modules by their `STAGES` names (those left out or None are absent).
+        """
         super().__init__()
-        self.optics = optics
-        self.exposure = exposure
-        self.cfa = cfa
-        self.noise = noise
-        self.quantizer = quantizer
+        unknown = set(stages) - set(STAGES)
+        if unknown:
+            raise TypeError(f"Camera: unknown stage(s) {', '.join(sorted(unknown))}; stages: {', '.join(STAGES)}")
+        self.stage_names = tuple(STAGES)  # this camera's data path, fixed at construction
+        for name in self.stage_names:
+            setattr(self, name, stages.get(name))
         self.register_buffer("mono_phi", torch.full((1, 1, 3), 1 / 3), persistent=False)
         # which parameters the config made learnable; training phases toggle requires_grad within this set
         self.learnable_names = frozenset(name for name, p in self.named_parameters() if p.requires_grad)
+
+    @staticmethod
+    def _resolve(config):
+        from warpsense.config import Config, config_from_dict, load_config
+
+        if isinstance(config, (str, Path)):
+            return load_config(config)
+        if isinstance(config, dict):
+            return config_from_dict(config, "Camera.from_config")
+        if not isinstance(config, Config):
+            raise TypeError(f"Camera.from_config: expected a Config, preset name, TOML path or dict, got "
+                            f"{type(config).__name__}")
+        return config
 
     @classmethod
     def from_config(cls, config) -> "Camera":
         """Build from a config (only the enabled stages are constructed).
 
         Args:
-            config: a `warpsense.config.Config`, a preset name ("camvid_codesign") or TOML path (read with
-                `load_config`, presets and ``base`` files resolved), or a dict of sections (as `Config.to_dict()`
-                gives; keys left out keep their defaults, unknown keys are errors).
+            config: a `warpsense.config.Config` (or any object with one attribute per stage section), a preset name
+                ("camvid_codesign") or TOML path (read with `load_config`), or a dict of sections (as
+                `Config.to_dict()` gives; keys left out keep their defaults, unknown keys are errors).
         """
-        from pathlib import Path
-
-        from warpsense.config import Config, config_from_dict, load_config
-
-        if isinstance(config, (str, Path)):
-            config = load_config(config)
-        elif isinstance(config, dict):
-            config = config_from_dict(config, "Camera.from_config")
-        elif not isinstance(config, Config):
-            raise TypeError(f"Camera.from_config: expected a Config, preset name, TOML path or dict, got "
-                            f"{type(config).__name__}")
-
-        sections = {name: getattr(config, stage.config_section) for name, stage in STAGES.items()}
+        config = cls._resolve(config)
+        sections = {name: getattr(config, stage.config_section, None) for name, stage in STAGES.items()}
         return cls(**{name: stage.from_config(sections[name]) for name, stage in STAGES.items()
-                      if sections[name].enabled})
+                      if sections[name] is not None and sections[name].enabled})
+
+    @staticmethod
+    def check_config(config, source: str = "config") -> None:
+        """Every stage's checks of its section (`Stage.check_section`), enabled or not; ValueError naming the key."""
+        for stage in STAGES.values():
+            section = getattr(config, stage.config_section, None)
+            if section is not None:
+                stage.check_section(section, source)
 
     def stages(self) -> list[tuple[str, Stage]]:
         """The constructed stages in data-path order, as (attribute name, module)."""
-        return [(name, getattr(self, name)) for name in STAGES if getattr(self, name) is not None]
+        return [(name, getattr(self, name)) for name in self.stage_names if getattr(self, name) is not None]
+
+    def _part(self, part: str) -> list[Stage]:
+        return [stage for _, stage in self.stages() if stage.part == part]
+
+    # --- learned state -------------------------------------------------------------------------------------------
 
     def summary(self) -> dict:
         """The learned state of every stage (`Stage.summary`), merged: JSON-ready values."""
         return {key: value for _, stage in self.stages() for key, value in stage.summary().items()}
 
-    def learnable_parameters(self) -> list[nn.Parameter]:
-        """The parameters the config made learnable (whether or not a training phase freezes them now)."""
-        return [p for name, p in self.named_parameters() if name in self.learnable_names]
+    def learned(self) -> LearnedCamera:
+        """The learned state, typed."""
+        return LearnedCamera.from_summary(self.summary())
+
+    def layout_letters(self) -> list[list[str]] | None:
+        """The exported CFA layout as T x T letters; None for a monochrome sensor."""
+        return self.cfa.hard_letters() if self.cfa is not None else None
+
+    def raw_mean(self) -> float:
+        """Mean irradiance the sensor sees times the exposure gain: the optics' normalised mean (or
+        `SCENE_MEAN_WITHOUT_OPTICS` where nothing normalises it) times a(g)."""
+        level = self.optics.normalize_mean if self.optics is not None and self.optics.normalize_mean > 0 \
+            else SCENE_MEAN_WITHOUT_OPTICS
+        return level * (float(self.exposure.gain().detach()) if self.exposure is not None else 1.0)
 
     @property
     def tile(self) -> int:
         return self.cfa.tile if self.cfa is not None else 1
 
+    # --- training ------------------------------------------------------------------------------------------------
+
+    def learnable_parameters(self) -> list[nn.Parameter]:
+        """The parameters the config made learnable (whether or not a training phase freezes them now)."""
+        return [p for name, p in self.named_parameters() if name in self.learnable_names]
+
+    def on_epoch(self, schedule, epoch: int) -> None:
+        """Start ``epoch`` of ``schedule`` (a `warpsense.train.schedule.Schedule`): the learnable parameters train in
+        its joint phase only, and every stage reacts to the plan (`Stage.on_epoch`)."""
+        for parameter in self.learnable_parameters():
+            parameter.requires_grad_(schedule.is_joint(epoch))
+        for _, stage in self.stages():
+            stage.on_epoch(schedule, epoch)
+
+    # --- what-if evaluation --------------------------------------------------------------------------------------
+
+    def what_if_values(self) -> dict:
+        """The overrides this camera accepts (`overridden`) with their current values, e.g. {"noise_scale": 1.0,
+        "bits": 10}."""
+        return {name: getattr(stage, attribute) for _, stage in self.stages()
+                for name, attribute in stage.what_if.items()}
+
+    @contextlib.contextmanager
+    def overridden(self, **values) -> Iterator["Camera"]:
+        """Evaluate the camera at another operating point for a while, restored on exit.
+
+        Args:
+            **values: names from `what_if_values` (``noise_scale``: noise levels scaled, shot by its square;
+                ``exact_noise``: true Poisson counts; ``bits``: ADC bit depth); a name no stage of this camera
+                takes is a KeyError.
+        """
+        owners = {name: (stage, attribute) for _, stage in self.stages() for name, attribute in stage.what_if.items()}
+        unknown = set(values) - set(owners)
+        if unknown:
+            raise KeyError(f"Camera.overridden: {', '.join(sorted(unknown))} not accepted by this camera; accepted: "
+                           f"{', '.join(owners) or 'none'}")
+        saved = {name: getattr(*owners[name]) for name in values}
+        try:
+            for name, value in values.items():
+                setattr(*owners[name], value)
+            yield self
+        finally:
+            for name, value in saved.items():
+                setattr(*owners[name], value)
+
+    # --- data path -----------------------------------------------------------------------------------------------
+
+    def sensor_arguments(self) -> tuple[SensorArguments, bool]:
+        """The fused kernel's arguments supplied by the sensor stages in order, and whether all of them can be
+        fused."""
+        arguments = SensorArguments(self.mono_phi)
+        fusable = True
+        for stage in self._part("sensor"):
+            fusable = stage.fuse(arguments) and fusable
+        return arguments, fusable
+
     def fusable(self) -> bool:
-        """Whether exposure -> CFA -> noise -> quantization run as the one fused kernel (`sensor_capture`): always,
-        except for exact Poisson noise and per-image-max quantization, which take the per-stage ops."""
-        noise_ok = self.noise is None or not self.noise.exact
-        quantizer_ok = self.quantizer is None or self.quantizer.mode == "full_well"
-        return noise_ok and quantizer_ok
+        """Whether the sensor chain runs as the one fused kernel (`sensor_capture`)."""
+        return self.sensor_arguments()[1]
 
     def responses(self) -> torch.Tensor:
-        """[T, T, 3] effective spectral responses: exposure gain times the CFA's phi (a monochrome sensor, without a
-        CFA, is the mean of the three channels: phi = 1/3)."""
-        phi = self.cfa.phi() if self.cfa is not None else self.mono_phi
-        return phi * self.exposure.gain() if self.exposure is not None else phi
+        """[T, T, 3] effective spectral responses: every gain before the noise times the CFA's phi (a monochrome
+        sensor, without a CFA, is the mean of the three channels: phi = 1/3)."""
+        return self.sensor_arguments()[0].responses()
 
     def forward(self, radiance: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance [B, 3, H, W] -> RAW [B, 1, H, W]; ``image_index`` [B] (dataset indices) keys the eval noise."""
@@ -111,20 +231,34 @@ class Camera(nn.Module):
             if bad:
                 raise ValueError(f"camera: radiance has {bad} non-finite values (NaN or inf) of {radiance.numel()}; "
                                  "the camera takes finite radiance only")
-        image = self.optics(radiance) if self.optics is not None else radiance
-        if self.fusable():
-            noisy = self.noise is not None
-            shot, read = self.noise.levels() if noisy else (None, None)
-            seeds = self.noise.seeds(image.shape[0], image_index) if noisy else 0
-            bits = self.quantizer.bits if self.quantizer is not None else None
-            white = self.quantizer.white_level if self.quantizer is not None else 1.0
-            return sensor_capture(image, self.responses(), shot, read, seeds, bits, white)
-        raw = cfa_mosaic(image, self.responses())
-        if self.noise is not None:
-            raw = self.noise(raw, image_index)
-        if self.quantizer is not None:
-            raw = self.quantizer(raw)
-        return raw
+        image = radiance
+        for stage in self._part("optics"):
+            image = stage(image)
+        arguments, fusable = self.sensor_arguments()
+        if fusable:
+            seeds = arguments.seeds(image.shape[0], image_index) if arguments.noisy else 0
+            return sensor_capture(image, arguments.responses(), arguments.shot, arguments.read, seeds,
+                                  arguments.bits, arguments.white_level)
+        signal, is_rgb = image, True
+        for stage in self._part("sensor"):
+            if is_rgb and stage.takes == "raw":
+                signal, is_rgb = cfa_mosaic(signal, self.mono_phi), False  # a monochrome sensor
+            signal = stage(signal, image_index)
+            is_rgb = stage.gives == "rgb"
+        return cfa_mosaic(signal, self.mono_phi) if is_rgb else signal
+
+    # --- pictures ------------------------------------------------------------------------------------------------
+
+    def pictures(self) -> int:
+        """How many stages have a picture (`Stage.draw`)."""
+        return sum(type(stage).draw is not Stage.draw for _, stage in self.stages())
+
+    def draw(self, axes: list) -> None:
+        """Draw the stages that have a picture on ``axes`` (matplotlib axes, `pictures` of them), in data-path
+        order."""
+        drawable = [stage for _, stage in self.stages() if type(stage).draw is not Stage.draw]
+        for axis, stage in zip(axes, drawable, strict=True):
+            stage.draw(axis)
 
 
 def set_finite_check(module: nn.Module, enabled: bool) -> None:

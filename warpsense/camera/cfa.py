@@ -6,7 +6,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from warpsense.camera.stage import Stage
+from warpsense.camera.stage import SensorArguments, Stage
 from warpsense.choices import CFA_LAYOUTS, CFA_MODES
 from warpsense.ops.cfa import cfa_mosaic
 
@@ -39,8 +39,17 @@ class CFA(Stage):
     """
 
     config_section = "cfa"
+    takes, gives = "rgb", "raw"
 
-    def __init__(self, pattern: str = "RGGB", tile: int = 2, mode: str = "softmax", init_logit: float = 4.0):
+    def __init__(self, pattern: str = "RGGB", tile: int = 2, mode: str = "softmax", init_logit: float = 4.0,
+                 temperature_start: float = 1.0, temperature_end: float = 1.0):
+        """Args:
+            pattern, tile: the layout the responses start at (a `CFA_LAYOUTS` name) tiled to T x T.
+            mode: a `CFA_MODES` name (see the class docstring).
+            init_logit: softmax mode: the starting logit of each site's layout filter (the others 0).
+            temperature_start, temperature_end: softmax temperature through warm-up and at the last epoch
+                (`on_epoch` anneals geometrically between them through the joint phase).
+        """
         super().__init__()
         if mode not in CFA_MODES:
             raise KeyError(f"unknown CFA mode {mode!r}; valid modes: {', '.join(CFA_MODES)}")
@@ -48,9 +57,10 @@ class CFA(Stage):
             raise ValueError(f"CFA tile must be >= 1, got {tile}")
         self.mode = mode
         self.tile = tile
+        self.temperature_plan = (float(temperature_start), float(temperature_end))
         letters = layout_letters(pattern, tile)
         self.register_buffer("candidates", letters_to_phi([list(FILTER_NAMES)])[0])  # [K, 3]
-        self.register_buffer("temperature", torch.tensor(1.0))
+        self.register_buffer("temperature", torch.tensor(float(temperature_start)))
         if mode == "softmax":
             index = torch.tensor([[FILTER_NAMES.index(letter) for letter in row] for row in letters])
             self.logits = nn.Parameter(F.one_hot(index, len(FILTER_NAMES)).float() * init_logit)
@@ -62,15 +72,22 @@ class CFA(Stage):
 
     @classmethod
     def from_config(cls, section) -> "CFA":
-        return cls(section.pattern, section.tile, section.mode, section.init_logit)
+        return cls(section.pattern, section.tile, section.mode, section.init_logit, section.temperature_start,
+                   section.temperature_end)
 
     def summary(self) -> dict:
-        """The exported layout (letters row by row, e.g. "RGGB") and the responses phi [T, T, 3] in use."""
+        """The exported layout (letters row by row, e.g. "RGGB"), the responses phi [T, T, 3] in use and the
+        softmax temperature."""
         return {"cfa_layout": "".join("".join(row) for row in self.hard_letters()),
-                "cfa_phi": self.phi().detach().cpu().tolist()}
+                "cfa_phi": self.phi().detach().cpu().tolist(), "temperature": float(self.temperature)}
 
-    def set_temperature(self, value: float) -> None:
-        self.temperature.fill_(float(value))
+    def on_epoch(self, schedule, epoch: int) -> None:
+        """Anneal the temperature along the plan (`Schedule.temperature`)."""
+        self.temperature.fill_(schedule.temperature(epoch, *self.temperature_plan))
+
+    def fuse(self, arguments: SensorArguments) -> bool:
+        arguments.phi = self.phi()
+        return True
 
     def phi(self) -> torch.Tensor:
         """[T, T, 3] current spectral responses."""
@@ -94,9 +111,16 @@ class CFA(Stage):
     def hard_phi(self) -> torch.Tensor:
         return letters_to_phi(self.hard_letters()).to(self.candidates.device)
 
-    def forward(self, image: torch.Tensor, gain: torch.Tensor | None = None) -> torch.Tensor:
-        """[B, 3, H, W] -> RAW [B, 1, H, W]; an exposure ``gain`` is folded into phi (exact, no extra pass)."""
-        phi = self.phi()
-        if gain is not None:
-            phi = phi * gain
-        return cfa_mosaic(image, phi)
+    def forward(self, image: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
+        """[B, 3, H, W] -> RAW [B, 1, H, W]."""
+        return cfa_mosaic(image, self.phi())
+
+    def draw(self, axis) -> bool:
+        """The responses as colours with the exported letters."""
+        phi = self.phi().detach().cpu().numpy()
+        axis.imshow((phi / max(float(phi.max()), 1e-6)).clip(0, 1), interpolation="nearest")
+        for y, row in enumerate(self.hard_letters()):
+            for x, letter in enumerate(row):
+                axis.text(x, y, letter, ha="center", va="center", color="white", fontsize=14)
+        axis.set_title("learned CFA (phi, export letters)")
+        return True

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from warpsense.camera.stage import Stage
+from warpsense.camera.stage import SensorArguments, Stage
 from warpsense.ops.exposure import exposure, exposure_gain
 
 
@@ -13,6 +13,7 @@ class Exposure(Stage):
     """Global gain a(g) = 0.25 + 3.75 sigmoid(g) in [0.25, 4]; owns the logit g."""
 
     config_section = "exposure"
+    takes = gives = "rgb"
 
     def __init__(self, gain_logit: float = 0.0, learnable: bool = True):
         super().__init__()
@@ -29,6 +30,11 @@ class Exposure(Stage):
     def gain(self) -> torch.Tensor:
         return exposure_gain(self.gain_logit)
 
-    def forward(self, image: torch.Tensor) -> torch.Tensor:
+    def fuse(self, arguments: SensorArguments) -> bool:
+        """A gain on the irradiance: folded into the responses (exact, no extra pass)."""
+        arguments.multiply_gain(self.gain())
+        return True
+
+    def forward(self, image: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         """[B, C, H, W] -> a(g) * image."""
         return exposure(image, self.gain_logit)

@@ -5,8 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from warpsense.camera.stage import Stage
-from warpsense.config import noise_levels
+from warpsense.camera.stage import SensorArguments, Stage
 from warpsense.ops.noise import poisson_gaussian, poisson_gaussian_exact
 
 
@@ -23,6 +22,7 @@ class SensorNoise(Stage):
     """
 
     config_section = "noise"
+    what_if = {"noise_scale": "scale", "exact_noise": "exact"}
 
     def __init__(self, shot: float = 0.015, read: float = 0.002, learnable: bool = False, eval_seed: int = 1234):
         super().__init__()
@@ -39,9 +39,21 @@ class SensorNoise(Stage):
 
     @classmethod
     def from_config(cls, section) -> "SensorNoise":
-        """From the [noise] section; the levels come from `warpsense.config.noise_levels` (electrons or direct)."""
-        shot, read = noise_levels(section)
+        """From the [noise] section: levels stated directly (``shot``, ``read``) or physically. With
+        ``full_well_electrons`` set, a signal s (white level = 1) holds s * FWC electrons, so its shot variance is
+        s / FWC (shot = 1 / FWC) and the read noise is read_electrons / FWC; ``shot`` and ``read`` are then
+        ignored."""
+        if section.full_well_electrons > 0:
+            shot, read = 1.0 / section.full_well_electrons, section.read_electrons / section.full_well_electrons
+        else:
+            shot, read = section.shot, section.read
         return cls(shot, read, section.learnable, section.eval_seed)
+
+    @classmethod
+    def check_section(cls, section, where: str) -> None:
+        if section.read_electrons > 0 and section.full_well_electrons == 0:
+            raise ValueError(f"{where}: noise.read_electrons needs noise.full_well_electrons (electrons at the "
+                             "white level)")
 
     def summary(self) -> dict:
         """The levels in use: shot variance coefficient and read standard deviation (units of the white level)."""
@@ -71,6 +83,12 @@ class SensorNoise(Stage):
         if image_index is not None:
             offsets = image_index.to(self.seed_counter.device)
         return (self.eval_seed + offsets) % (2**31 - 1)
+
+    def fuse(self, arguments: SensorArguments) -> bool:
+        """The fused kernel draws the Gaussian approximation; exact Poisson counts take this stage's own op."""
+        arguments.shot, arguments.read = self.levels()
+        arguments.seeds = self.seeds
+        return not self.exact
 
     def forward(self, raw: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         shot, read = self.levels()

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from warpsense.camera.stage import Stage
 from warpsense.ops.psf import psf_conv
-from warpsense.optics.lens import Lens
-from warpsense.optics.psf_support import collapse_grid, crop_to_energy
+from warpsense.optics.lens import Lens, LensFileError, read_lens_spec
+from warpsense.optics.psf_support import collapse_grid, crop_to_energy, display_half_width
 
 
 class Optics(Stage):
@@ -20,6 +21,8 @@ class Optics(Stage):
     """
 
     config_section = "optics"
+    part = "optics"
+    takes = gives = "rgb"
 
     def __init__(self, lens: Lens, learnable: bool = False, normalize_mean: float = 0.5, method: str = "direct",
                  energy_eps: float = 1e-3, field_tolerance: float = 1e-3):
@@ -44,6 +47,18 @@ class Optics(Stage):
         lens = Lens.from_json(section.lens, learnable=section.learnable)
         return cls(lens, learnable=section.learnable, normalize_mean=section.normalize_mean, method=section.method,
                    energy_eps=section.energy_eps, field_tolerance=section.field_tolerance)
+
+    @classmethod
+    def check_section(cls, section, where: str) -> None:
+        """The lens file must parse, even while optics is off: a saved config must run when it is turned on."""
+        try:
+            read_lens_spec(section.lens)
+        except LensFileError as error:
+            raise ValueError(f"{where}: optics.lens: {error}") from None
+
+    def on_epoch(self, schedule, epoch: int) -> None:
+        """A phase switch may have frozen or unfrozen the lens: render the cached PSF grid anew."""
+        self.invalidate_cache()
 
     def summary(self) -> dict:
         """A learnable lens's Zernike coefficients (waves, as `Lens.coefficients`); nothing for a fixed lens."""
@@ -74,7 +89,23 @@ class Optics(Stage):
             self._cache_valid = True
         return self._cached_psf
 
-    def forward(self, radiance: torch.Tensor) -> torch.Tensor:
+    def draw(self, axis) -> bool:
+        """The PSF grid (green channel, each PSF scaled to its peak, square root), central window above 1%."""
+        psf = self.psf().detach().cpu().numpy()[1]  # [Gy, Gx, K, K]
+        psf = psf / np.maximum(psf.max(axis=(2, 3), keepdims=True), 1e-12)
+        kernel_size, centre = psf.shape[-1], psf.shape[-1] // 2
+        half = display_half_width(psf)
+        psf = psf[..., centre - half : centre + half + 1, centre - half : centre + half + 1]
+        grid_y, grid_x, size, _ = psf.shape
+        mosaic = np.zeros((grid_y * (size + 1), grid_x * (size + 1)))
+        for i in range(grid_y):
+            for j in range(grid_x):
+                mosaic[i * (size + 1) : i * (size + 1) + size, j * (size + 1) : j * (size + 1) + size] = psf[i, j]
+        axis.imshow(mosaic ** 0.5, cmap="magma")
+        axis.set_title(f"PSF grid (green, sqrt, per-PSF max; central {size} of K = {kernel_size})", fontsize=10)
+        return True
+
+    def forward(self, radiance: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         image = psf_conv(radiance, self.psf().to(radiance.device), method=self.method)
         if self.normalize_mean > 0:
             mean = image.mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-6)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from warpsense.camera.stage import Stage
+from warpsense.camera.stage import SensorArguments, Stage
 from warpsense.choices import QUANTIZE_MODES
 from warpsense.ops.quantize import quantize_ste
 
@@ -11,6 +11,7 @@ class Quantizer(Stage):
     """b-bit quantization on [0, w] with a clipped straight-through gradient; no parameters."""
 
     config_section = "quantize"
+    what_if = {"bits": "bits"}
 
     def __init__(self, bits: int = 10, white_level: float = 1.0, mode: str = "full_well"):
         super().__init__()
@@ -24,7 +25,12 @@ class Quantizer(Stage):
     def from_config(cls, section) -> "Quantizer":
         return cls(section.bits, section.white_level, section.mode)
 
-    def forward(self, raw):
+    def fuse(self, arguments: SensorArguments) -> bool:
+        """The fused kernel quantizes on the full well; the per-image-max mode takes this stage's own op."""
+        arguments.bits, arguments.white_level = self.bits, self.white_level
+        return self.mode == "full_well"
+
+    def forward(self, raw, image_index=None):
         return quantize_ste(raw, self.bits, self.white_level, self.mode)
 
     def extra_repr(self) -> str:

@@ -1,30 +1,103 @@
-"""The protocol every camera stage follows, so that the camera, plots, predict and bench iterate stages instead of
-naming them."""
+"""The protocol every camera stage follows. `Camera` is the only module that talks to stages: it builds them from
+their config sections, composes their fused-kernel arguments, forwards the training schedule to them and applies
+what-if overrides; everything else talks to the camera."""
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar
 
+import torch
 from torch import nn
 
 
-class Stage(nn.Module):
-    """A camera stage (SPEC section 3): an `nn.Module` that builds itself from its config section and reports its
-    learned state.
+@dataclass
+class SensorArguments:
+    """The arguments of the fused sensor kernel (`warpsense.ops.sensor.sensor_capture`), filled in by the sensor
+    stages in data-path order (`Stage.fuse`).
 
-    Subclasses set ``config_section`` (the name of their ``[section]`` in `configs/default.toml`, whose
-    ``enabled`` key decides whether `Camera.from_config` constructs the stage) and implement `from_config`;
-    stages with learnable state override `summary`.
+    Attributes:
+        phi: [T, T, 3] spectral responses; starts as the monochrome response (1/3 per channel, T = 1).
+        gain: scalar tensor multiplying the responses (exposure, any linear gain before the noise), or None.
+        shot, read: noise levels (variance coefficient, standard deviation; units of the white level), or None.
+        seeds: callable (batch, image_index) -> int64 [B] per-image seeds (drawn only when the capture runs).
+        bits, white_level: ADC bit depth and full-well level, or bits None for no quantization.
+    """
+
+    phi: torch.Tensor
+    gain: torch.Tensor | None = None
+    shot: torch.Tensor | None = None
+    read: torch.Tensor | None = None
+    seeds: Callable[[int, torch.Tensor | None], torch.Tensor] | None = None
+    bits: int | None = None
+    white_level: float = 1.0
+
+    @property
+    def noisy(self) -> bool:
+        return self.shot is not None
+
+    def responses(self) -> torch.Tensor:
+        """[T, T, 3] effective responses: gain times phi."""
+        return self.phi * self.gain if self.gain is not None else self.phi
+
+    def multiply_gain(self, gain: torch.Tensor) -> None:
+        self.gain = gain if self.gain is None else self.gain * gain
+
+
+class Stage(nn.Module):
+    """A camera stage: an `nn.Module` that owns its parameters, builds itself from its config section and reports
+    its learned state.
+
+    A new stage is a kernel, an op, a subclass of this class with its config section (a dataclass in
+    `warpsense.config` and its lines in `configs/default.toml`), and one line in `warpsense.camera.camera.STAGES`.
+
+    Class attributes:
+        config_section: the name of the stage's ``[section]`` (its ``enabled`` key decides whether
+            `Camera.from_config` builds the stage).
+        part: "optics" for stages on the radiance image before the sensor ([B, 3, H, W] -> [B, 3, H, W]), "sensor"
+            for the sensor chain that the fused kernel can run.
+        takes: the signal a sensor stage's `forward` takes: "rgb" ([B, 3, H, W] irradiance) or "raw" ([B, 1, H, W]);
+            the camera turns RGB into a monochrome RAW before the first "raw" stage when no stage mosaicked it.
+        gives: the signal it returns ("rgb" or "raw"); a CFA takes "rgb" and gives "raw".
+        what_if: override names (`Camera.overridden`) -> the attribute of this stage they set for a while.
     """
 
     config_section: ClassVar[str]
+    part: ClassVar[str] = "sensor"
+    takes: ClassVar[str] = "raw"
+    gives: ClassVar[str] = "raw"
+    what_if: ClassVar[dict[str, str]] = {}
 
     @classmethod
     def from_config(cls, section) -> "Stage":
-        """Build the stage from its config section (a dataclass of `warpsense.config`)."""
+        """Build the stage from its whole config section (a dataclass of `warpsense.config`)."""
         raise NotImplementedError(f"{cls.__name__} does not implement from_config")
+
+    @classmethod
+    def check_section(cls, section, where: str) -> None:
+        """Refuse a config section this stage cannot be built from, before any work (raise ValueError naming
+        ``where`` and the key). Checks of single values (types, ranges, choices) belong to the config itself."""
+
+    def forward(self, signal: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
+        """The stage on its own (the unfused path): ``signal`` as `takes` says -> as `gives` says;
+        ``image_index`` [B] keys per-image randomness in eval."""
+        raise NotImplementedError(f"{type(self).__name__} does not implement forward")
+
+    def fuse(self, arguments: SensorArguments) -> bool:
+        """Add this stage's part to the fused kernel's ``arguments`` and say whether the fused kernel computes it
+        exactly (a stage that returns False turns fusing off for the whole camera; it is never skipped). No side
+        effects beyond ``arguments``. The default: cannot be fused."""
+        return False
+
+    def on_epoch(self, schedule, epoch: int) -> None:
+        """React to the training plan at the start of ``epoch`` (0-based; ``schedule`` a
+        `warpsense.train.schedule.Schedule`), e.g. anneal a temperature or drop a cache. The default: nothing."""
 
     def summary(self) -> dict[str, Any]:
         """The stage's learned state as JSON-ready values keyed by a name unique across stages (recorded in each
-        epoch's metrics, read by `warpsense predict`); empty when it learns nothing."""
+        epoch's metrics, read through `Camera.learned`); empty when it learns nothing."""
         return {}
+
+    def draw(self, axis) -> bool:
+        """Draw the stage on a matplotlib ``axis`` (the run's camera.png); whether it has a picture."""
+        return False

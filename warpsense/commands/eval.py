@@ -7,8 +7,7 @@ import json
 import torch
 
 from warpsense.files import write_json
-from warpsense.train.checkpoint import load_system
-from warpsense.train.distributed import resolve_device
+from warpsense.system import load_system, resolve_device
 from warpsense.train.evaluate import evaluate
 
 
@@ -19,31 +18,22 @@ def robustness_sweep(model, dataset, device, batch_size: int, class_names, amp: 
     from tqdm import tqdm
 
     camera = model.camera
+    operating = {"blur_sigma_px": 0.0, **camera.what_if_values()}
     settings = [("blur_sigma_px", sigma) for sigma in (0.0, 0.5, 1.0, 2.0)]
-    if camera.noise is not None:
+    if "noise_scale" in operating:
         settings += [("noise_scale", scale) for scale in (0.5, 1.0, 2.0, 4.0)]
-    if camera.quantizer is not None:
+    if "bits" in operating:
         settings += [("bits", value) for value in (4, 6, 8, 10, 12)]
-    noise_scale = camera.noise.scale if camera.noise is not None else None
-    bits = camera.quantizer.bits if camera.quantizer is not None else None
     rows = []
     bar = tqdm(settings, desc="sweep", disable=not progress)
-    try:
-        for factor, value in bar:
-            bar.set_postfix_str(f"{factor}={value}")
-            if camera.noise is not None:
-                camera.noise.scale = value if factor == "noise_scale" else noise_scale
-            if camera.quantizer is not None:
-                camera.quantizer.bits = value if factor == "bits" else bits
+    for factor, value in bar:
+        bar.set_postfix_str(f"{factor}={value}")
+        what_if = {} if factor == "blur_sigma_px" else {factor: value}
+        with camera.overridden(**what_if):
             metrics = evaluate(model, dataset, device, batch_size, class_names=class_names, amp=amp,
                                blur_sigma=value if factor == "blur_sigma_px" else 0.0)
-            operating = {"blur_sigma_px": 0.0, "noise_scale": noise_scale, "bits": bits}[factor]
-            rows.append({"factor": factor, "value": value, "miou": metrics["miou"], "operating_point": value == operating})
-    finally:
-        if camera.noise is not None:
-            camera.noise.scale = noise_scale
-        if camera.quantizer is not None:
-            camera.quantizer.bits = bits
+        rows.append({"factor": factor, "value": value, "miou": metrics["miou"],
+                     "operating_point": value == operating[factor]})
     return rows
 
 

@@ -11,7 +11,7 @@ from torch.nn import functional as F
 from warpsense.choices import BAYER_LAYOUTS
 from warpsense.data.raw import load_raw, read_raw_file
 from warpsense.files import atomic_write
-from warpsense.train.distributed import resolve_device
+from warpsense.system import resolve_device
 
 
 def phase_offset(file_pattern: str, model_pattern: str) -> tuple[int, int]:
@@ -63,7 +63,7 @@ def legend_strip(class_names: list[str], present: set[int], num_classes: int, wi
     """[h, width, 3] uint8 strip naming the colour of each class present in the prediction."""
     from PIL import Image, ImageDraw
 
-    from warpsense.train.plots import colorize
+    from warpsense.data.labels import colorize
 
     palette = colorize(np.arange(num_classes)[None], num_classes)[0]
     row_height, swatch, gap = 16, 12, 10
@@ -101,14 +101,14 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
     """
     from PIL import Image
 
-    from warpsense.train.checkpoint import load_system
-    from warpsense.train.plots import colorize
+    from warpsense.data.labels import colorize
+    from warpsense.system import load_system
 
     file_format = image_format(out_image)
     torch_device = resolve_device(device)
     model, config, state = load_system(checkpoint, torch_device)
-    learned = model.camera.summary()
-    model_pattern = learned.get("cfa_layout", "")
+    learned = model.camera.learned()
+    model_pattern = learned.cfa_layout or ""
     if model_pattern not in BAYER_LAYOUTS:  # a 2 x 2 R/G/B layout: the only kind a DNG holds
         raise ValueError(f"{checkpoint}: the checkpoint's CFA ({model_pattern or 'none'}) is not a Bayer layout; "
                          f"predict needs one of {', '.join(BAYER_LAYOUTS)}")
@@ -119,9 +119,8 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
     mosaic = mosaic[: mosaic.shape[0] // 2 * 2, : mosaic.shape[1] // 2 * 2]
     factor = max(1, round(mosaic.shape[1] / target_width))
     mosaic = bin_mosaic(mosaic, factor)
-    if "exposure_gain" in learned:
-        level = learned["exposure_gain"] * (config.optics.normalize_mean if config.optics.enabled else 0.25)
-        mosaic = mosaic * (level * 0.5 / max(float(mosaic.mean()), 1e-6))
+    if learned.exposure_gain is not None:
+        mosaic = mosaic * (model.camera.raw_mean() * 0.5 / max(float(mosaic.mean()), 1e-6))
     sensed = mosaic.clamp(0, 1)[None, None].to(torch_device)
     if model.isp is not None:
         sensed = model.isp(sensed)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from warpsense.data.datasets import KITTI360, CamVid, Cityscapes, DatasetError
 from warpsense.data.scenes import StreetScenes
 from warpsense.data.transforms import Augmented
@@ -44,6 +46,15 @@ def build_dataset(data_config, split: str, train: bool, seed: int = 0, part: str
     return dataset
 
 
+def evaluation_splits(data_config) -> list[str]:
+    """The labelled splits a finished run is judged on: the val split, and CamVid's test split where the copy has
+    one (``<root>/test.txt``, as the SegNet release does)."""
+    splits = [data_config.val_split]
+    if data_config.dataset == "camvid" and "test" not in splits and (Path(data_config.root) / "test.txt").is_file():
+        splits.append("test")
+    return splits
+
+
 def load_raw(path):
     """Read a converted RAW file: (mosaic float32 [1, H, W], metadata dict). See `warpsense.data.raw`."""
     from warpsense.data.raw import load_raw as _load_raw
@@ -52,4 +63,4 @@ def load_raw(path):
 
 
 __all__ = ["Augmented", "CamVid", "Cityscapes", "DATASETS", "DatasetError", "KITTI360", "StreetScenes",
-           "build_dataset", "load_raw"]
+           "build_dataset", "evaluation_splits", "load_raw"]

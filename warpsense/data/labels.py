@@ -29,3 +29,12 @@ def id_to_train_id_table() -> np.ndarray:
     for label_id, train_id in CITYSCAPES_ID_TO_TRAIN_ID.items():
         table[label_id] = train_id
     return table
+
+
+def colorize(label: np.ndarray, num_classes: int) -> np.ndarray:
+    """[H, W] class indices -> [H, W, 3] uint8 colours (CamVid palette for 11 classes, Cityscapes for 19)."""
+    palette = np.array(CAMVID_COLORS if num_classes <= len(CAMVID_COLORS) else CITYSCAPES_COLORS, dtype=np.uint8)
+    out = np.zeros((*label.shape, 3), dtype=np.uint8)
+    valid = label < len(palette)
+    out[valid] = palette[label[valid]]
+    return out

@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 from warpsense.optics.zernike import zernike
+from warpsense.resources import CONFIG_DIR
 
 REQUIRED_KEYS = {
     "name": str, "focal_length_mm": float, "f_number": float, "diagonal_fov_deg": float, "pixel_pitch_um": float,
@@ -157,8 +158,6 @@ def parse_lens(data: dict, source: str) -> LensSpec:
 
 def lens_path(name_or_path: str | Path) -> Path:
     """A lens name from configs/lenses/ or a path to a JSON file."""
-    from warpsense.config import CONFIG_DIR
-
     path = Path(name_or_path)
     if path.suffix == ".json" or path.exists():
         return path

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -25,3 +26,14 @@ def collapse_grid(psf: torch.Tensor, tolerance: float) -> torch.Tensor:
     if float((psf - mean).abs().sum(dim=(-2, -1)).max()) <= tolerance:
         return mean
     return psf
+
+
+def display_half_width(psf: np.ndarray, level: float = 1e-2) -> int:
+    """Half width of the central window shown for a PSF grid [..., K, K] (each PSF scaled to peak 1): one pixel
+    beyond the farthest pixel above ``level`` in any PSF, at most K // 2. Without it the tails of a large K shrink
+    the cores to dots."""
+    centre = psf.shape[-1] // 2
+    visible = np.argwhere(psf.reshape(-1, *psf.shape[-2:]).max(axis=0) > level)
+    if not len(visible):
+        return centre
+    return min(int(np.abs(visible - centre).max()) + 1, centre)

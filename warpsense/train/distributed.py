@@ -8,11 +8,7 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
-
-def resolve_device(choice: str) -> torch.device:
-    """The device a `warpsense.choices.DEVICES` choice names: "cuda", or "auto" where torch sees a GPU -> cuda;
-    otherwise cpu."""
-    return torch.device("cuda" if choice == "cuda" or (choice == "auto" and torch.cuda.is_available()) else "cpu")
+from warpsense.system.device import resolve_device
 
 
 @dataclass

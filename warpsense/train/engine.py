@@ -14,14 +14,13 @@ from torch.utils.data import DataLoader, DistributedSampler
 from tqdm import tqdm
 
 from warpsense.camera.camera import set_finite_check
-from warpsense.data import build_dataset
+from warpsense.data import build_dataset, evaluation_splits
 from warpsense.data.on_device import DeviceBatches, dataset_megabytes
 from warpsense.data.transforms import EpochSampler
 from warpsense.files import environment, write_json
 from warpsense.models import count_parameters
-from warpsense.models.sensing import build_system
-from warpsense.train.camera_phases import camera_parameters, set_camera_trainable
-from warpsense.train.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
+from warpsense.system import build_system, check_config
+from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
 from warpsense.train.distributed import DistributedContext, wrap_data_parallel
 from warpsense.train.evaluate import evaluate
 from warpsense.train.run_dir import LAST, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
@@ -29,6 +28,7 @@ from warpsense.train.schedule import Schedule
 from warpsense.train.step import TrainingStep
 
 BEST = "checkpoint_best.safetensors"
+EVALUATION = "evaluation.json"
 
 
 def _fit_time_budget(schedule: Schedule, budget_minutes: float, epoch_seconds: float, context) -> Schedule:
@@ -123,9 +123,11 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
         if not (run_dir / LAST).is_file():
             raise FileNotFoundError(f"{run_dir}: no {LAST} to resume from")
         config = resumed_config(run_dir, config, allow_config_change)
+        check_config(config, f"{run_dir / 'config.json'}")
     elif config is None:
         raise ValueError("train: a config is needed for a new run")
     else:
+        check_config(config, f"config {config.run.name}")
         run_dir = fresh_run_dir(Path(config.run.output_dir) / config.run.name)
     context = DistributedContext.from_environment(config.run.device)
     lock = RunLock(run_dir)
@@ -159,7 +161,7 @@ def _datasets(config) -> _Datasets:
 def _optimizer(config, model, device) -> torch.optim.AdamW:
     """AdamW with two groups: the network (weight decay) and the learnable camera parameters (``lr`` scaled by
     ``train.camera_lr_scale``, no decay); frozen camera parameters are left out."""
-    camera_params = camera_parameters(model)
+    camera_params = model.camera.learnable_parameters()
     camera_ids = {id(p) for p in camera_params}
     network_params = [p for p in model.parameters() if id(p) not in camera_ids and p.requires_grad]
     return torch.optim.AdamW([
@@ -249,23 +251,20 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in history))
         print(f"run directory: {run_dir}")
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
-              f"{sum(p.numel() for p in camera_parameters(model)):,}; device: {device}; ranks: {context.world_size}")
+              f"{sum(p.numel() for p in model.camera.learnable_parameters()):,}; device: {device}; ranks: {context.world_size}")
 
     if config.train.cuda_graph and context.enabled:
         raise ValueError("train.cuda_graph captures one GPU's step; with several ranks (DDP) leave it false")
-    training_step = TrainingStep(config.loss, optimizer, camera_parameters(model), schedule.epochs * steps_per_epoch,
+    training_step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), schedule.epochs * steps_per_epoch,
                                  amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph)
     wrapped, wrapped_phase = model, None
     epoch = start_epoch
     while epoch < schedule.epochs:  # a while loop: the time budget may shorten the schedule after the first epoch
         joint = schedule.is_joint(epoch)
-        set_camera_trainable(model, joint)
+        model.camera.on_epoch(schedule, epoch)  # the joint phase trains the camera; the CFA anneals
         if context.enabled and wrapped_phase != joint:  # DDP buckets the parameters that take gradients
             wrapped = wrap_data_parallel(model, device)
             wrapped_phase = joint
-        if model.camera.cfa is not None:
-            model.camera.cfa.set_temperature(schedule.temperature(epoch, config.cfa.temperature_start,
-                                                                  config.cfa.temperature_end))
         loader.set_epoch(epoch)
         model.train()
         started = time.perf_counter()
@@ -284,8 +283,6 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             "lr": float(optimizer.param_groups[0]["lr"]), **statistics,
             "images_per_s": steps_per_epoch * config.data.batch_size / elapsed, "epoch_time_s": elapsed,
         }
-        if model.camera.cfa is not None:
-            record["temperature"] = float(model.camera.cfa.temperature)
         if (epoch + 1) % config.train.eval_every == 0 or epoch == schedule.epochs - 1:
             record.update(_validate(model, datasets, config, context, amp, progress))
         record.update(model.camera.summary())
@@ -300,6 +297,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             print(_epoch_line(record, schedule, config), flush=True)
         context.barrier()
         epoch += 1
+    if context.is_main:
+        final_evaluation(run_dir, model, datasets, config, num_classes, device, amp, progress)
     if context.is_main and config.train.plots:
         from warpsense.train.plots import write_run_plots
 
@@ -309,6 +308,25 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     context.barrier()
     context.close()
     return (run_dir, model) if return_model else run_dir
+
+
+def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, num_classes: int, device, amp: bool,
+                     progress: bool = False) -> dict:
+    """Judge the model as training left it (the final epoch) on every labelled split (`evaluation_splits`) and write
+    `EVALUATION`: per split mIoU, pixel accuracy, per-class IoU and each image's per-class (TP, FP, FN) pixel counts
+    (what `warpsense study report` resamples), with the camera's learned state. Returns the record."""
+    record = {"epoch": read_metrics(run_dir / "metrics.jsonl", 1 << 30)[-1]["epoch"],
+              "class_names": list(datasets.train.classes), "num_classes": num_classes,
+              "network_parameters": count_parameters(model.network), "camera": model.camera.summary(), "splits": {}}
+    for split in evaluation_splits(config.data):
+        dataset = datasets.val if split == config.data.val_split else \
+            build_dataset(config.data, split, train=False, seed=config.run.seed)
+        metrics = evaluate(model, dataset, device, max(1, config.data.batch_size // 2),
+                           class_names=datasets.train.classes, amp=amp, progress=progress, per_image=True)
+        metrics["image_counts"] = metrics["image_counts"].tolist()
+        record["splits"][split] = metrics
+    write_json(run_dir / EVALUATION, record)
+    return record
 
 
 def run_summary(run_dir: Path, config) -> str:

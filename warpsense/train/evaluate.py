@@ -13,13 +13,17 @@ from warpsense.train.metrics import ConfusionMatrix
 
 @torch.no_grad()
 def evaluate(model, dataset, device, batch_size: int = 4, context=None, class_names=None, amp: bool = False,
-             progress: bool = False, blur_sigma: float = 0.0, flip: bool = False) -> dict:
+             progress: bool = False, blur_sigma: float = 0.0, flip: bool = False, per_image: bool = False) -> dict:
     """Metrics of ``model`` on ``dataset`` (full images, eval-mode camera: noise seeded by each image's index).
 
     With a distributed ``context`` each rank takes every world_size-th image and the confusion matrices are summed.
     ``blur_sigma`` > 0 adds a Gaussian blur (pixels) to the radiance before the camera (robustness sweep).
     ``flip``: CFA-phase-preserving horizontal-flip test-time augmentation (`SensingModel.probabilities`).
+    ``per_image``: also return "image_counts", int64 [N, K, 3] per-image (TP, FP, FN) pixels per class (not with
+    a distributed context).
     """
+    if per_image and context is not None and context.enabled:
+        raise ValueError("evaluate: per_image counts are gathered on one process (no distributed context)")
     was_training = model.training
     model.eval()
     indices = list(range(len(dataset)))
@@ -29,7 +33,7 @@ def evaluate(model, dataset, device, batch_size: int = 4, context=None, class_na
     indices = torch.tensor(indices, dtype=torch.int64)
     loader = DataLoader(dataset, batch_size=batch_size, shuffle=False)
     num_classes = model.network.head.out_channels
-    confusion = ConfusionMatrix(num_classes, device)
+    confusion = ConfusionMatrix(num_classes, device, per_image)
     for batch, (images, labels) in enumerate(tqdm(loader, desc="eval", disable=not progress, leave=False)):
         images, labels = images.to(device), labels.to(device)
         if blur_sigma > 0:
@@ -41,7 +45,10 @@ def evaluate(model, dataset, device, batch_size: int = 4, context=None, class_na
         images_seen = torch.tensor([confusion.images], device=device)
         confusion.images = int(context.all_reduce_sum(images_seen))
     model.train(was_training)
-    return confusion.compute(class_names)
+    metrics = confusion.compute(class_names)
+    if per_image:
+        metrics["image_counts"] = confusion.per_image_counts()
+    return metrics
 
 
 def gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:

@@ -12,16 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from warpsense.data.labels import CAMVID_COLORS, CITYSCAPES_COLORS  # noqa: E402
-
-
-def colorize(label: np.ndarray, num_classes: int) -> np.ndarray:
-    """[H, W] class indices -> [H, W, 3] uint8 colours (CamVid palette for 11 classes, Cityscapes for 19)."""
-    palette = np.array(CAMVID_COLORS if num_classes <= len(CAMVID_COLORS) else CITYSCAPES_COLORS, dtype=np.uint8)
-    out = np.zeros((*label.shape, 3), dtype=np.uint8)
-    valid = label < len(palette)
-    out[valid] = palette[label[valid]]
-    return out
+from warpsense.data.labels import colorize  # noqa: E402
 
 
 def plot_curves(records: list[dict], path: Path) -> None:
@@ -46,55 +37,15 @@ def plot_curves(records: list[dict], path: Path) -> None:
     plt.close(figure)
 
 
-def _draw_cfa(axis, cfa) -> None:
-    phi = cfa.phi().detach().cpu().numpy()
-    axis.imshow(np.clip(phi / max(phi.max(), 1e-6), 0, 1), interpolation="nearest")
-    for y, row in enumerate(cfa.hard_letters()):
-        for x, letter in enumerate(row):
-            axis.text(x, y, letter, ha="center", va="center", color="white", fontsize=14)
-    axis.set_title("learned CFA (phi, export letters)")
-
-
-def display_half_width(psf: np.ndarray, level: float = 1e-2) -> int:
-    """Half width of the central window shown for a PSF grid [..., K, K] (each PSF scaled to peak 1): one pixel
-    beyond the farthest pixel above ``level`` in any PSF, at most K // 2. Without it the tails of a large K shrink
-    the cores to dots."""
-    centre = psf.shape[-1] // 2
-    visible = np.argwhere(psf.reshape(-1, *psf.shape[-2:]).max(axis=0) > level)
-    if not len(visible):
-        return centre
-    return min(int(np.abs(visible - centre).max()) + 1, centre)
-
-
-def _draw_psf_grid(axis, optics) -> None:
-    psf = optics.psf().detach().cpu().numpy()[1]  # green channel [Gy, Gx, K, K]
-    psf = psf / np.maximum(psf.max(axis=(2, 3), keepdims=True), 1e-12)
-    kernel_size, centre = psf.shape[-1], psf.shape[-1] // 2
-    half = display_half_width(psf)
-    psf = psf[..., centre - half : centre + half + 1, centre - half : centre + half + 1]
-    grid_y, grid_x, size, _ = psf.shape
-    mosaic = np.zeros((grid_y * (size + 1), grid_x * (size + 1)))
-    for i in range(grid_y):
-        for j in range(grid_x):
-            mosaic[i * (size + 1) : i * (size + 1) + size, j * (size + 1) : j * (size + 1) + size] = \
-                psf[i, j]
-    axis.imshow(mosaic ** 0.5, cmap="magma")
-    axis.set_title(f"PSF grid (green, sqrt, per-PSF max; central {size} of K = {kernel_size})", fontsize=10)
-
-
-CAMERA_PANELS = {"optics": _draw_psf_grid, "cfa": _draw_cfa}
-"""Stages with a picture (`Camera.stages` names) -> a function drawing the stage on a matplotlib axis."""
-
-
 def plot_camera(model, path: Path) -> bool:
-    """One panel per camera stage that has a picture (`CAMERA_PANELS`), in data-path order; whether ``path`` was
+    """One panel per camera stage that has a picture (`Camera.draw`), in data-path order; whether ``path`` was
     written (not for a camera without such a stage)."""
-    panels = [(CAMERA_PANELS[name], stage) for name, stage in model.camera.stages() if name in CAMERA_PANELS]
-    if not panels:
+    count = model.camera.pictures()
+    if not count:
         return False
-    figure, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 4), squeeze=False)
-    for axis, (draw, stage) in zip(axes[0], panels):
-        draw(axis, stage)
+    figure, axes = plt.subplots(1, count, figsize=(4 * count, 4), squeeze=False)
+    model.camera.draw(list(axes[0]))
+    for axis in axes[0]:
         axis.axis("off")
     figure.tight_layout()
     figure.savefig(path, dpi=100)

@@ -7,9 +7,9 @@ import torch
 from torch.utils import benchmark
 import warpsense.train.losses as losses
 from warpsense.config import load_config
-from warpsense.models.sensing import build_system
+from warpsense.system import build_system
 from warpsense.train.step import TrainingStep
-from warpsense.train.camera_phases import camera_parameters, set_camera_trainable
+from warpsense.train.schedule import Schedule
 
 new_grad = losses.lovasz_grad
 
@@ -46,8 +46,8 @@ def step_rate(steps=60):
     torch.compiler.reset()
     config = load_config("camvid_codesign")
     model = build_system(config, 11).cuda().train()
-    set_camera_trainable(model, True)
-    camera = camera_parameters(model)
+    model.camera.on_epoch(Schedule(2, 1), int(True))  # epoch 1 of 2 is joint
+    camera = model.camera.learnable_parameters()
     ids = {id(p) for p in camera}
     optimizer = torch.optim.AdamW([{"params": [p for p in model.parameters() if id(p) not in ids], "lr": 3e-3},
                                    {"params": camera, "lr": 3e-3}], fused=True)

@@ -1,18 +1,14 @@
-"""The model users load: camera -> (fixed ISP) -> segmentation network, as one nn.Module (`SensingModel`), and
-`build_system`, which builds it from a config."""
+"""The model users load: camera -> (fixed ISP) -> segmentation network, as one nn.Module (`SensingModel`)."""
 
 from __future__ import annotations
 
 import torch
 from torch import nn
-
 from torch.nn import functional as F
 
 from warpsense.camera import Camera
 from warpsense.camera.isp import FixedISP
-from warpsense.camera.cfa import layout_letters
 from warpsense.data.color import srgb_to_linear, unprocess
-from warpsense.models import build_model
 
 
 class SensingModel(nn.Module):
@@ -81,16 +77,3 @@ def cfa_unflip(prediction: torch.Tensor, shift: int) -> torch.Tensor:
     see repeat their neighbour)."""
     restored = prediction[..., shift:].flip(-1)
     return F.pad(restored, (shift, 0, 0, 0), mode="replicate") if shift else restored
-
-
-def build_system(config, num_classes: int) -> SensingModel:
-    camera = Camera.from_config(config)
-    isp = None
-    if config.isp.enabled:
-        if camera.cfa is None:
-            raise ValueError("isp.enabled needs a CFA (cfa.enabled = true)")
-        isp = FixedISP(layout_letters(config.cfa.pattern, config.cfa.tile), config.isp.gamma)
-    network = build_model(config.model.name, in_channels=3 if isp is not None else 1,
-                          num_classes=config.model.num_classes or num_classes, width=config.model.width,
-                          tile=camera.tile, channels_last=config.model.channels_last)
-    return SensingModel(camera, network, isp, unprocess_input=config.data.unprocess)

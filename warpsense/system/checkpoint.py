@@ -105,21 +105,6 @@ def _load_states(tensors: dict, model: torch.nn.Module, optimizer: torch.optim.O
                         optimizer.state[parameter][key] = torch.empty_like(parameter, dtype=value.dtype).copy_(value)
 
 
-def load_system(checkpoint: str | Path, device) -> tuple[torch.nn.Module, object, dict]:
-    """(model in eval mode, config, training state) from a checkpoint written by `warpsense train`."""
-    tensors, meta = read_checkpoint(checkpoint)
-    from warpsense.config import config_from_dict
-    from warpsense.models.sensing import build_system
-
-    config = config_from_dict(meta["config"], source=f"{checkpoint} config")
-    num_classes = meta["state"].get("num_classes")
-    if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 1:
-        raise CheckpointError(f"{checkpoint}: state.num_classes must be a positive int, got {num_classes!r}")
-    model = build_system(config, num_classes)
-    restore(tensors, model, source=checkpoint)
-    return model.to(device).eval(), config, meta["state"]
-
-
 RESUME_STATE = {"epoch": int, "step": int, "best_miou": float}
 
 

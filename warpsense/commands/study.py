@@ -1,0 +1,62 @@
+"""`warpsense study run | report`: run a study plan's cells, and report what they say."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from warpsense.files import check_output_file, write_json
+
+
+def parse_gpus(text: str) -> list[str]:
+    """``--gpus``: "auto" (every GPU torch sees, none without CUDA), "none", or ids "0,1,3"."""
+    if text == "none":
+        return []
+    if text == "auto":
+        import torch
+
+        return [str(i) for i in range(torch.cuda.device_count())] if torch.cuda.is_available() else []
+    ids = [part.strip() for part in text.split(",") if part.strip()]
+    if not ids or not all(part.isdigit() for part in ids):
+        raise ValueError(f"--gpus must be auto, none or GPU ids like 0,1; got {text!r}")
+    return ids
+
+
+def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None = None, plan_only: bool = False,
+              gpus: str = "auto", per_gpu: int = 1, progress: bool = False) -> int:
+    """The `warpsense study run` command; returns the exit code."""
+    from warpsense.study.plan import load_plan
+    from warpsense.study.runner import plan_commands, run_cells
+
+    plan = load_plan(plan_name, overrides)
+    if per_gpu < 1:
+        raise ValueError(f"--per-gpu must be >= 1, got {per_gpu}")
+    if plan_only:
+        print("\n".join(plan_commands(plan, Path(out))))
+        return 0
+    if cell is not None:
+        return run_cells(plan, Path(out), [plan.cell(cell)], progress=progress)
+    devices = parse_gpus(gpus)
+    code = run_cells(plan, Path(out), gpus=devices if len(devices) * per_gpu > 1 else None, per_gpu=per_gpu,
+                     progress=progress)
+    if code == 0:
+        print(f"study finished; report: warpsense study report {out}")
+    return code
+
+
+def report_study(study_dir: str, json_out: str | None = None, plot_out: str | None = None,
+                 split: str | None = None, resamples: int = 2000) -> int:
+    """The `warpsense study report` command: console text, and the same record as JSON and a plot."""
+    from warpsense.study.report import plot_study, render_text, study_record
+
+    check_output_file(json_out, "--json")
+    check_output_file(plot_out, "--plot")
+    record = study_record(study_dir, resamples)
+    if split is not None and split not in record["splits"]:
+        raise ValueError(f"--split {split!r}: the study's runs were judged on {', '.join(record['splits'])}")
+    print(render_text(record))
+    if json_out:
+        write_json(json_out, record)
+    if plot_out:
+        plot_study(record, plot_out, split)
+        print(f"wrote {plot_out}")
+    return 0

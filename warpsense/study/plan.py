@@ -1,0 +1,245 @@
+"""Study plans: which cameras, at which light levels, over which seeds, against which reference camera.
+
+A plan is a TOML file (see `configs/studies/`)::
+
+    [study]
+    name = "camvid_cameras"
+    base = "camvid"                 # preset or TOML file every cell starts from ("" = the defaults)
+    set = ["train.epochs=100"]      # overrides for every cell
+    seeds = [0, 1, 2]
+    reference = "fixed_isp"         # the camera the others are compared with, seed by seed
+
+    [[camera]]
+    name = "fixed_isp"
+    preset = "camvid_fixed_isp"     # applied over the base ("" = none)
+    set = []                        # overrides of this camera
+
+    [[light]]
+    name = "night"
+    full_well_electrons = 66.667    # electrons at the white level
+    read_electrons = 0.13333        # read noise, electrons rms
+    bits = 10                       # ADC bit depth
+
+Every cell (camera x light x seed) is one ordinary training run; its config is the base, the camera's preset, the
+study's and the camera's overrides, the light's sensor keys, the seed, then the command line's ``--set``. Unknown
+keys, wrong types, duplicate or unknown names and configs that do not resolve are one-line `PlanError`s naming the
+plan file and key, found before anything is written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from warpsense.config import Config, ConfigError, load_config
+from warpsense.data import DatasetError, build_dataset
+from warpsense.resources import CONFIG_DIR
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+class PlanError(ValueError):
+    """A study plan that cannot run; the message names the plan file and key."""
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    name: str
+    preset: str = ""
+    set: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class LightSpec:
+    """A light level stated physically: electrons at the white level (full well), read noise in electrons, ADC bits."""
+
+    name: str
+    full_well_electrons: float
+    read_electrons: float
+    bits: int = 10
+
+    def overrides(self) -> list[str]:
+        return [f"noise.full_well_electrons={self.full_well_electrons!r}",
+                f"noise.read_electrons={self.read_electrons!r}", f"quantize.bits={self.bits}"]
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One training run of a study."""
+
+    camera: str
+    light: str
+    seed: int
+
+    @property
+    def id(self) -> str:
+        """"camera/light/seed", as `--cell` takes it."""
+        return f"{self.camera}/{self.light}/{self.seed}"
+
+    @property
+    def run_name(self) -> str:
+        """The run directory's name under <out>/runs."""
+        return f"{self.camera}.{self.light}.seed{self.seed}"
+
+
+@dataclass(frozen=True)
+class Plan:
+    source: str
+    name: str
+    base: str
+    set: tuple[str, ...]
+    seeds: tuple[int, ...]
+    reference: str
+    cameras: tuple[CameraSpec, ...]
+    lights: tuple[LightSpec, ...]
+    overrides: tuple[str, ...] = ()  # from the command line, applied last
+
+    def cells(self) -> list[Cell]:
+        """Every cell, light by light, seed by seed, camera by camera (so a partial study has whole comparisons)."""
+        return [Cell(camera.name, light.name, seed) for light in self.lights for seed in self.seeds
+                for camera in self.cameras]
+
+    def cell(self, cell_id: str) -> Cell:
+        for cell in self.cells():
+            if cell.id == cell_id:
+                return cell
+        raise PlanError(f"{self.source}: no cell {cell_id!r}; cells are camera/light/seed, e.g. {self.cells()[0].id}")
+
+    def config(self, cell: Cell, output_dir: str | Path) -> Config:
+        """The resolved config of ``cell``, its run directory <output_dir>/<cell.run_name>."""
+        camera = next(c for c in self.cameras if c.name == cell.camera)
+        light = next(light for light in self.lights if light.name == cell.light)
+        files = [file for file in (self.base, camera.preset) if file]
+        overrides = [*self.set, *camera.set, *light.overrides(), f"run.seed={cell.seed}",
+                     f"run.name={cell.run_name}", f"run.output_dir={output_dir}", *self.overrides]
+        return load_config(files, overrides)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str}
+CAMERA_KEYS = {"name": str, "preset": str, "set": list}
+LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons": (int, float), "bits": int}
+
+
+def study_names() -> list[str]:
+    """The plans shipped in configs/studies/."""
+    return sorted(p.name[:-5] for p in (CONFIG_DIR / "studies").iterdir() if p.name.endswith(".toml"))
+
+
+def _table(data: dict, keys: dict, where: str, required: tuple[str, ...]) -> dict:
+    for key in data:
+        if key not in keys:
+            raise PlanError(f"{where}.{key}: unknown key; valid keys: {', '.join(keys)}")
+    for key in required:
+        if key not in data:
+            raise PlanError(f"{where}.{key}: missing")
+    for key, value in data.items():
+        expected = keys[key]
+        if isinstance(value, bool) or not isinstance(value, expected):
+            kinds = " or ".join(t.__name__ for t in (expected if isinstance(expected, tuple) else (expected,)))
+            raise PlanError(f"{where}.{key}: expected {kinds}, got {type(value).__name__} {value!r}")
+    return data
+
+
+def _strings(values: list, where: str) -> tuple[str, ...]:
+    if not all(isinstance(value, str) for value in values):
+        raise PlanError(f"{where}: expected a list of \"section.key=value\" strings")
+    return tuple(values)
+
+
+def _names(items: list, where: str) -> None:
+    seen = set()
+    for item in items:
+        name = item["name"]
+        if not name or "/" in name or "." in name or name != name.strip():
+            raise PlanError(f"{where}.name: {name!r} must be a plain name (no '/', '.' or spaces at the ends)")
+        if name in seen:
+            raise PlanError(f"{where}.name: duplicate name {name!r}")
+        seen.add(name)
+
+
+def _locate(name_or_path: str | Path) -> Path:
+    path = Path(name_or_path)
+    if not path.suffix and str(name_or_path) in study_names():
+        return Path(str(CONFIG_DIR / "studies" / f"{name_or_path}.toml"))
+    return path
+
+
+def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> Plan:
+    """Read, check and resolve a plan (a shipped name from configs/studies or a TOML path); ``overrides`` are
+    ``section.key=value`` strings for every cell. Every cell's config is resolved here, so a bad key anywhere is
+    found before any run starts."""
+    path = _locate(name_or_path)
+    source = str(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as error:
+        raise PlanError(f"{source}: invalid TOML: {error}") from None
+    except OSError as error:
+        raise PlanError(f"{source}: cannot read the plan: {error.strerror or error}; shipped plans: "
+                        f"{', '.join(study_names())}") from None
+    except UnicodeDecodeError:
+        raise PlanError(f"{source}: not UTF-8 text") from None
+    for key in data:
+        if key not in ("study", "camera", "light"):
+            raise PlanError(f"{source}: unknown table [{key}]; valid tables: [study], [[camera]], [[light]]")
+    study = data.get("study")
+    if not isinstance(study, dict):
+        raise PlanError(f"{source}: [study] table missing")
+    study = _table(study, STUDY_KEYS, f"{source}: study", ("seeds", "reference"))
+    cameras, lights = data.get("camera"), data.get("light")
+    if not isinstance(cameras, list) or not cameras:
+        raise PlanError(f"{source}: camera: at least one [[camera]] table is needed")
+    if not isinstance(lights, list) or not lights:
+        raise PlanError(f"{source}: light: at least one [[light]] table is needed")
+    cameras = [_table(c, CAMERA_KEYS, f"{source}: camera[{i}]", ("name",)) for i, c in enumerate(cameras)]
+    lights = [_table(x, LIGHT_KEYS, f"{source}: light[{i}]", ("name", "full_well_electrons", "read_electrons"))
+              for i, x in enumerate(lights)]
+    _names(cameras, f"{source}: camera")
+    _names(lights, f"{source}: light")
+    seeds = study["seeds"]
+    if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds) \
+            or len(set(seeds)) != len(seeds):
+        raise PlanError(f"{source}: study.seeds: expected distinct integers >= 0, got {seeds!r}")
+    if study["reference"] not in [c["name"] for c in cameras]:
+        raise PlanError(f"{source}: study.reference: {study['reference']!r} is not a camera of the plan; cameras: "
+                        f"{', '.join(c['name'] for c in cameras)}")
+    for i, light in enumerate(lights):
+        if not light["full_well_electrons"] > 0 or not light["read_electrons"] >= 0:
+            raise PlanError(f"{source}: light[{i}]: full_well_electrons must be > 0 and read_electrons >= 0")
+    from warpsense.system import check_config  # the stages' own checks (imports the camera)
+
+    plan = Plan(
+        source=source, name=study.get("name", path.stem), base=study.get("base", ""),
+        set=_strings(study.get("set", []), f"{source}: study.set"), seeds=tuple(seeds),
+        reference=study["reference"],
+        cameras=tuple(CameraSpec(c["name"], c.get("preset", ""), _strings(c.get("set", []), f"{source}: camera "
+                                                                           f"{c['name']}.set")) for c in cameras),
+        lights=tuple(LightSpec(x["name"], float(x["full_well_electrons"]), float(x["read_electrons"]),
+                               x.get("bits", 10)) for x in lights),
+        overrides=tuple(overrides))
+    checked_data = set()
+    for camera in plan.cameras:  # every cell's config resolves (seeds only change run.seed)
+        for light in plan.lights:
+            where = f"{source}: camera {camera.name!r} at light {light.name!r}"
+            try:
+                config = plan.config(Cell(camera.name, light.name, plan.seeds[0]), "runs")
+                check_config(config, "config")
+            except ConfigError as error:
+                raise PlanError(f"{where}: {error}") from None
+            data = (config.data.dataset, config.data.root, config.data.train_split, config.data.val_split)
+            if data not in checked_data:
+                checked_data.add(data)
+                try:  # the split lists exist (reads file lists only)
+                    for split, train in ((config.data.train_split, True), (config.data.val_split, False)):
+                        build_dataset(config.data, split, train=train, seed=0)
+                except DatasetError as error:
+                    raise PlanError(f"{where}: data: {error}") from None
+    return plan

@@ -1,0 +1,215 @@
+"""The report of a study directory: per camera and light level, mean mIoU and per-class IoU with 95% intervals over
+seeds; the paired difference to the reference camera (seed by seed) and an image-level bootstrap interval; the
+learned camera of every run. The console text and the JSON are rendered from one record (`study_record`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from warpsense.study.plan import Cell, PlanError
+from warpsense.study.runner import PLAN_RECORD, run_dir
+from warpsense.study.statistics import LEVEL, bootstrap_difference, distinguishable, paired_difference, t_interval
+
+NOT_DISTINGUISHABLE = "not distinguishable"
+
+
+def _read_plan(study_dir: Path) -> dict:
+    path = study_dir / PLAN_RECORD
+    if not study_dir.is_dir():
+        raise PlanError(f"{study_dir}: no such study directory")
+    if not path.is_file():
+        raise PlanError(f"{study_dir}: not a study directory (no {PLAN_RECORD}); run `warpsense study run PLAN "
+                        f"--out {study_dir}` first")
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise PlanError(f"{path}: unreadable: {error}") from None
+
+
+def _cells(plan: dict) -> list[Cell]:
+    return [Cell(camera["name"], light["name"], seed) for light in plan["lights"] for seed in plan["seeds"]
+            for camera in plan["cameras"]]
+
+
+def _verdict(paired: dict, bootstrap: dict | None) -> str:
+    """"better" / "worse" when the seed-paired interval and the image bootstrap interval both exclude 0 on the
+    same side; otherwise not distinguishable."""
+    intervals = [paired] + ([bootstrap] if bootstrap is not None else [])
+    if all(distinguishable(i) for i in intervals):
+        sides = {i["low"] > 0 for i in intervals}
+        if len(sides) == 1:
+            return "better" if sides.pop() else "worse"
+    return NOT_DISTINGUISHABLE
+
+
+def _split_record(plan: dict, evaluations: dict, split: str, resamples: int) -> dict:
+    classes = next(iter(evaluations.values()))["class_names"]
+    groups, comparisons = [], []
+    for light in plan["lights"]:
+        by_camera = {}
+        for camera in plan["cameras"]:
+            runs = {seed: evaluations[(camera["name"], light["name"], seed)]["splits"][split]
+                    for seed in plan["seeds"] if (camera["name"], light["name"], seed) in evaluations
+                    and split in evaluations[(camera["name"], light["name"], seed)]["splits"]}
+            if not runs:
+                continue
+            by_camera[camera["name"]] = runs
+            per_class = {}
+            for name in classes:
+                values = [run["per_class_iou"][name] for run in runs.values() if run["per_class_iou"][name] is not None]
+                per_class[name] = t_interval(values) if values else None
+            groups.append({"camera": camera["name"], "light": light["name"], "seeds": sorted(runs),
+                           "miou": t_interval([run["miou"] for run in runs.values()]), "per_class_iou": per_class})
+        reference = by_camera.get(plan["reference"])
+        if reference is None:
+            continue
+        for camera, runs in by_camera.items():
+            if camera == plan["reference"] or not set(runs) & set(reference):
+                continue
+            seeds = sorted(set(runs) & set(reference))
+            paired = paired_difference({s: runs[s]["miou"] for s in seeds}, {s: reference[s]["miou"] for s in seeds})
+            counts = np.array([runs[s]["image_counts"] for s in seeds])
+            reference_counts = np.array([reference[s]["image_counts"] for s in seeds])
+            bootstrap = bootstrap_difference(counts, reference_counts, resamples) \
+                if counts.shape == reference_counts.shape and counts.size else None
+            deltas = {}
+            for name in classes:
+                pairs = [(runs[s]["per_class_iou"][name], reference[s]["per_class_iou"][name]) for s in seeds]
+                pairs = [(a, b) for a, b in pairs if a is not None and b is not None]
+                deltas[name] = float(np.mean([a - b for a, b in pairs])) if pairs else None
+            comparisons.append({"camera": camera, "light": light["name"], "reference": plan["reference"],
+                                "paired": paired, "bootstrap": bootstrap, "verdict": _verdict(paired, bootstrap),
+                                "per_class_delta": deltas})
+    return {"groups": groups, "comparisons": comparisons}
+
+
+def study_record(study_dir: str | Path, resamples: int = 2000) -> dict:
+    """Everything the report says, as JSON-ready data: the plan, each cell (its scores and learned camera, or
+    that it is missing), and per split the groups and comparisons."""
+    study_dir = Path(study_dir)
+    plan = _read_plan(study_dir)
+    from warpsense.train.engine import EVALUATION
+
+    evaluations, cells, missing = {}, [], []
+    for cell in _cells(plan):
+        path = run_dir(study_dir, cell) / EVALUATION
+        if not path.is_file():
+            missing.append(cell.id)
+            continue
+        try:
+            evaluation = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as error:
+            raise PlanError(f"{path}: unreadable: {error}") from None
+        evaluations[(cell.camera, cell.light, cell.seed)] = evaluation
+        cells.append({"cell": cell.id, "camera": cell.camera, "light": cell.light, "seed": cell.seed,
+                      "epoch": evaluation["epoch"], "network_parameters": evaluation["network_parameters"],
+                      "miou": {split: m["miou"] for split, m in evaluation["splits"].items()},
+                      "learned_camera": evaluation["camera"]})
+    if not evaluations:
+        raise PlanError(f"{study_dir}: no finished cell yet ({len(missing)} cells planned, none evaluated)")
+    splits = list(dict.fromkeys(split for e in evaluations.values() for split in e["splits"]))
+    return {"study": plan["name"], "directory": str(study_dir), "reference": plan["reference"], "level": LEVEL,
+            "plan": plan, "cells": cells, "missing": missing,
+            "splits": {split: _split_record(plan, evaluations, split, resamples) for split in splits}}
+
+
+def _interval(record: dict | None, signed: bool = False) -> str:
+    if record is None:
+        return "-"
+    sign = "+" if signed else ""
+    if record["low"] is None:
+        return f"{record['mean']:{sign}.4f} [n=1, no interval]"
+    return f"{record['mean']:{sign}.4f} [{record['low']:{sign}.4f}, {record['high']:{sign}.4f}]"
+
+
+def _learned(camera: dict) -> str:
+    parts = []
+    if "cfa_layout" in camera:
+        parts.append(f"CFA {camera['cfa_layout']}")
+    if "exposure_gain" in camera:
+        parts.append(f"gain {camera['exposure_gain']:.3f}")
+    if "zernike_waves" in camera:
+        parts.append("Zernike [" + ", ".join(f"{w:+.3f}" for w in camera["zernike_waves"]) + "] waves")
+    return "; ".join(parts) or "fixed"
+
+
+def render_text(record: dict) -> str:
+    """The console report (every number comes from ``record``)."""
+    level = f"{record['level']:.0%}"
+    lines = [f"study {record['study']} ({record['directory']}): {len(record['cells'])} cells evaluated, "
+             f"{len(record['missing'])} missing; judged at the final epoch; intervals {level}"]
+    if record["missing"]:
+        lines.append(f"  missing: {', '.join(record['missing'])}")
+    for split, part in record["splits"].items():
+        lines.append(f"\n[{split}] mIoU, mean over seeds [{level} t interval]")
+        width = max(len(g["camera"]) for g in part["groups"])
+        for group in part["groups"]:
+            lines.append(f"  {group['light']:>8s}  {group['camera']:<{width}s}  {_interval(group['miou'])}  "
+                         f"seeds {','.join(map(str, group['seeds']))}")
+        if part["comparisons"]:
+            lines.append(f"[{split}] difference to the reference camera {record['reference']!r}: paired over seeds "
+                         f"[{level} t] | image bootstrap [{level}]")
+        for comparison in part["comparisons"]:
+            bootstrap = comparison["bootstrap"]
+            boot = f"[{bootstrap['low']:+.4f}, {bootstrap['high']:+.4f}]" if bootstrap else "-"
+            lines.append(f"  {comparison['light']:>8s}  {comparison['camera']:<{width}s}  "
+                         f"{_interval(comparison['paired'], signed=True)} | {boot}  {comparison['verdict']}")
+    lines.append("\nlearned cameras (final epoch)")
+    for cell in record["cells"]:
+        scores = ", ".join(f"{split} {value:.4f}" for split, value in cell["miou"].items())
+        lines.append(f"  {cell['cell']}: {scores}; {_learned(cell['learned_camera'])}")
+    return "\n".join(lines)
+
+
+def plot_study(record: dict, path: str | Path, split: str | None = None) -> None:
+    """One row per light level: mIoU with intervals per camera (reference marked) and per-class IoU differences to
+    the reference camera (mean over paired seeds)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    split = split or next(iter(record["splits"]))
+    part = record["splits"][split]
+    lights = list(dict.fromkeys(g["light"] for g in part["groups"]))
+    classes = list(part["groups"][0]["per_class_iou"])
+    figure, axes = plt.subplots(len(lights), 2, figsize=(14, 0.5 + 0.45 * len(record["plan"]["cameras"]) *
+                                                          len(lights) + 1.5 * len(lights)), squeeze=False,
+                                gridspec_kw={"width_ratios": [1, 1.4]})
+    for row, light in enumerate(lights):
+        groups = [g for g in part["groups"] if g["light"] == light]
+        score_axis, delta_axis = axes[row]
+        for y, group in enumerate(groups):
+            miou = group["miou"]
+            error = None if miou["low"] is None else [[miou["mean"] - miou["low"]], [miou["high"] - miou["mean"]]]
+            colour = "tab:red" if group["camera"] == record["reference"] else "tab:blue"
+            score_axis.errorbar(miou["mean"], y, xerr=error, fmt="o", color=colour, capsize=4)
+        score_axis.set_yticks(range(len(groups)), [g["camera"] for g in groups])
+        score_axis.invert_yaxis()
+        score_axis.set_xlabel(f"{split} mIoU (mean over seeds, {record['level']:.0%} interval)")
+        score_axis.set_title(f"{light}: score per camera (red: reference {record['reference']})", fontsize=10)
+        score_axis.grid(axis="x", alpha=0.3)
+        comparisons = [c for c in part["comparisons"] if c["light"] == light]
+        if comparisons:
+            deltas = np.array([[np.nan if c["per_class_delta"][k] is None else c["per_class_delta"][k]
+                                for k in classes] for c in comparisons])
+            limit = max(np.nanmax(np.abs(deltas)) if np.isfinite(deltas).any() else 0.01, 0.01)
+            image = delta_axis.imshow(deltas, cmap="RdBu", vmin=-limit, vmax=limit, aspect="auto")
+            for i in range(deltas.shape[0]):
+                for j in range(deltas.shape[1]):
+                    if np.isfinite(deltas[i, j]):
+                        delta_axis.text(j, i, f"{deltas[i, j] * 100:+.1f}", ha="center", va="center", fontsize=7)
+            delta_axis.set_yticks(range(len(comparisons)),
+                                  [f"{c['camera']} ({c['verdict']})" for c in comparisons], fontsize=8)
+            delta_axis.set_xticks(range(len(classes)), classes, rotation=45, ha="right", fontsize=8)
+            figure.colorbar(image, ax=delta_axis, label="IoU difference to the reference")
+            delta_axis.set_title(f"{light}: per-class IoU minus {record['reference']} (points x100)", fontsize=10)
+        else:
+            delta_axis.axis("off")
+    figure.suptitle(f"study {record['study']}: {len(record['cells'])} runs, judged at the final epoch", fontsize=11)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)

@@ -1,0 +1,185 @@
+"""Running a study's cells: one ordinary run directory per cell under <out>/runs, resumable, going on past a failed
+cell, in this process (CPU, or one cell) or as a local pool of processes over the GPUs (several cells per GPU).
+
+A cell is finished when its run directory holds `warpsense.train.engine.EVALUATION` (written after the last epoch):
+it is never trained again. A cell with a last checkpoint but no evaluation resumes from that checkpoint. A scheduler
+of the user's (a Slurm job array, ...) runs the commands `--plan-only` prints; the report reads the same directory.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import shlex
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from warpsense.errors import first_line
+from warpsense.files import write_json
+from warpsense.study.plan import Cell, Plan, PlanError
+
+PLAN_RECORD = "plan.json"
+"""The resolved plan, written in the study directory by its first run (the report reads it)."""
+
+
+def run_dir(out: Path, cell: Cell) -> Path:
+    return Path(out) / "runs" / cell.run_name
+
+
+def cell_state(out: Path, cell: Cell) -> str:
+    """"done" (evaluated), "partial" (a checkpoint to resume) or "new"."""
+    from warpsense.train.engine import EVALUATION
+    from warpsense.train.run_dir import LAST
+
+    directory = run_dir(out, cell)
+    if (directory / EVALUATION).is_file():
+        return "done"
+    return "partial" if (directory / LAST).is_file() else "new"
+
+
+def cell_command(plan: Plan, out: Path, cell: Cell) -> list[str]:
+    """The command that runs one cell (what the local pool starts, and what `--plan-only` prints)."""
+    command = ["warpsense", "study", "run", plan.source, "--out", str(out), "--cell", cell.id]
+    for text in plan.overrides:
+        command += ["--set", text]
+    return command
+
+
+def record_plan(plan: Plan, out: Path) -> None:
+    """Write the plan into ``out`` (first run), or refuse a different plan for a study directory that has one."""
+    out = Path(out)
+    path = out / PLAN_RECORD
+    record = {key: value for key, value in plan.to_dict().items() if key != "source"}
+    if path.is_file():
+        saved = json.loads(path.read_text())
+        saved.pop("source", None)
+        if saved != json.loads(json.dumps(record)):
+            raise PlanError(f"{path}: this study directory holds another plan ({saved.get('name')!r} with other "
+                            f"cameras, lights, seeds or overrides); use a new --out")
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(path, {**record, "source": plan.source})
+
+
+def train_cell(plan: Plan, out: Path, cell: Cell, progress: bool = False) -> dict:
+    """Train (or resume) and evaluate one cell in this process; returns its evaluation record."""
+    from warpsense.train.engine import EVALUATION, train
+
+    state = cell_state(out, cell)
+    directory = run_dir(out, cell)
+    if state != "done":
+        config = plan.config(cell, Path(out) / "runs")
+        train(config, resume=directory if state == "partial" else False, progress=progress)
+    return json.loads((directory / EVALUATION).read_text())
+
+
+def _score(record: dict) -> str:
+    return ", ".join(f"{split} mIoU {metrics['miou']:.4f}" for split, metrics in record["splits"].items())
+
+
+def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list[str] | None = None,
+              per_gpu: int = 1, progress: bool = False) -> int:
+    """Run the cells not finished yet; a progress line per cell; returns the exit code (0 all finished, 1 some
+    failed, 130 interrupted).
+
+    Args:
+        cells: the cells to run (default: all of the plan).
+        gpus: device ids for a local pool of processes (CUDA_VISIBLE_DEVICES of each), ``per_gpu`` cells at once
+            on each; None or empty: the cells run one after another in this process.
+    """
+    out = Path(out)
+    cells = plan.cells() if cells is None else cells
+    record_plan(plan, out)
+    pending = [cell for cell in cells if cell_state(out, cell) != "done"]
+    total = len(cells)
+    for index, cell in enumerate(cells, start=1):
+        if cell not in pending:
+            print(f"[{index}/{total}] {cell.id}: finished earlier, skipped", flush=True)
+    if not pending:
+        return 0
+    numbering = {cell: cells.index(cell) + 1 for cell in pending}
+    if gpus:
+        failed = _pool(plan, out, pending, numbering, total, gpus, per_gpu)
+    else:
+        failed = _in_process(plan, out, pending, numbering, total, progress)
+        if failed is None:
+            return 130
+    if failed:
+        print(f"study: {len(failed)} of {total} cells failed: {', '.join(c.id for c in failed)}; the others are "
+              f"done. Run the same command again to retry them.", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _in_process(plan, out, pending, numbering, total, progress) -> list[Cell] | None:
+    """Cells one after another here; the failed ones, or None after Ctrl-C."""
+    from warpsense.train.engine import TrainingInterrupted
+
+    failed = []
+    for cell in pending:
+        started = time.perf_counter()
+        prefix = f"[{numbering[cell]}/{total}] {cell.id}"
+        print(f"{prefix}: {'resuming' if cell_state(out, cell) == 'partial' else 'training'}", flush=True)
+        try:
+            record = train_cell(plan, out, cell, progress)
+        except TrainingInterrupted:
+            print(f"{prefix}: interrupted; run the same command again to resume it (finished cells are kept)",
+                  file=sys.stderr)
+            return None
+        except Exception as error:  # noqa: BLE001 - a failed cell is reported and the study goes on
+            failed.append(cell)
+            print(f"{prefix}: FAILED: {type(error).__name__}: {first_line(error)}", file=sys.stderr, flush=True)
+            continue
+        print(f"{prefix}: done in {time.perf_counter() - started:.0f} s, {_score(record)}", flush=True)
+    return failed
+
+
+def _pool(plan, out, pending, numbering, total, gpus, per_gpu) -> list[Cell]:
+    """Cells as processes, ``per_gpu`` at once on each GPU; each writes its output to <out>/logs/<cell>.log."""
+    slots: queue.Queue = queue.Queue()
+    for gpu in gpus:
+        for _ in range(per_gpu):
+            slots.put(gpu)
+    logs = out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    failed, lock = [], threading.Lock()
+
+    def work(cell: Cell) -> None:
+        gpu = slots.get()
+        prefix = f"[{numbering[cell]}/{total}] {cell.id}"
+        try:
+            command = [sys.executable, "-m", *cell_command(plan, out, cell)]
+            log = logs / f"{cell.run_name}.log"
+            print(f"{prefix}: started on GPU {gpu} (log {log})", flush=True)
+            started = time.perf_counter()
+            with open(log, "a") as handle:
+                code = subprocess.call(command, stdout=handle, stderr=subprocess.STDOUT,
+                                       env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu})
+            elapsed = time.perf_counter() - started
+            if code == 0 and cell_state(out, cell) == "done":
+                record = json.loads((run_dir(out, cell) / "evaluation.json").read_text())
+                print(f"{prefix}: done in {elapsed:.0f} s on GPU {gpu}, {_score(record)}", flush=True)
+                return
+            lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
+            with lock:
+                failed.append(cell)
+            print(f"{prefix}: FAILED (exit {code}): {lines[-1] if lines else 'no output'}", file=sys.stderr,
+                  flush=True)
+        finally:
+            slots.put(gpu)
+
+    threads = [threading.Thread(target=work, args=(cell,)) for cell in pending]
+    for thread in threads:  # each thread waits for a free GPU slot, so at most len(gpus) * per_gpu run at once
+        thread.start()
+    for thread in threads:
+        thread.join()
+    return sorted(failed, key=lambda cell: numbering[cell])
+
+
+def plan_commands(plan: Plan, out: Path) -> list[str]:
+    """One shell command per cell, for a scheduler of the user's."""
+    return [shlex.join(cell_command(plan, out, cell)) for cell in plan.cells()]
