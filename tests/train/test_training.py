@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from warpsense.cli import main
-from warpsense.config import load_config
+from warpsense.config import load_config, with_overrides
 from warpsense.data import build_dataset
 from warpsense.models import count_parameters
 from warpsense.system.checkpoint import read_checkpoint, restore, save_checkpoint
@@ -71,9 +71,18 @@ def test_train_on_real_camvid_crops(shared_data, tmp_path):
     run = train(config, progress=False)
     record = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
     assert 0.0 <= record["val_miou"] <= 1.0 and record["train_loss"] > 0
-    # model selection on the held-out sequence (0006R0), reported beside val
+    assert "selection_miou" not in record  # the protocol's default: all training images, judged on val
+    # the final evaluation: val scored again at the last epoch, with per-image counts that sum to the totals
+    evaluation = json.loads((run / "evaluation.json").read_text())
+    assert list(evaluation["splits"]) == ["val"]
+    val = evaluation["splits"]["val"]
+    assert val["miou"] == pytest.approx(record["val_miou"]) and val["num_images"] == 2
+    assert len(val["image_counts"]) == 2 and len(val["image_counts"][0]) == len(evaluation["class_names"])
+    # model selection on a held-out sequence (0006R0) stays an option, reported beside val
+    held = train(with_overrides(config, ["data.holdout_prefix=0006R0", "run.name=held"]), progress=False)
+    record = json.loads((held / "metrics.jsonl").read_text().splitlines()[-1])
     assert 0.0 <= record["selection_miou"] <= 1.0
-    state = json.loads((run / "checkpoint_best.json").read_text())["state"]
+    state = json.loads((held / "checkpoint_best.json").read_text())["state"]
     assert state["best_miou"] == record["selection_miou"]
 
 

@@ -19,6 +19,7 @@ A plan is a TOML file (see `configs/studies/`)::
     full_well_electrons = 66.667    # electrons at the white level
     read_electrons = 0.13333        # read noise, electrons rms
     bits = 10                       # ADC bit depth
+    cameras = []                    # the cameras studied at this level (default: all)
 
 Every cell (camera x light x seed) is one ordinary training run; its config is the base, the camera's preset, the
 study's and the camera's overrides, the light's sensor keys, the seed, then the command line's ``--set``. Unknown
@@ -62,6 +63,7 @@ class LightSpec:
     full_well_electrons: float
     read_electrons: float
     bits: int = 10
+    cameras: tuple[str, ...] = ()  # the cameras studied at this level (empty: all)
 
     def overrides(self) -> list[str]:
         return [f"noise.full_well_electrons={self.full_well_electrons!r}",
@@ -102,7 +104,7 @@ class Plan:
     def cells(self) -> list[Cell]:
         """Every cell, light by light, seed by seed, camera by camera (so a partial study has whole comparisons)."""
         return [Cell(camera.name, light.name, seed) for light in self.lights for seed in self.seeds
-                for camera in self.cameras]
+                for camera in self.cameras if not light.cameras or camera.name in light.cameras]
 
     def cell(self, cell_id: str) -> Cell:
         for cell in self.cells():
@@ -125,7 +127,8 @@ class Plan:
 
 STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str}
 CAMERA_KEYS = {"name": str, "preset": str, "set": list}
-LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons": (int, float), "bits": int}
+LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons": (int, float), "bits": int,
+              "cameras": list}
 
 
 def study_names() -> list[str]:
@@ -211,9 +214,16 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     if study["reference"] not in [c["name"] for c in cameras]:
         raise PlanError(f"{source}: study.reference: {study['reference']!r} is not a camera of the plan; cameras: "
                         f"{', '.join(c['name'] for c in cameras)}")
+    camera_names = [c["name"] for c in cameras]
     for i, light in enumerate(lights):
         if not light["full_well_electrons"] > 0 or not light["read_electrons"] >= 0:
             raise PlanError(f"{source}: light[{i}]: full_well_electrons must be > 0 and read_electrons >= 0")
+        for name in light.get("cameras", []):
+            if name not in camera_names:
+                raise PlanError(f"{source}: light[{i}].cameras: {name!r} is not a camera of the plan; cameras: "
+                                f"{', '.join(camera_names)}")
+        if light.get("cameras") and study["reference"] not in light["cameras"]:
+            raise PlanError(f"{source}: light[{i}].cameras: must include the reference camera {study['reference']!r}")
     from warpsense.system import check_config  # the stages' own checks (imports the camera)
 
     plan = Plan(
@@ -223,11 +233,13 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
         cameras=tuple(CameraSpec(c["name"], c.get("preset", ""), _strings(c.get("set", []), f"{source}: camera "
                                                                            f"{c['name']}.set")) for c in cameras),
         lights=tuple(LightSpec(x["name"], float(x["full_well_electrons"]), float(x["read_electrons"]),
-                               x.get("bits", 10)) for x in lights),
+                               x.get("bits", 10), tuple(x.get("cameras", []))) for x in lights),
         overrides=tuple(overrides))
     checked_data = set()
     for camera in plan.cameras:  # every cell's config resolves (seeds only change run.seed)
         for light in plan.lights:
+            if light.cameras and camera.name not in light.cameras:
+                continue
             where = f"{source}: camera {camera.name!r} at light {light.name!r}"
             try:
                 config = plan.config(Cell(camera.name, light.name, plan.seeds[0]), "runs")

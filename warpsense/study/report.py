@@ -31,7 +31,7 @@ def _read_plan(study_dir: Path) -> dict:
 
 def _cells(plan: dict) -> list[Cell]:
     return [Cell(camera["name"], light["name"], seed) for light in plan["lights"] for seed in plan["seeds"]
-            for camera in plan["cameras"]]
+            for camera in plan["cameras"] if not light["cameras"] or camera["name"] in light["cameras"]]
 
 
 def _verdict(paired: dict, bootstrap: dict | None) -> str:
@@ -132,7 +132,8 @@ def _learned(camera: dict) -> str:
     if "exposure_gain" in camera:
         parts.append(f"gain {camera['exposure_gain']:.3f}")
     if "zernike_waves" in camera:
-        parts.append("Zernike [" + ", ".join(f"{w:+.3f}" for w in camera["zernike_waves"]) + "] waves")
+        on_axis = [row[0] if isinstance(row, list) else row for row in camera["zernike_waves"]]  # [J, 3]: constant term
+        parts.append("lens Zernike on axis [" + ", ".join(f"{w:+.3f}" for w in on_axis) + "] waves")
     return "; ".join(parts) or "fixed"
 
 

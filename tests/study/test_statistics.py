@@ -1,0 +1,85 @@
+"""The study's statistics against hand computations on fixed numbers."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from warpsense.study.statistics import (
+    bootstrap_difference,
+    distinguishable,
+    iou_from_counts,
+    miou_from_counts,
+    paired_difference,
+    t_interval,
+)
+from warpsense.train.metrics import ConfusionMatrix
+
+T_975_2 = 4.302652729911275  # Student t, 97.5% quantile, 2 degrees of freedom (tables)
+
+
+def test_t_interval_by_hand():
+    result = t_interval([0.5, 0.6, 0.7])
+    half = T_975_2 * 0.1 / math.sqrt(3)  # sample sd 0.1
+    assert result["mean"] == pytest.approx(0.6)
+    assert result["low"] == pytest.approx(0.6 - half) and result["high"] == pytest.approx(0.6 + half)
+    assert result["low"] == pytest.approx(0.351586, abs=1e-6)
+    single = t_interval([0.42])
+    assert single["mean"] == 0.42 and single["low"] is None and distinguishable(single) is None
+    with pytest.raises(ValueError):
+        t_interval([])
+
+
+def test_paired_difference_by_hand_and_verdict():
+    camera = {0: 0.60, 1: 0.70, 2: 0.65, 7: 0.1}  # seed 7 has no partner: left out
+    reference = {0: 0.50, 1: 0.65, 2: 0.60}
+    result = paired_difference(camera, reference)
+    # differences 0.10, 0.05, 0.05: mean 1/15, sd sqrt(1/1200)
+    half = T_975_2 * math.sqrt(1 / 1200) / math.sqrt(3)
+    assert result["seeds"] == [0, 1, 2]
+    assert result["mean"] == pytest.approx(1 / 15)
+    assert result["low"] == pytest.approx(1 / 15 - half) and result["high"] == pytest.approx(1 / 15 + half)
+    assert result["low"] < 0 < result["high"] and distinguishable(result) is False
+    consistent = paired_difference({0: 0.61, 1: 0.62, 2: 0.63}, {0: 0.50, 1: 0.51, 2: 0.52})
+    assert consistent["low"] == pytest.approx(0.11) and distinguishable(consistent) is True
+
+
+def test_iou_from_counts_by_hand():
+    counts = np.array([[3, 1, 0], [1, 0, 1], [0, 0, 0]])  # (TP, FP, FN) of 3 classes; the third is absent
+    iou = iou_from_counts(counts)
+    assert iou[0] == 0.75 and iou[1] == 0.5 and math.isnan(iou[2])
+    assert miou_from_counts(counts) == pytest.approx(0.625)
+
+
+def test_per_image_counts_agree_with_the_confusion_matrix():
+    generator = torch.Generator().manual_seed(0)
+    target = torch.randint(0, 4, (3, 5, 6), generator=generator)
+    target[0, 0, :] = 255  # ignored pixels
+    prediction = torch.randint(0, 4, (3, 5, 6), generator=generator)
+    matrix = ConfusionMatrix(4, "cpu", per_image=True)
+    matrix.update(prediction[:2], target[:2])
+    matrix.update(prediction[2:], target[2:])
+    counts = matrix.per_image_counts().numpy()
+    assert counts.shape == (3, 4, 3)
+    for image in range(3):  # one image by hand: TP, FP, FN of each class
+        valid = target[image] != 255
+        for k in range(4):
+            p, t = prediction[image][valid] == k, target[image][valid] == k
+            assert counts[image, k].tolist() == [int((p & t).sum()), int((p & ~t).sum()), int((~p & t).sum())]
+    assert miou_from_counts(counts.sum(0)) == pytest.approx(matrix.compute()["miou"])
+
+
+def test_bootstrap_difference():
+    generator = np.random.default_rng(1)
+    reference = generator.integers(0, 50, size=(3, 20, 4, 3))
+    same = bootstrap_difference(reference, reference, resamples=200)
+    assert same["mean"] == 0 and same["low"] == 0 and same["high"] == 0
+    better = reference.copy()
+    better[..., 0] += 20  # more true positives on every image: every resample prefers it
+    result = bootstrap_difference(better, reference, resamples=200)
+    expected = (miou_from_counts(better.sum(1)) - miou_from_counts(reference.sum(1))).mean()
+    assert result["mean"] == pytest.approx(expected) and 0 < result["low"] <= result["mean"] <= result["high"]
+    assert bootstrap_difference(better, reference, resamples=200) == result  # seeded: reproducible
+    with pytest.raises(ValueError, match="one shape"):
+        bootstrap_difference(better[:, :5], reference, resamples=10)

@@ -1,0 +1,160 @@
+"""`warpsense study` end to end on the CPU: the smoke plan's cameras, interrupted and resumed without retraining, a
+failing cell reported and skipped, the report; bad plans refused before anything is written; the local pool."""
+
+import json
+import shlex
+from pathlib import Path
+
+import pytest
+
+from warpsense.cli import main
+from warpsense.resources import CONFIG_DIR
+from warpsense.study import load_plan, render_text, run_cells, study_record
+from warpsense.study.plan import PlanError
+from warpsense.train import engine
+
+from tests.reliability.conftest import assert_clean_failure
+
+FAST = ["train.epochs=2", "data.scenes_train=16", "data.scenes_val=4", "train.eval_every=2"]
+BROKEN = '''
+[[camera]]
+name = "broken"               # the fixed ISP cannot demosaic clear pixels: fails when the cell builds its model
+set = ["cfa.mode=\\"fixed\\"", "cfa.pattern=\\"RCCB\\"", "isp.enabled=true"]
+'''
+
+
+def _plan_file(tmp_path: Path, extra: str = "") -> Path:
+    """The shipped smoke plan with the ``extra`` TOML appended."""
+    path = tmp_path / "plan.toml"
+    path.write_text((CONFIG_DIR / "studies" / "smoke.toml").read_text() + extra)
+    return path
+
+
+def test_smoke_study_runs_resumes_skips_failures_and_reports(tmp_path, monkeypatch, capsys):
+    plan = load_plan(_plan_file(tmp_path, BROKEN), FAST)
+    out = tmp_path / "study"
+    assert [cell.id for cell in plan.cells()][:4] == ["rggb/night/0", "rccb/night/0", "learned/night/0",
+                                                       "broken/night/0"]
+    # Ctrl-C in the second cell's first epoch, after its checkpoint was written
+    write_epoch, writes = engine._write_epoch, []
+
+    def interrupting(run_dir, *args, **kwargs):
+        write_epoch(run_dir, *args, **kwargs)
+        writes.append(run_dir.name)
+        if run_dir.name == "rccb.night.seed0":
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(engine, "_write_epoch", interrupting)
+    assert run_cells(plan, out) == 130
+    assert writes == ["rggb.night.seed0", "rggb.night.seed0", "rccb.night.seed0"]
+    assert "interrupted; run the same command again" in capsys.readouterr().err
+    monkeypatch.setattr(engine, "_write_epoch", write_epoch)
+
+    trained = []
+    real_train = engine.train
+    monkeypatch.setattr(engine, "train", lambda config, resume=False, **kw: trained.append(
+        (config.run.name, bool(resume))) or real_train(config, resume=resume, **kw))
+    assert run_cells(plan, out) == 1  # a cell failed; the others finished
+    printed = capsys.readouterr()
+    assert trained[0] == ("rccb.night.seed0", True)  # the interrupted cell resumed ...
+    assert ("rggb.night.seed0", False) not in trained  # ... the finished one was never retrained
+    assert "[1/8] rggb/night/0: finished earlier, skipped" in printed.out
+    assert "broken/night/0: FAILED: ValueError: the fixed ISP needs an R/G/B layout" in printed.err
+    assert "2 of 8 cells failed: broken/night/0, broken/night/1" in printed.err
+    rccb = [json.loads(line) for line in (out / "runs" / "rccb.night.seed0" / "metrics.jsonl").read_text().splitlines()]
+    assert [record["epoch"] for record in rccb] == [0, 1]  # epoch 1 was not redone
+
+    trained.clear()
+    assert run_cells(plan, out) == 1 and [name for name, _ in trained] == ["broken.night.seed0", "broken.night.seed1"]
+
+    record = study_record(out, resamples=100)
+    assert record["missing"] == ["broken/night/0", "broken/night/1"] and len(record["cells"]) == 6
+    val = record["splits"]["val"]
+    assert [group["camera"] for group in val["groups"]] == ["rggb", "rccb", "learned"]
+    evaluations = {seed: json.loads((out / "runs" / f"rccb.night.seed{seed}" / "evaluation.json").read_text())
+                   for seed in (0, 1)}
+    rccb_group = val["groups"][1]
+    assert rccb_group["miou"]["mean"] == pytest.approx(
+        sum(e["splits"]["val"]["miou"] for e in evaluations.values()) / 2)
+    comparison = val["comparisons"][0]
+    assert comparison["camera"] == "rccb" and comparison["reference"] == "rggb"
+    assert comparison["paired"]["seeds"] == [0, 1]
+    assert comparison["verdict"] in ("better", "worse", "not distinguishable")
+    text = render_text(record)  # the console text is rendered from the record
+    assert f"{rccb_group['miou']['mean']:.4f}" in text and "missing: broken/night/0, broken/night/1" in text
+    assert record["cells"][0]["learned_camera"]["cfa_layout"] == "RGGB"
+
+    json_out, plot_out = tmp_path / "report.json", tmp_path / "report.png"
+    assert main(["study", "report", str(out), "--json", str(json_out), "--plot", str(plot_out),
+                 "--resamples", "100"]) == 0
+    assert json.loads(json_out.read_text())["splits"]["val"]["groups"] == json.loads(json.dumps(val["groups"]))
+    assert plot_out.stat().st_size > 10_000
+
+
+def test_plan_only_prints_one_command_per_cell(tmp_path, capsys):
+    assert main(["study", "run", "smoke", "--out", str(tmp_path / "s"), "--plan-only", "--set", "train.epochs=3"]) == 0
+    commands = capsys.readouterr().out.strip().splitlines()
+    assert len(commands) == 6 and not (tmp_path / "s").exists()
+    words = shlex.split(commands[1])
+    assert words[:3] == ["warpsense", "study", "run"] and words[-4:] == ["--cell", "rccb/night/0", "--set",
+                                                                         "train.epochs=3"]
+
+
+def test_the_local_pool_gives_the_same_cells_as_one_process(tmp_path, capsys):
+    plan = load_plan("smoke", FAST)
+    cells = [cell for cell in plan.cells() if cell.camera == "rggb"]
+    assert run_cells(plan, tmp_path / "here", cells) == 0
+    assert run_cells(plan, tmp_path / "pool", cells, gpus=["0", "1"], per_gpu=1) == 0  # fake GPU ids, CPU cells
+    assert "started on GPU 0" in capsys.readouterr().out
+    for cell in cells:
+        here, pool = (json.loads((tmp_path / where / "runs" / cell.run_name / "evaluation.json").read_text())
+                      for where in ("here", "pool"))
+        assert here["splits"] == pool["splits"]
+
+
+BAD_PLANS = [
+    ("[study]\nseeds = [0]\nreference = \"a\"\ncolour = 1\n[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\n"
+     "full_well_electrons = 10.0\nread_electrons = 1.0\n", ("study.colour", "unknown key")),
+    ("[study]\nseeds = [0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\npreset = \"no_such_preset\"\n[[light]]\n"
+     "name = \"l\"\nfull_well_electrons = 10.0\nread_electrons = 1.0\n", ("camera 'a'", "no_such_preset")),
+    ("[study]\nseeds = [0]\nreference = \"b\"\n[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\n"
+     "full_well_electrons = 10.0\nread_electrons = 1.0\n", ("study.reference", "'b'")),
+    ("[study]\nseeds = [0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\n[[camera]]\nname = \"a\"\n[[light]]\n"
+     "name = \"l\"\nfull_well_electrons = 10.0\nread_electrons = 1.0\n", ("camera.name", "duplicate")),
+    ("[study]\nseeds = [0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\nset = [\"cfa.pattern=XXXX\"]\n[[light]]\n"
+     "name = \"l\"\nfull_well_electrons = 10.0\nread_electrons = 1.0\n", ("camera 'a'", "cfa.pattern")),
+    ("[study]\nseeds = [0]\nreference = \"a\"\nset = [\"data.dataset=camvid\", \"data.root=/no/such/folder\"]\n"
+     "[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\nfull_well_electrons = 10.0\nread_electrons = 1.0\n",
+     ("data:", "/no/such/folder")),
+    ("[study]\nseeds = [0, 0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\n"
+     "full_well_electrons = 10.0\nread_electrons = 1.0\n", ("study.seeds",)),
+    ("[study]\nseeds = [0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\n"
+     "full_well_electrons = 10.0\n", ("light[0].read_electrons", "missing")),
+    ("[study]\nseeds = [0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\n", ("light",)),
+    ("[study\n", ("invalid TOML",)),
+]
+
+
+@pytest.mark.parametrize("text, names", BAD_PLANS, ids=[f"bad{i}" for i in range(len(BAD_PLANS))])
+def test_bad_plans_are_one_line_errors_before_any_output(text, names, tmp_path, capsys):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    assert_clean_failure(capsys, ["study", "run", str(path), "--out", str(tmp_path / "out")], (str(path), *names),
+                         watched=tmp_path)
+
+
+def test_bad_study_directories_and_overrides(tmp_path, capsys):
+    assert_clean_failure(capsys, ["study", "run", "smoke", "--out", str(tmp_path / "o"), "--set", "train.nope=1"],
+                         ("train.nope",), watched=tmp_path)
+    assert_clean_failure(capsys, ["study", "run", "no_such_plan", "--out", str(tmp_path / "o")],
+                         ("no_such_plan", "smoke"), watched=tmp_path)
+    assert_clean_failure(capsys, ["study", "report", str(tmp_path)], ("not a study directory",), watched=tmp_path)
+    assert_clean_failure(capsys, ["study", "report", str(tmp_path / "missing")], ("no such study directory",))
+    (tmp_path / "s").mkdir()
+    (tmp_path / "s" / "plan.json").write_text(json.dumps(load_plan("smoke").to_dict()))
+    assert_clean_failure(capsys, ["study", "report", str(tmp_path / "s")], ("no finished cell yet",),
+                         watched=tmp_path)
+    assert_clean_failure(capsys, ["study", "run", "smoke", "--out", str(tmp_path / "s"), "--set", "train.epochs=3"],
+                         ("holds another plan",), watched=tmp_path)
+    with pytest.raises(PlanError, match="no cell 'rggb/day/0'"):
+        load_plan("smoke").cell("rggb/day/0")
