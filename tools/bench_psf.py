@@ -72,8 +72,10 @@ def run(device: str = "cuda", quick: bool = False, repeats: int = 20) -> dict:
             psf = torch.rand(3, *grid, size, size, device=device)
             psf = (psf / psf.sum(dim=(-2, -1), keepdim=True)).requires_grad_()
             timings[name] = {
-                "fwd_ms": _median_ms(lambda: method(image.detach(), psf.detach()), device, repeats),
-                "fwd_bwd_ms": _median_ms(lambda: torch.autograd.grad(method(image, psf), (image, psf), gradient),
+                "fwd_ms": _median_ms(lambda method=method, image=image, psf=psf: method(image.detach(), psf.detach()),
+                                     device, repeats),
+                "fwd_bwd_ms": _median_ms(lambda method=method, image=image, psf=psf, gradient=gradient:
+                                         torch.autograd.grad(method(image, psf), (image, psf), gradient),
                                          device, repeats),
             }
         baseline = timings["invariant_cudnn"]["fwd_bwd_ms"]

@@ -105,7 +105,7 @@ def accuracy_tables(records: list[dict]) -> list[str]:
         lines += ["", "| lens axis | setting | L2 rel vs converged: " + " / ".join(scenes) + " | p99 vs converged: "
                   + " / ".join(scenes) + " | L2 vs next finer (" + scenes[0] + ") | render + conv fwd+bwd ms | "
                   "energy outside K, of the converged window |", "|---|---|---|---|---|---|---|"]
-        for kernel, method, rows in lens:
+        for kernel, _method, rows in lens:
             any_row = next(iter(rows.values()))
             cost = ("converged reference" if any_row.get("converged") else
                     f"{_number(any_row.get('render_ms'), '.1f')} + {_number(any_row.get('conv_fwd_bwd_ms'), '.1f')}")

@@ -5,9 +5,9 @@ import pytest
 import torch
 
 from warpsense.ops import cfa_mosaic, poisson_gaussian, poisson_gaussian_exact, psf_conv, quantize_ste
-from warpsense.ops.sensor import sensor_capture
 from warpsense.ops.noise import POISSON_NORMAL_LIMIT
 from warpsense.ops.reference import quantize_reference
+from warpsense.ops.sensor import sensor_capture
 
 
 @pytest.mark.parametrize("mean_count", [50.0, 1e6, 1e8, 1e9])

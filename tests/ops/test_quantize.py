@@ -93,5 +93,6 @@ def test_cuda_matches_reference():
     raw = (torch.rand(3, 1, 16, 16, dtype=torch.float64, device="cuda") * 1.2 - 0.1).requires_grad_()
     grad = torch.rand_like(raw)
     for mode in ("full_well", "max"):
-        assert_matches_reference(lambda x: quantize_ste(x, 10, mode=mode), lambda x: quantize_reference(x, 10, mode=mode),
+        assert_matches_reference(lambda x, mode=mode: quantize_ste(x, 10, mode=mode),
+                                 lambda x, mode=mode: quantize_reference(x, 10, mode=mode),
                                  (raw,), grad)

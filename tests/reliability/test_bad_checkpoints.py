@@ -8,12 +8,11 @@ import json
 import torch
 from safetensors.torch import save_file
 
-from warpsense.config import load_config
-from warpsense.system.checkpoint import save_checkpoint
-from warpsense.system import build_system
-
 from tests.reliability.conftest import assert_clean_failure
 from tests.train.test_checkpoint import _bad_files
+from warpsense.config import load_config
+from warpsense.system import build_system
+from warpsense.system.checkpoint import save_checkpoint
 
 
 def _model_checkpoints(folder):
@@ -59,7 +58,7 @@ def test_eval_refuses_every_bad_checkpoint(tmp_path, capsys):
 def test_resume_refuses_every_bad_checkpoint(tmp_path, capsys):
     config = load_config()
     (tmp_path / "files").mkdir()
-    for path, names in _all(tmp_path / "files"):
+    for path, _names in _all(tmp_path / "files"):
         run = tmp_path / f"run-{path.stem}"
         run.mkdir()
         (run / "config.json").write_text(json.dumps(config.to_dict()))

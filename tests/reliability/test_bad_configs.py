@@ -5,9 +5,8 @@ import dataclasses
 
 import pytest
 
-from warpsense.config import Config
-
 from tests.reliability.conftest import assert_clean_failure
+from warpsense.config import Config
 
 WRONG_VALUE = {bool: '"yes"', int: '"many"', float: '"x"', str: "5"}
 

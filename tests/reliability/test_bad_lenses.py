@@ -5,10 +5,9 @@ import json
 
 import pytest
 
-from warpsense.resources import CONFIG_DIR
-from warpsense.optics.lens import OPTIONAL_KEYS, REQUIRED_KEYS
-
 from tests.reliability.conftest import assert_clean_failure
+from warpsense.optics.lens import OPTIONAL_KEYS, REQUIRED_KEYS
+from warpsense.resources import CONFIG_DIR
 
 GOOD = json.loads((CONFIG_DIR / "lenses" / "phone_68deg.json").read_text())
 WRONG = {str: 5, float: "x", int: "x", list: "x", dict: [1, 2]}

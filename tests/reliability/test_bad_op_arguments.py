@@ -5,8 +5,15 @@ policy (any finite PSF values, non-finite values propagating) is documented in `
 import pytest
 import torch
 
-from warpsense.ops import cfa_mosaic, exposure, exposure_gain, poisson_gaussian, poisson_gaussian_exact, psf_conv, \
-    quantize_ste
+from warpsense.ops import (
+    cfa_mosaic,
+    exposure,
+    exposure_gain,
+    poisson_gaussian,
+    poisson_gaussian_exact,
+    psf_conv,
+    quantize_ste,
+)
 from warpsense.ops.sensor import sensor_capture
 
 IMAGE = torch.rand(1, 3, 8, 8)

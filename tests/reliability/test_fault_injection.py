@@ -11,12 +11,11 @@ import os
 import pytest
 import torch
 
+from tests.train.test_training import TINY
 from warpsense.config import load_config
 from warpsense.system import checkpoint
 from warpsense.train import engine
 from warpsense.train.engine import train
-
-from tests.train.test_training import TINY
 
 BASE = TINY + ["data.scenes_train=8", "data.scenes_val=4", "model.width=4", "train.epochs=3",
                "train.warmup_epochs=1"]

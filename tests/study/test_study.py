@@ -7,13 +7,12 @@ from pathlib import Path
 
 import pytest
 
+from tests.reliability.conftest import assert_clean_failure
 from warpsense.cli import main
 from warpsense.resources import CONFIG_DIR
 from warpsense.study import load_plan, render_text, run_cells, study_record
 from warpsense.study.plan import PlanError
 from warpsense.train import engine
-
-from tests.reliability.conftest import assert_clean_failure
 
 FAST = ["train.epochs=2", "data.scenes_train=16", "data.scenes_val=4", "train.eval_every=2"]
 BROKEN = '''

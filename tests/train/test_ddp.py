@@ -89,7 +89,7 @@ def test_device_choices_resolve_as_the_config_documents(monkeypatch):
     from warpsense.system import resolve_device
 
     for available in (False, True):
-        monkeypatch.setattr(torch.cuda, "is_available", lambda: available)
+        monkeypatch.setattr(torch.cuda, "is_available", lambda available=available: available)
         assert resolve_device("cpu") == torch.device("cpu")
         assert resolve_device("cuda") == torch.device("cuda")
         assert resolve_device("auto") == torch.device("cuda" if available else "cpu")

@@ -2,12 +2,11 @@ import json
 
 import pytest
 
+from tests.train.test_training import TINY
 from warpsense.config import load_config
 from warpsense.system.checkpoint import read_checkpoint
 from warpsense.train.engine import LAST, train
 from warpsense.train.schedule import Schedule
-
-from tests.train.test_training import TINY
 
 
 def test_phases_and_temperature_follow_the_plan():

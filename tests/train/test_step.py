@@ -6,17 +6,16 @@ import math
 import pytest
 import torch
 
+from tests.conftest import device_params
+from tests.train.test_training import TINY
+from warpsense.camera import Camera
 from warpsense.config import load_config
+from warpsense.system import SensingModel, build_system, cfa_flip, cfa_unflip
 from warpsense.train import engine
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.engine import train
-from warpsense.train.step import TrainingStep, cosine_scale
-from warpsense.camera import Camera
-from warpsense.system import SensingModel, build_system, cfa_flip, cfa_unflip
 from warpsense.train.schedule import Schedule
-
-from tests.conftest import device_params
-from tests.train.test_training import TINY
+from warpsense.train.step import TrainingStep, cosine_scale
 
 
 def _step_and_batch(overrides=()):

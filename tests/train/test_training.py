@@ -7,10 +7,10 @@ from warpsense.cli import main
 from warpsense.config import load_config, with_overrides
 from warpsense.data import build_dataset
 from warpsense.models import count_parameters
+from warpsense.system import build_system
 from warpsense.system.checkpoint import read_checkpoint, restore, save_checkpoint
 from warpsense.train.engine import train
 from warpsense.train.losses import segmentation_loss
-from warpsense.system import build_system
 
 TINY = ["data.scenes_train=16", "data.scenes_val=4", "data.batch_size=4", "data.scene_height=32",
         "data.scene_width=48", "data.crop_height=32", "data.crop_width=48", "train.plots=false", "train.compile=off",

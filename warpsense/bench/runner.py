@@ -19,7 +19,12 @@ from warpsense.bench.timing import _summary, _sync, time_cuda_graph, time_functi
 from warpsense.files import environment, write_json
 from warpsense.ops import cfa_mosaic, poisson_gaussian, psf_conv, quantize_ste
 from warpsense.ops.psf import _conv2d_warp_gradient, psf_conv_fft, psf_conv_patch
-from warpsense.ops.reference import cfa_mosaic_reference, poisson_gaussian_reference, psf_conv_reference, quantize_reference
+from warpsense.ops.reference import (
+    cfa_mosaic_reference,
+    poisson_gaussian_reference,
+    psf_conv_reference,
+    quantize_reference,
+)
 
 
 def time_backward(forward, inputs, device, repeats: int, warmup: int = 2) -> dict:
@@ -77,14 +82,15 @@ class Bench:
             with torch.autocast(self.device, dtype=torch.bfloat16, enabled=precision == "bf16_autocast"):
                 with torch.no_grad():
                     errors = _errors(function(*inputs), expected) if compare else None
-                    timing = time_function(lambda: function(*inputs), self.device, self.repeats)
+                    timing = time_function(lambda inputs=inputs: function(*inputs), self.device, self.repeats)
                 self.record(kernel, method, precision, shape, "fwd", timing, errors, bytes_fwd)
                 grads = [x for x in inputs if x.requires_grad]
                 if grads and precision == "float32":
-                    timing = time_backward(lambda: function(*inputs), grads, self.device, self.repeats)
+                    timing = time_backward(lambda inputs=inputs: function(*inputs), grads, self.device, self.repeats)
                     self.record(kernel, method, precision, shape, "bwd", timing, None, bytes_bwd)
                     # one autograd call: the host queues the backward while the forward runs, as in training
-                    timing = time_function(lambda: torch.autograd.grad(function(*inputs).sum(), grads), self.device,
+                    timing = time_function(lambda inputs=inputs, grads=grads: torch.autograd.grad(function(*inputs).sum(), grads),
+                                           self.device,
                                            self.repeats)
                     self.record(kernel, method, precision, shape, "fwd+bwd", timing)
 

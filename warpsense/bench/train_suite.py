@@ -23,10 +23,14 @@ from warpsense.data.color import srgb_to_linear
 from warpsense.errors import first_line
 from warpsense.models import build_model
 from warpsense.ops import psf_conv
-from warpsense.ops.reference import (cfa_mosaic_reference, poisson_gaussian_reference, psf_conv_reference,
-                                     quantize_reference)
-from warpsense.train.step import TrainingStep
+from warpsense.ops.reference import (
+    cfa_mosaic_reference,
+    poisson_gaussian_reference,
+    psf_conv_reference,
+    quantize_reference,
+)
 from warpsense.system import SensingModel
+from warpsense.train.step import TrainingStep
 
 
 def gaussian_psf(size: int = 7, sigma: float = 1.2, channels: int = 3) -> torch.Tensor:

@@ -7,7 +7,6 @@ from torch.nn import functional as F
 from torch.utils.data import Dataset, Sampler
 
 
-
 def scale_crop_flip(image: torch.Tensor, label: torch.Tensor, crop: tuple[int, int], scale_range: tuple[float, float],
                     hflip: bool, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """uint8 [3, H, W], int64 [H, W] -> a random (crop_h, crop_w) window after a random rescale and flip.

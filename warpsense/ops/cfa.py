@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import cfa as kernels
-from warpsense.ops.arguments import check_same_device, check_tensor
 from warpsense.ops._warp import launch, prepare, reduction_lanes, save_inputs, warp_op
+from warpsense.ops.arguments import check_same_device, check_tensor
 
 
 def site_reduction_buffers(rgb: torch.Tensor, tile: int, want_rgb: bool, sums: int):

@@ -6,8 +6,8 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import noise as kernels
-from warpsense.ops.arguments import check_level, check_tensor
 from warpsense.ops._warp import launch, prepare, reduction_lanes, save_inputs, scalar_tensor, seed_int32, warp_op
+from warpsense.ops.arguments import check_level, check_tensor
 
 POISSON_NORMAL_LIMIT = float(kernels.POISSON_NORMAL_LIMIT)
 

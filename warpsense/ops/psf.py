@@ -16,8 +16,8 @@ import torch.nn.functional as F
 
 from warpsense.choices import PSF_METHODS
 from warpsense.kernels import psf as kernels
-from warpsense.ops.arguments import check_same_device, check_tensor
 from warpsense.ops._warp import Vectors, launch, prepare, save_inputs, warp_op
+from warpsense.ops.arguments import check_same_device, check_tensor
 
 _THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill an H100; serial CPU)
 

@@ -7,8 +7,8 @@ import torch
 
 from warpsense.choices import QUANTIZE_MODES
 from warpsense.kernels import quantize as kernels
-from warpsense.ops.arguments import check_tensor
 from warpsense.ops._warp import launch, prepare, save_inputs, warp_op
+from warpsense.ops.arguments import check_tensor
 
 _FLOAT32_RANGE = (torch.finfo(torch.float32).tiny, torch.finfo(torch.float32).max)
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import sensor as kernels
-from warpsense.ops.arguments import check_level, check_same_device, check_tensor
 from warpsense.ops._warp import launch, prepare, save_inputs, scalar_tensor, warp_op
+from warpsense.ops.arguments import check_level, check_same_device, check_tensor
 from warpsense.ops.cfa import rgb_gradient_buffer, site_reduction_buffers
 from warpsense.ops.noise import noise_seeds
 from warpsense.ops.quantize import check_quantize_arguments

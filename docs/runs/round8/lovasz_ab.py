@@ -3,13 +3,15 @@ camvid_codesign training step (compiled + whole-step CUDA graph), same call."""
 import json
 import os
 import time
+
 import torch
 from torch.utils import benchmark
+
 import warpsense.train.losses as losses
 from warpsense.config import load_config
 from warpsense.system import build_system
-from warpsense.train.step import TrainingStep
 from warpsense.train.schedule import Schedule
+from warpsense.train.step import TrainingStep
 
 new_grad = losses.lovasz_grad
 
