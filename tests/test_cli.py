@@ -70,3 +70,16 @@ def test_train_print_config_shows_the_resolved_config_and_trains_nothing(tmp_pat
     printed = json.loads(capsys.readouterr().out)
     assert printed["train"]["epochs"] == 40 and printed["optics"]["learnable"] is True  # override and preset
     assert printed["model"]["width"] == 24 and list(tmp_path.iterdir()) == []  # from the base preset; no run
+
+
+def test_unavailable_device_and_missing_capture_are_one_line_errors(tmp_path, capsys, monkeypatch):
+    import torch
+
+    from tests.reliability.conftest import assert_clean_failure
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert_clean_failure(capsys, ["train", "--set", "run.device=cuda", "--set", f"run.output_dir={tmp_path}"],
+                         ("device cuda", "--device cpu"))
+    assert_clean_failure(capsys, ["predict", "checkpoints/camvid_codesign.safetensors", str(tmp_path / "no.dng"),
+                                  "--out", str(tmp_path / "p.png"), "--device", "cpu"], ("no.dng", "no such file"),
+                         watched=tmp_path)

@@ -103,9 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = commands.add_parser("eval", help="evaluate a checkpoint (mIoU, per-class IoU, sweeps, latency)",
                                    description="Evaluate a trained checkpoint on a dataset split.")
     evaluate.add_argument("--checkpoint", required=True, help="checkpoint .safetensors (with its .json beside it)")
-    evaluate.add_argument("--data", default="scenes", choices=DATASETS,
-                          help="dataset kind")
-    evaluate.add_argument("--data-root", default="", help="dataset folder (not needed for scenes)")
+    evaluate.add_argument("--data", choices=DATASETS,
+                          help="dataset kind (default: the one the checkpoint was trained on)")
+    evaluate.add_argument("--data-root", help="dataset folder (not needed for scenes; default: the checkpoint's "
+                          "data.root when --data is left out)")
     evaluate.add_argument("--split", default="val", help="split name (e.g. val)")
     evaluate.add_argument("--json", metavar="OUT", help="write metrics JSON (miou, per_class_iou, pixel_accuracy, num_images)")
     evaluate.add_argument("--sweep", action="store_true", help="robustness sweeps: extra blur, noise scale, bit depth")

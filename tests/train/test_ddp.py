@@ -91,5 +91,9 @@ def test_device_choices_resolve_as_the_config_documents(monkeypatch):
     for available in (False, True):
         monkeypatch.setattr(torch.cuda, "is_available", lambda available=available: available)
         assert resolve_device("cpu") == torch.device("cpu")
-        assert resolve_device("cuda") == torch.device("cuda")
         assert resolve_device("auto") == torch.device("cuda" if available else "cpu")
+        if available:
+            assert resolve_device("cuda") == torch.device("cuda")
+        else:
+            with pytest.raises(ValueError, match="device cuda: .*use --device cpu or auto"):
+                resolve_device("cuda")

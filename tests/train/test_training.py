@@ -62,6 +62,12 @@ def test_train_then_eval_cli_on_scenes(tmp_path, capsys):
     at_operating_point = {row["miou"] for row in result["sweep"] if (row["factor"], row["value"]) in
                           {("blur_sigma_px", 0.0), ("noise_scale", 1.0), ("bits", config.quantize.bits)}}
     assert len(at_operating_point) == 1 and at_operating_point == {result["miou"]}
+    capsys.readouterr()
+    # without --data: the checkpoint's own dataset, named
+    assert main(["eval", "--checkpoint", str(run / "checkpoint_last.safetensors"), "--limit", "2", "--device",
+                 "cpu", "--json", str(out)]) == 0
+    assert "dataset: scenes (the checkpoint's; --data picks another)" in capsys.readouterr().out
+    assert json.loads(out.read_text())["dataset"] == "scenes"
 
 
 def test_train_on_real_camvid_crops(shared_data, tmp_path):

@@ -56,7 +56,7 @@ def measure_latency(model, device, height: int, width: int, batch: int, repeats:
     return result
 
 
-def run_eval(checkpoint: str, data: str, data_root: str, split: str, json_out: str | None = None,
+def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: str, json_out: str | None = None,
              sweep: bool = False, latency: bool = False, latency_size: tuple[int, int] = (192, 640),
              latency_batch: int = 1, device: str = "auto", batch_size: int = 4, limit: int = 0,
              plot_out: str | None = None, flip: bool = False) -> dict:
@@ -73,8 +73,13 @@ def run_eval(checkpoint: str, data: str, data_root: str, split: str, json_out: s
         if json_out:
             write_json(json_out, payload)
         return payload
+    if data is None:  # the checkpoint's own dataset, said out loud
+        data = config.data.dataset
+        data_root = config.data.root if data_root is None else data_root
+        print(f"dataset: {data} (the checkpoint's; --data picks another)"
+              + (f", root {data_root}" if data != "scenes" else ""))
     config.data.dataset = data
-    config.data.root = data_root
+    config.data.root = data_root or ""
     config.data.max_val_images = limit
     if data == "scenes":
         config.data.scenes_val = limit or config.data.scenes_val

@@ -53,6 +53,8 @@ def image_format(path: str | Path) -> str:
 def read_capture(path: str | Path) -> tuple[np.ndarray, dict]:
     """Normalised mosaic float32 [H, W] and metadata (``cfa_pattern`` ...) of a raw file (DNG and what LibRaw
     reads) or of `warpsense convert`'s output (.safetensors)."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: no such file")
     if Path(path).suffix.lower() == ".safetensors":
         mosaic, metadata = load_raw(path)
         return mosaic[0].numpy(), metadata

@@ -9,7 +9,7 @@ from pathlib import Path
 from warpsense.config import load_config, with_overrides
 from warpsense.files import check_output_folder
 from warpsense.train.engine import TrainingInterrupted, train
-from warpsense.train.run_dir import newest_run, resumed_config
+from warpsense.train.run_dir import LAST, newest_run, resumed_config
 
 LOCATING_KEYS = ("run.output_dir=", "run.name=")  # overrides that only say where the run to resume is
 
@@ -49,6 +49,10 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
     try:
         train(config, resume=run_dir, progress=progress, allow_config_change=allow_config_change)
     except TrainingInterrupted as interrupted:
+        if not (interrupted.run_dir / LAST).is_file():
+            print(f"warpsense train: interrupted before the first epoch ended; nothing to resume in "
+                  f"{interrupted.run_dir}: start the run again", file=sys.stderr)
+            return 130
         print(f"warpsense train: interrupted; continue with: warpsense train --resume-dir {interrupted.run_dir}",
               file=sys.stderr)
         return 130

@@ -7,5 +7,9 @@ import torch
 
 def resolve_device(choice: str) -> torch.device:
     """The device a `warpsense.choices.DEVICES` choice names: "cuda", or "auto" where torch sees a GPU -> cuda;
-    otherwise cpu."""
+    otherwise cpu. Asking for "cuda" where torch sees none is a one-line ValueError."""
+    if choice == "cuda" and not torch.cuda.is_available():
+        build = "this torch build has no CUDA" if torch.version.cuda is None else "torch sees no CUDA GPU"
+        raise ValueError(f"device cuda: {build} (torch {torch.__version__}); use --device cpu or auto "
+                         "(run.device=cpu or auto)")
     return torch.device("cuda" if choice == "cuda" or (choice == "auto" and torch.cuda.is_available()) else "cpu")
