@@ -157,3 +157,34 @@ def test_bad_study_directories_and_overrides(tmp_path, capsys):
                          ("holds another plan",), watched=tmp_path)
     with pytest.raises(PlanError, match="no cell 'rggb/day/0'"):
         load_plan("smoke").cell("rggb/day/0")
+
+
+def test_ctrl_c_stops_the_local_pool_and_a_rerun_resumes(tmp_path, capsys):
+    import os
+    import signal
+    import threading
+    import time
+
+    plan = load_plan("smoke", ["train.epochs=6", "data.scenes_train=16", "data.scenes_val=4", "train.eval_every=6"])
+    cells = [cell for cell in plan.cells() if cell.camera == "rggb"]
+    out = tmp_path / "pool"
+    checkpoint = out / "runs" / cells[0].run_name / "checkpoint_last.safetensors"
+
+    def interrupt_when_training():
+        deadline = time.time() + 120
+        while not checkpoint.exists() and time.time() < deadline:
+            time.sleep(0.02)
+        os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while the cells train (the main thread waits in the pool)
+
+    watcher = threading.Thread(target=interrupt_when_training, daemon=True)
+    watcher.start()
+    assert run_cells(plan, out, cells, gpus=["0"], per_gpu=2) == 130
+    watcher.join()
+    assert "study: interrupted; run the same command again" in capsys.readouterr().err
+    assert not (out / "runs" / cells[0].run_name / "evaluation.json").exists()
+    assert run_cells(plan, out, cells, gpus=["0"], per_gpu=2) == 0
+    log = (out / "logs" / f"{cells[0].run_name}.log").read_text()
+    assert "resuming" in log  # the interrupted cell continued from its checkpoint
+    for cell in cells:
+        records = [json.loads(line) for line in (out / "runs" / cell.run_name / "metrics.jsonl").read_text().splitlines()]
+        assert [record["epoch"] for record in records] == list(range(6))

@@ -12,6 +12,7 @@ import json
 import os
 import queue
 import shlex
+import signal
 import subprocess
 import sys
 import threading
@@ -106,8 +107,8 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
         failed = _pool(plan, out, pending, numbering, total, gpus, per_gpu)
     else:
         failed = _in_process(plan, out, pending, numbering, total, progress)
-        if failed is None:
-            return 130
+    if failed is None:
+        return 130
     if failed:
         print(f"study: {len(failed)} of {total} cells failed: {', '.join(c.id for c in failed)}; the others are "
               f"done. Run the same command again to retry them.", file=sys.stderr)
@@ -138,27 +139,36 @@ def _in_process(plan, out, pending, numbering, total, progress) -> list[Cell] | 
     return failed
 
 
-def _pool(plan, out, pending, numbering, total, gpus, per_gpu) -> list[Cell]:
-    """Cells as processes, ``per_gpu`` at once on each GPU; each writes its output to <out>/logs/<cell>.log."""
+def _pool(plan, out, pending, numbering, total, gpus, per_gpu) -> list[Cell] | None:
+    """Cells as processes, ``per_gpu`` at once on each GPU; each writes its output to <out>/logs/<cell>.log. The
+    failed cells, or None after Ctrl-C (every running cell is interrupted; its last checkpoint resumes it)."""
     slots: queue.Queue = queue.Queue()
     for gpu in gpus:
         for _ in range(per_gpu):
             slots.put(gpu)
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    failed, lock = [], threading.Lock()
+    failed, running, lock, stopping = [], set(), threading.Lock(), threading.Event()
 
     def work(cell: Cell) -> None:
         gpu = slots.get()
         prefix = f"[{numbering[cell]}/{total}] {cell.id}"
         try:
-            command = [sys.executable, "-m", *cell_command(plan, out, cell)]
+            if stopping.is_set():
+                return
             log = logs / f"{cell.run_name}.log"
             print(f"{prefix}: started on GPU {gpu} (log {log})", flush=True)
             started = time.perf_counter()
             with open(log, "a") as handle:
-                code = subprocess.call(command, stdout=handle, stderr=subprocess.STDOUT,
-                                       env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu})
+                process = subprocess.Popen([sys.executable, "-m", *cell_command(plan, out, cell)], stdout=handle,
+                                           stderr=subprocess.STDOUT, env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu})
+                with lock:
+                    running.add(process)
+                code = process.wait()
+                with lock:
+                    running.discard(process)
+            if stopping.is_set():
+                return
             elapsed = time.perf_counter() - started
             if code == 0 and cell_state(out, cell) == "done":
                 record = json.loads((run_dir(out, cell) / "evaluation.json").read_text())
@@ -172,11 +182,26 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu) -> list[Cell]:
         finally:
             slots.put(gpu)
 
-    threads = [threading.Thread(target=work, args=(cell,)) for cell in pending]
+    threads = [threading.Thread(target=work, args=(cell,), daemon=True) for cell in pending]
     for thread in threads:  # each thread waits for a free GPU slot, so at most len(gpus) * per_gpu run at once
         thread.start()
-    for thread in threads:
-        thread.join()
+    try:
+        for thread in threads:
+            while thread.is_alive():
+                thread.join(timeout=1.0)
+    except KeyboardInterrupt:
+        stopping.set()
+        with lock:
+            processes = list(running)
+        for process in processes:  # each cell stops at once and keeps its last epoch's checkpoint
+            process.send_signal(signal.SIGINT)
+        for process in processes:
+            try:
+                process.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                process.kill()
+        print("study: interrupted; run the same command again to resume (finished cells are kept)", file=sys.stderr)
+        return None
     return sorted(failed, key=lambda cell: numbering[cell])
 
 
