@@ -79,8 +79,10 @@ def _lens(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="warpsense", description=__doc__.splitlines()[0] + " Camera co-design "
-                                     "for driving perception with differentiable Warp sensor kernels.")
+    parser = argparse.ArgumentParser(prog="warpsense", description="Camera co-design for driving perception: a "
+                                     "differentiable camera (lens, exposure, colour filters, noise, ADC) in NVIDIA "
+                                     "Warp, trained with a segmentation network; compare cameras with `warpsense "
+                                     "study`.")
     parser.add_argument("--version", action="version", version=f"warpsense {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
 

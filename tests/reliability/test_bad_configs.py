@@ -73,3 +73,15 @@ def test_unreadable_config_files(tmp_path, capsys):
     assert_clean_failure(capsys, ["train", "--config", str(folder)], (str(folder),), watched=tmp_path)
     assert_clean_failure(capsys, ["train", "--config", str(tmp_path / "missing.toml")], ("missing.toml",))
     assert_clean_failure(capsys, ["train", "--set", "train.lr"], ("train.lr",))
+
+
+@pytest.mark.parametrize("overrides, names", [
+    (["train.cuda_graph=true", "run.device=cpu"], ("cuda_graph",)),  # refused by the training step, after the folder
+    (["data.dataset=camvid"], ("data.root",)),  # the dataset is looked for after the folder exists
+])
+def test_errors_found_after_the_run_folder_exists_leave_nothing(overrides, names, tmp_path, capsys):
+    argv = ["train", "--set", f"run.output_dir={tmp_path / 'runs'}"]
+    for override in overrides:
+        argv += ["--set", override]
+    assert_clean_failure(capsys, argv, names, watched=tmp_path)
+    assert not (tmp_path / "runs" / "default").exists()

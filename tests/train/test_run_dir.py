@@ -77,14 +77,27 @@ def test_run_lock_refuses_a_second_training_and_takes_over_a_stale_lock(tmp_path
 
 
 def test_ctrl_c_prints_the_resume_command_and_releases_the_lock(tmp_path, monkeypatch, capsys):
-    def interrupted(*args, **kwargs):
+    def interrupted_after_an_epoch(config, run_dir, *args, **kwargs):
+        (run_dir / engine.LAST).write_bytes(b"")  # the first epoch's checkpoint
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(engine, "_train", interrupted)
+    monkeypatch.setattr(engine, "_train", interrupted_after_an_epoch)
     code = main(["train", "--set", f"run.output_dir={tmp_path}", "--set", "run.name=cut", "--no-progress"])
     assert code == 130
     assert f"continue with: warpsense train --resume-dir {tmp_path / 'cut'}" in capsys.readouterr().err
     assert not (tmp_path / "cut" / "train.lock").exists()
+
+
+def test_ctrl_c_in_the_first_epoch_leaves_nothing_to_resume(tmp_path, monkeypatch, capsys):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(engine, "_train", interrupted)
+    code = main(["train", "--set", f"run.output_dir={tmp_path / 'runs'}", "--set", "run.name=cut", "--no-progress"])
+    assert code == 130
+    error = capsys.readouterr().err
+    assert "interrupted before the first epoch ended; nothing to resume" in error and "--resume-dir" not in error
+    assert not (tmp_path / "runs").exists()  # the folders it made are gone
 
 
 def test_runs_record_their_environment_and_files_get_the_default_mode(tmp_path):

@@ -62,7 +62,7 @@ def record_plan(plan: Plan, out: Path) -> None:
             raise PlanError(f"{path}: this study directory holds another plan ({saved.get('name')!r} with other "
                             f"cameras, lights, seeds or overrides); use a new --out")
         return
-    out.mkdir(parents=True, exist_ok=True)
+    (out / "runs").mkdir(parents=True, exist_ok=True)  # shared by the cells' run folders
     write_json(path, {**record, "source": plan.source})
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import shutil
 import time
 from pathlib import Path
 from typing import NamedTuple
@@ -131,15 +132,38 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
         run_dir = fresh_run_dir(Path(config.run.output_dir) / config.run.name)
     context = DistributedContext.from_environment(config.run.device)
     lock = RunLock(run_dir)
+    # the outermost folder this call creates (the run's, or an output_dir above it): removed if no epoch completes
+    created = next((folder for folder in (*reversed(run_dir.parents), run_dir) if not folder.exists()), None) \
+        if context.is_main else None
     if context.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         lock.acquire()
     try:
         return _train(config, run_dir, bool(resume), context, progress, return_model)
     except KeyboardInterrupt:
+        _discard_unfinished(run_dir, created)
         raise TrainingInterrupted(run_dir) from None
+    except Exception:
+        _discard_unfinished(run_dir, created)
+        raise
     finally:
         lock.release()
+
+
+def _discard_unfinished(run_dir: Path, created: Path | None) -> None:
+    """Remove the folders this call created (``created``: the outermost) when the run holds no checkpoint yet (a
+    config the model refuses, a missing dataset, Ctrl-C in the first epoch): nothing partial is left on disk, and
+    nothing suggests a resume."""
+    if created is None or (run_dir / LAST).exists():
+        return
+    shutil.rmtree(run_dir, ignore_errors=True)
+    for folder in run_dir.parents:  # the output folders made for it, while empty (another run may use them now)
+        if not folder.is_relative_to(created):
+            break
+        try:
+            folder.rmdir()
+        except OSError:
+            break
 
 
 class _Datasets(NamedTuple):
