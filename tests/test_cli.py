@@ -83,3 +83,19 @@ def test_unavailable_device_and_missing_capture_are_one_line_errors(tmp_path, ca
     assert_clean_failure(capsys, ["predict", "checkpoints/camvid_codesign.safetensors", str(tmp_path / "no.dng"),
                                   "--out", str(tmp_path / "p.png"), "--device", "cpu"], ("no.dng", "no such file"),
                          watched=tmp_path)
+
+
+@pytest.mark.parametrize("command", ["eval", "bench", "predict", "study"])
+def test_help_shows_every_default(command):
+    import argparse
+
+    parser = build_parser()
+    subcommands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    parsers = [subcommands[command]]
+    if command == "study":
+        parsers = list(next(a for a in parsers[0]._actions if isinstance(a, argparse._SubParsersAction)).choices
+                       .values())
+    for sub in parsers:
+        for action in sub._actions:
+            if action.default not in (None, False, [], argparse.SUPPRESS) and action.help:
+                assert "default" in action.help, (command, action.dest)

@@ -38,7 +38,8 @@ def _eval(args) -> int:
         raise ValueError(f"--latency-size must be HxW, e.g. 192x640, got {args.latency_size!r}")
     height, width = (int(part) for part in size)
     run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
-             (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot, args.flip_tta)
+             (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot, args.flip_tta,
+             progress=not args.no_progress)
     return 0
 
 
@@ -109,23 +110,24 @@ def build_parser() -> argparse.ArgumentParser:
                           help="dataset kind (default: the one the checkpoint was trained on)")
     evaluate.add_argument("--data-root", help="dataset folder (not needed for scenes; default: the checkpoint's "
                           "data.root when --data is left out)")
-    evaluate.add_argument("--split", default="val", help="split name (e.g. val)")
+    evaluate.add_argument("--split", default="val", help="split name (default: %(default)s)")
     evaluate.add_argument("--json", metavar="OUT", help="write metrics JSON (miou, per_class_iou, pixel_accuracy, num_images)")
     evaluate.add_argument("--sweep", action="store_true", help="robustness sweeps: extra blur, noise scale, bit depth")
     evaluate.add_argument("--flip-tta", action="store_true",
                           help="average with the prediction on the mirrored capture (keeps the CFA phase)")
     evaluate.add_argument("--plot", metavar="OUT.png", help="with --sweep: plot the sweeps")
     evaluate.add_argument("--latency", action="store_true", help="time sensor simulation + network and network alone (alone: no dataset, no mIoU; with --sweep: both)")
-    evaluate.add_argument("--latency-size", default="192x640", metavar="HxW", help="input size for --latency")
-    evaluate.add_argument("--latency-batch", type=int, default=1, help="batch size for --latency")
-    evaluate.add_argument("--batch-size", type=int, default=4, help="evaluation batch size")
-    evaluate.add_argument("--limit", type=int, default=0, help="evaluate only the first N images (0 = all)")
-    evaluate.add_argument("--device", default="auto", choices=DEVICES, help="device")
+    evaluate.add_argument("--latency-size", default="192x640", metavar="HxW", help="input size for --latency (default: %(default)s)")
+    evaluate.add_argument("--latency-batch", type=int, default=1, help="batch size for --latency (default: %(default)s)")
+    evaluate.add_argument("--batch-size", type=int, default=4, help="evaluation batch size (default: %(default)s)")
+    evaluate.add_argument("--limit", type=int, default=0, help="evaluate only the first N images (default: %(default)s = all)")
+    evaluate.add_argument("--device", default="auto", choices=DEVICES, help="device (default: %(default)s)")
+    evaluate.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     evaluate.set_defaults(handler=_eval)
 
     bench = commands.add_parser("bench", help="kernel microbenchmarks: error against run time",
                                 description="Benchmark every Warp kernel against its plain-torch reference.")
-    bench.add_argument("--device", default="cpu", choices=DEVICES[1:], help="device to benchmark")
+    bench.add_argument("--device", default="cpu", choices=DEVICES[1:], help="device to benchmark (default: %(default)s)")
     bench.add_argument("--suite", default="kernels", choices=BENCH_SUITES,
                        help="kernels: each op vs its reference; accuracy: error against run time (three error norms, "
                             "three scenes, the lens's discretisation against converged references); train: training "
@@ -155,7 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
                          help="output image, as large as the capture; its type follows the suffix (.png, .jpg, ...)")
     predict.add_argument("--overlay", action="store_true", help="blend the class colours over the capture")
     predict.add_argument("--no-legend", action="store_true", help="leave out the strip naming the class colours")
-    predict.add_argument("--device", default="auto", choices=DEVICES, help="device")
+    predict.add_argument("--device", default="auto", choices=DEVICES, help="device (default: %(default)s)")
     predict.set_defaults(handler=_predict)
 
     study = commands.add_parser("study", help="compare cameras: cameras x light levels x seeds, with intervals",

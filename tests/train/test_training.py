@@ -54,7 +54,7 @@ def test_train_then_eval_cli_on_scenes(tmp_path, capsys):
     assert json.loads((run / "config.json").read_text())["train"]["epochs"] == 2
     out = tmp_path / "eval.json"
     assert main(["eval", "--checkpoint", str(run / "checkpoint_best.safetensors"), "--data", "scenes", "--split",
-                 "val", "--limit", "4", "--json", str(out), "--device", "cpu", "--sweep"]) == 0
+                 "val", "--limit", "4", "--json", str(out), "--device", "cpu", "--sweep", "--no-progress"]) == 0
     result = json.loads(out.read_text())
     assert {"miou", "per_class_iou", "pixel_accuracy", "num_images"} <= set(result) and result["num_images"] == 4
     assert {row["factor"] for row in result["sweep"]} == {"blur_sigma_px", "noise_scale", "bits"}

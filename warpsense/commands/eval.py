@@ -59,7 +59,7 @@ def measure_latency(model, device, height: int, width: int, batch: int, repeats:
 def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: str, json_out: str | None = None,
              sweep: bool = False, latency: bool = False, latency_size: tuple[int, int] = (192, 640),
              latency_batch: int = 1, device: str = "auto", batch_size: int = 4, limit: int = 0,
-             plot_out: str | None = None, flip: bool = False) -> dict:
+             plot_out: str | None = None, flip: bool = False, progress: bool = True) -> dict:
     """The `warpsense eval` command as a function; returns the JSON payload. ``latency`` alone (without
     ``sweep``) only times the model: no dataset is read and no mIoU computed."""
     from warpsense.data import build_dataset
@@ -86,7 +86,7 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
     dataset = build_dataset(config.data, split, train=False, seed=config.run.seed)
     class_names = state.get("class_names") or list(dataset.classes)
     amp = torch_device.type == "cuda" and config.train.amp
-    metrics = evaluate(model, dataset, torch_device, batch_size, class_names=class_names, amp=amp, progress=True,
+    metrics = evaluate(model, dataset, torch_device, batch_size, class_names=class_names, amp=amp, progress=progress,
                        flip=flip)
     payload = dict(metrics)
     payload.update({"checkpoint": str(checkpoint), "dataset": data, "split": split, "flip_tta": flip})
@@ -94,7 +94,7 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
     for name, iou in metrics["per_class_iou"].items():
         print(f"  {name:>14s}  {'-' if iou is None else f'{iou:.4f}'}")
     if sweep:
-        rows = robustness_sweep(model, dataset, torch_device, batch_size, class_names, amp)
+        rows = robustness_sweep(model, dataset, torch_device, batch_size, class_names, amp, progress)
         payload["sweep"] = rows
         print(f"{'factor':>14s} {'value':>8s} {'mIoU':>8s}")
         for row in rows:
