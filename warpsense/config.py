@@ -265,7 +265,7 @@ def _apply(config: Config, overrides: dict, source: str) -> None:
             setattr(section, key, value)
 
 
-def _read_toml(path: Path, label: str) -> dict:
+def read_toml(path: Path, label: str) -> dict:
     try:
         return tomllib.loads(Path(path).read_text())
     except tomllib.TOMLDecodeError as error:
@@ -294,10 +294,10 @@ def _apply_file(config: Config, name_or_path: str | Path, depth: int) -> None:
     path = Path(name_or_path)
     if not path.suffix and str(name_or_path) in preset_names():
         label = f"preset {name_or_path}"
-        data = _read_toml(CONFIG_DIR / "presets" / f"{name_or_path}.toml", label)
+        data = read_toml(CONFIG_DIR / "presets" / f"{name_or_path}.toml", label)
     elif path.is_file():
         label = str(path)
-        data = _read_toml(path, label)
+        data = read_toml(path, label)
     else:
         raise ConfigError(f"config {str(name_or_path)!r}: no such file or preset; presets: {', '.join(preset_names())}")
     base = data.pop("base", None)

@@ -115,7 +115,7 @@ class CFA(Stage):
         """[B, 3, H, W] -> RAW [B, 1, H, W]."""
         return cfa_mosaic(image, self.phi())
 
-    def draw(self, axis) -> bool:
+    def draw(self, axis) -> None:
         """The responses as colours with the exported letters."""
         phi = self.phi().detach().cpu().numpy()
         axis.imshow((phi / max(float(phi.max()), 1e-6)).clip(0, 1), interpolation="nearest")
@@ -123,4 +123,3 @@ class CFA(Stage):
             for x, letter in enumerate(row):
                 axis.text(x, y, letter, ha="center", va="center", color="white", fontsize=14)
         axis.set_title("learned CFA (phi, export letters)")
-        return True

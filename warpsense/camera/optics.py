@@ -89,7 +89,7 @@ class Optics(Stage):
             self._cache_valid = True
         return self._cached_psf
 
-    def draw(self, axis) -> bool:
+    def draw(self, axis) -> None:
         """The PSF grid (green channel, each PSF scaled to its peak, square root), central window above 1%."""
         psf = self.psf().detach().cpu().numpy()[1]  # [Gy, Gx, K, K]
         psf = psf / np.maximum(psf.max(axis=(2, 3), keepdims=True), 1e-12)
@@ -103,7 +103,6 @@ class Optics(Stage):
                 mosaic[i * (size + 1) : i * (size + 1) + size, j * (size + 1) : j * (size + 1) + size] = psf[i, j]
         axis.imshow(mosaic ** 0.5, cmap="magma")
         axis.set_title(f"PSF grid (green, sqrt, per-PSF max; central {size} of K = {kernel_size})", fontsize=10)
-        return True
 
     def forward(self, radiance: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         image = psf_conv(radiance, self.psf().to(radiance.device), method=self.method)

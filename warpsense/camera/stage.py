@@ -98,6 +98,6 @@ class Stage(nn.Module):
         epoch's metrics, read through `Camera.learned`); empty when it learns nothing."""
         return {}
 
-    def draw(self, axis) -> bool:
-        """Draw the stage on a matplotlib ``axis`` (the run's camera.png); whether it has a picture."""
-        return False
+    def draw(self, axis) -> None:
+        """Draw the stage on a matplotlib ``axis`` (the run's camera.png). Stages with a picture override this;
+        `Camera.pictures` counts those that do."""

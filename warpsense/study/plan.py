@@ -30,18 +30,12 @@ plan file and key, found before anything is written.
 from __future__ import annotations
 
 import dataclasses
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from warpsense.config import Config, ConfigError, load_config
+from warpsense.config import Config, ConfigError, load_config, read_toml
 from warpsense.data import DatasetError, build_dataset
 from warpsense.resources import CONFIG_DIR
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 
 class PlanError(ValueError):
@@ -124,6 +118,16 @@ class Plan:
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
+    @classmethod
+    def from_dict(cls, data: dict) -> "Plan":
+        """The plan `to_dict` wrote (a study directory's plan.json)."""
+        return cls(source=data.get("source", ""), name=data["name"], base=data["base"], set=tuple(data["set"]),
+                   seeds=tuple(data["seeds"]), reference=data["reference"],
+                   cameras=tuple(CameraSpec(c["name"], c["preset"], tuple(c["set"])) for c in data["cameras"]),
+                   lights=tuple(LightSpec(x["name"], x["full_well_electrons"], x["read_electrons"], x["bits"],
+                                          tuple(x["cameras"])) for x in data["lights"]),
+                   overrides=tuple(data.get("overrides", ())))
+
 
 STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str}
 CAMERA_KEYS = {"name": str, "preset": str, "set": list}
@@ -182,14 +186,10 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     path = _locate(name_or_path)
     source = str(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as error:
-        raise PlanError(f"{source}: invalid TOML: {error}") from None
-    except OSError as error:
-        raise PlanError(f"{source}: cannot read the plan: {error.strerror or error}; shipped plans: "
-                        f"{', '.join(study_names())}") from None
-    except UnicodeDecodeError:
-        raise PlanError(f"{source}: not UTF-8 text") from None
+        data = read_toml(path, source)
+    except ConfigError as error:
+        hint = "" if path.is_file() else f"; shipped plans: {', '.join(study_names())}"
+        raise PlanError(f"{error}{hint}") from None
     for key in data:
         if key not in ("study", "camera", "light"):
             raise PlanError(f"{source}: unknown table [{key}]; valid tables: [study], [[camera]], [[light]]")

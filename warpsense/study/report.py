@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from warpsense.study.plan import Cell, PlanError
-from warpsense.study.runner import PLAN_RECORD, run_dir
+from warpsense.study.plan import Plan, PlanError
+from warpsense.study.runner import PLAN_RECORD, evaluation_path
 from warpsense.study.statistics import LEVEL, bootstrap_difference, distinguishable, paired_difference, t_interval
 
 NOT_DISTINGUISHABLE = "not distinguishable"
@@ -27,11 +27,6 @@ def _read_plan(study_dir: Path) -> dict:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as error:
         raise PlanError(f"{path}: unreadable: {error}") from None
-
-
-def _cells(plan: dict) -> list[Cell]:
-    return [Cell(camera["name"], light["name"], seed) for light in plan["lights"] for seed in plan["seeds"]
-            for camera in plan["cameras"] if not light["cameras"] or camera["name"] in light["cameras"]]
 
 
 def _verdict(paired: dict, bootstrap: dict | None) -> str:
@@ -91,11 +86,9 @@ def study_record(study_dir: str | Path, resamples: int = 2000) -> dict:
     that it is missing), and per split the groups and comparisons."""
     study_dir = Path(study_dir)
     plan = _read_plan(study_dir)
-    from warpsense.train.engine import EVALUATION
-
     evaluations, cells, missing = {}, [], []
-    for cell in _cells(plan):
-        path = run_dir(study_dir, cell) / EVALUATION
+    for cell in Plan.from_dict(plan).cells():
+        path = evaluation_path(study_dir, cell)
         if not path.is_file():
             missing.append(cell.id)
             continue

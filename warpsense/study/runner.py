@@ -31,15 +31,24 @@ def run_dir(out: Path, cell: Cell) -> Path:
     return Path(out) / "runs" / cell.run_name
 
 
+def evaluation_path(out: Path, cell: Cell) -> Path:
+    """The cell's `warpsense.train.engine.EVALUATION` file (present once the cell is finished)."""
+    from warpsense.train.engine import EVALUATION
+
+    return run_dir(out, cell) / EVALUATION
+
+
+def read_evaluation(out: Path, cell: Cell) -> dict:
+    return json.loads(evaluation_path(out, cell).read_text())
+
+
 def cell_state(out: Path, cell: Cell) -> str:
     """"done" (evaluated), "partial" (a checkpoint to resume) or "new"."""
-    from warpsense.train.engine import EVALUATION
     from warpsense.train.run_dir import LAST
 
-    directory = run_dir(out, cell)
-    if (directory / EVALUATION).is_file():
+    if evaluation_path(out, cell).is_file():
         return "done"
-    return "partial" if (directory / LAST).is_file() else "new"
+    return "partial" if (run_dir(out, cell) / LAST).is_file() else "new"
 
 
 def cell_command(plan: Plan, out: Path, cell: Cell) -> list[str]:
@@ -68,14 +77,13 @@ def record_plan(plan: Plan, out: Path) -> None:
 
 def train_cell(plan: Plan, out: Path, cell: Cell, progress: bool = False) -> dict:
     """Train (or resume) and evaluate one cell in this process; returns its evaluation record."""
-    from warpsense.train.engine import EVALUATION, train
+    from warpsense.train.engine import train
 
     state = cell_state(out, cell)
-    directory = run_dir(out, cell)
     if state != "done":
         config = plan.config(cell, Path(out) / "runs")
-        train(config, resume=directory if state == "partial" else False, progress=progress)
-    return json.loads((directory / EVALUATION).read_text())
+        train(config, resume=run_dir(out, cell) if state == "partial" else False, progress=progress)
+    return read_evaluation(out, cell)
 
 
 def _score(record: dict) -> str:
@@ -171,7 +179,7 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu) -> list[Cell] | N
                 return
             elapsed = time.perf_counter() - started
             if code == 0 and cell_state(out, cell) == "done":
-                record = json.loads((run_dir(out, cell) / "evaluation.json").read_text())
+                record = read_evaluation(out, cell)
                 print(f"{prefix}: done in {elapsed:.0f} s on GPU {gpu}, {_score(record)}", flush=True)
                 return
             lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]

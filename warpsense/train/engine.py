@@ -322,7 +322,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         context.barrier()
         epoch += 1
     if context.is_main:
-        final_evaluation(run_dir, model, datasets, config, num_classes, device, amp, progress)
+        final_evaluation(run_dir, model, datasets, config, schedule.epochs - 1, num_classes, device, amp, progress)
     if context.is_main and config.train.plots:
         from warpsense.train.plots import write_run_plots
 
@@ -334,12 +334,13 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     return (run_dir, model) if return_model else run_dir
 
 
-def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, num_classes: int, device, amp: bool,
-                     progress: bool = False) -> dict:
+def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, epoch: int, num_classes: int, device,
+                     amp: bool, progress: bool = False) -> dict:
     """Judge the model as training left it (the final epoch) on every labelled split (`evaluation_splits`) and write
     `EVALUATION`: per split mIoU, pixel accuracy, per-class IoU and each image's per-class (TP, FP, FN) pixel counts
-    (what `warpsense study report` resamples), with the camera's learned state. Returns the record."""
-    record = {"epoch": read_metrics(run_dir / "metrics.jsonl", 1 << 30)[-1]["epoch"],
+    (what `warpsense study report` resamples), with the camera's learned state; ``epoch``: the plan's last (0-based).
+    Returns the record."""
+    record = {"epoch": epoch,
               "class_names": list(datasets.train.classes), "num_classes": num_classes,
               "network_parameters": count_parameters(model.network), "camera": model.camera.summary(), "splits": {}}
     for split in evaluation_splits(config.data):
