@@ -25,7 +25,7 @@ def test_config_choices_are_the_shared_tuples():
         "run.device": choices.DEVICES, "data.dataset": choices.DATASETS, "data.on_device": choices.ON_DEVICE_MODES,
         "optics.method": choices.PSF_METHODS, "cfa.pattern": tuple(choices.CFA_LAYOUTS),
         "cfa.mode": choices.CFA_MODES, "quantize.mode": choices.QUANTIZE_MODES, "train.compile": choices.COMPILE_MODES,
-        "model.name": choices.MODEL_NAMES,
+        "model.name": choices.MODEL_NAMES, "photons.light": tuple(choices.LIGHT_LEVELS),
     }
 
 
@@ -38,6 +38,11 @@ def test_registries_implement_exactly_the_named_choices():
         assert len(layout_letters(pattern, 2)) == 2
     for mode in choices.CFA_MODES:
         CFA("RGGB", 2, mode)
+    from warpsense.camera.cfa import FILTERS
+    from warpsense.camera.photons import light_electrons
+
+    assert "".join(FILTERS) == choices.CFA_FILTERS
+    assert {name: light_electrons(name) for name in choices.LIGHT_LEVELS} == choices.LIGHT_LEVELS
     assert choices.BAYER_LAYOUTS == ("RGGB", "BGGR", "GRBG", "GBRG")
     assert set(choices.SELF_CAPTURING_COMPILE_MODES) < set(choices.COMPILE_MODES)
 

@@ -21,14 +21,18 @@ PSF_METHODS = ("auto", "direct", "conv2d", "fft", "patch")
 
 CFA_LAYOUTS = {
     "RGGB": ("RG", "GB"), "BGGR": ("BG", "GR"), "GRBG": ("GR", "BG"), "GBRG": ("GB", "RG"),
-    "RCCC": ("RC", "CC"), "RCCB": ("RC", "CB"),
+    "RCCC": ("RC", "CC"), "RCCB": ("RC", "CB"), "RYYB": ("RY", "YB"),
 }
-"""2 x 2 colour filter layouts, row by row (R, G, B filters and C = clear, as on RCCC automotive sensors)."""
+"""2 x 2 colour filter layouts, row by row (R, G, B filters, C = clear as on RCCC automotive sensors, Y = yellow as on
+RYYB phone sensors)."""
+
+CFA_FILTERS = "RGBCY"
+"""The filter letters (`warpsense.camera.cfa.FILTERS` gives each one's transmittance per band)."""
 
 BAYER_LAYOUTS = tuple(name for name, rows in CFA_LAYOUTS.items() if set("".join(rows)) <= set("RGB"))
 """The layouts with red, green and blue filters only: those a DNG's CFA pattern can be."""
 
-CFA_MODES = ("softmax", "free", "fixed")
+CFA_MODES = ("softmax", "gumbel", "free", "fixed")
 """How the CFA responses are parametrised (`warpsense.camera.cfa.CFA`)."""
 
 QUANTIZE_MODES = ("full_well", "max")
@@ -42,3 +46,9 @@ SELF_CAPTURING_COMPILE_MODES = ("reduce-overhead", "max-autotune")
 
 MODEL_NAMES = ("dsunet",)
 """Segmentation networks (`warpsense.models.MODELS`)."""
+
+LIGHT_LEVELS = {"night": 70.0, "dusk": 700.0, "day": 7000.0}
+"""Named scene light levels of the photon budget (`warpsense.camera.photons`): the electrons a mid-grey patch (18%
+linear reflectance) gives a clear pixel of the reference pixel (3 um pitch, quantum efficiency 0.6) at f/2 in 10 ms.
+"night" is calibrated so that a CamVid frame (mean linear radiance 0.26) gives its green pixels the electrons of the
+normalised default camera (33 e- at the mean: 0.5 of a 66.7 e- well); dusk and day are 10x and 100x brighter."""

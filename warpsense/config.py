@@ -21,6 +21,7 @@ from warpsense.choices import (
     COMPILE_MODES,
     DATASETS,
     DEVICES,
+    LIGHT_LEVELS,
     MODEL_NAMES,
     ON_DEVICE_MODES,
     PSF_METHODS,
@@ -93,6 +94,15 @@ class OpticsConfig:
     method: str = _field("auto", choices=PSF_METHODS)
     energy_eps: float = _field(0.001, minimum=0, maximum=1)
     field_tolerance: float = _field(0.001, minimum=0)
+    f_number: float = _field(0.0, minimum=0, maximum=64)
+    f_number_learnable: bool = False
+    f_number_min: float = _field(1.4, minimum=0.5, maximum=64)
+    f_number_max: float = _field(8.0, minimum=0.5, maximum=64)
+    exposure_ms: float = _field(10.0, minimum=0, maximum=1000, exclusive=True)
+    exposure_learnable: bool = False
+    exposure_ms_min: float = _field(1.0, minimum=0, maximum=1000, exclusive=True)
+    exposure_ms_max: float = _field(30.0, minimum=0, maximum=1000, exclusive=True)
+    corner_speed_px_per_ms: float = _field(0.0, minimum=0, maximum=100)
 
 
 @dataclass
@@ -111,6 +121,23 @@ class CFAConfig:
     init_logit: float = 4.0
     temperature_start: float = _field(1.0, minimum=0, exclusive=True)
     temperature_end: float = _field(0.05, minimum=0, exclusive=True)
+    candidates: str = "RGBC"
+
+
+@dataclass
+class PhotonsConfig:
+    enabled: bool = False
+    light: str = _field("night", choices=tuple(LIGHT_LEVELS))
+    mid_grey_electrons: float = _field(0.0, minimum=0, maximum=1e7)
+    pixel_pitch_um: float = _field(3.0, minimum=0, maximum=100, exclusive=True)
+    quantum_efficiency: float = _field(0.6, minimum=0, maximum=1, exclusive=True)
+    full_well_electrons: float = _field(6000.0, minimum=0, maximum=1e7, exclusive=True)
+    read_electrons: float = _field(2.0, minimum=0, maximum=1e4)
+    analog_gain: float = _field(1.0, minimum=1, maximum=1e4)
+    gain_learnable: bool = False
+    gain_max: float = _field(64.0, minimum=1, maximum=1e4, exclusive=True)
+    digital_gain: float = _field(0.0, minimum=0)
+    eval_seed: int = 1234
 
 
 @dataclass
@@ -178,6 +205,7 @@ class Config:
     optics: OpticsConfig = field(default_factory=OpticsConfig)
     exposure: ExposureConfig = field(default_factory=ExposureConfig)
     cfa: CFAConfig = field(default_factory=CFAConfig)
+    photons: PhotonsConfig = field(default_factory=PhotonsConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     quantize: QuantizeConfig = field(default_factory=QuantizeConfig)
     isp: ISPConfig = field(default_factory=ISPConfig)

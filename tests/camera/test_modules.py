@@ -81,7 +81,8 @@ def test_quantizer_module_equals_functional():
 def test_optics_module_equals_functional_and_normalises():
     optics = Optics(Lens.from_json("phone_68deg"), normalize_mean=0.0)
     image = torch.rand(1, 3, 20, 24)
-    torch.testing.assert_close(optics(image), psf_conv(image, optics.psf()))
+    # without normalisation the light is the radiance times the throughput (2 / F#)^2 t / 10 ms (f/1.9, 10 ms here)
+    torch.testing.assert_close(optics(image), psf_conv(image, optics.psf()) * (2 / 1.9) ** 2)
     normalised = Optics(Lens.from_json("phone_68deg"), normalize_mean=0.5)(image)
     assert normalised.mean().item() == pytest.approx(0.5, rel=1e-5)
 
@@ -108,7 +109,7 @@ def test_camera_chain_equals_functional_composition():
     config = load_config(None, ["optics.enabled=true", "optics.normalize_mean=0.0"])
     camera = Camera.from_config(config).eval()
     radiance = torch.rand(2, 3, 16, 20)
-    image = psf_conv(radiance, camera.optics.psf())
+    image = psf_conv(radiance, camera.optics.psf()) * camera.optics.throughput()
     raw = cfa_mosaic(image, camera.cfa.phi() * camera.exposure.gain())
     raw = poisson_gaussian(raw, *camera.noise.levels(), camera.noise.eval_seed + torch.arange(2))
     expected = quantize_ste(raw, 10)

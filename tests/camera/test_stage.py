@@ -11,6 +11,9 @@ from warpsense.camera.stage import Stage
 from warpsense.config import Config, load_config
 
 ALL_STAGES = ["optics.enabled=true", "optics.learnable=true", "noise.learnable=true"]
+PHOTON_STAGES = ["optics.enabled=true", "optics.learnable=true", "optics.normalize_mean=0.0", "photons.enabled=true",
+                 "noise.enabled=false", "exposure.enabled=false", "photons.gain_learnable=true",
+                 "photons.analog_gain=2.0"]
 
 
 def test_every_stage_names_a_config_section_with_an_enabled_key():
@@ -21,10 +24,13 @@ def test_every_stage_names_a_config_section_with_an_enabled_key():
         assert "enabled" in {field.name for field in dataclasses.fields(getattr(Config(), stage.config_section))}
 
 
-def test_stage_from_its_section_equals_the_cameras_stage():
-    config = load_config("camvid_codesign", ALL_STAGES)
+@pytest.mark.parametrize("overrides, left_out", [(ALL_STAGES, {"photons"}),
+                                                 (PHOTON_STAGES, {"noise", "exposure"})])
+def test_stage_from_its_section_equals_the_cameras_stage(overrides, left_out):
+    config = load_config("camvid_codesign", overrides)
     camera = Camera.from_config(config)
-    assert [name for name, _ in camera.stages()] == list(STAGES)  # all enabled, in data-path order
+    # all enabled but those the photon budget replaces, in data-path order
+    assert [name for name, _ in camera.stages()] == [name for name in STAGES if name not in left_out]
     for name, stage in camera.stages():
         alone = STAGES[name].from_config(getattr(config, STAGES[name].config_section))
         assert type(alone) is type(stage)

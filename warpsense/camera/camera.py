@@ -15,6 +15,7 @@ from warpsense.camera.cfa import CFA
 from warpsense.camera.exposure import Exposure
 from warpsense.camera.noise import SensorNoise
 from warpsense.camera.optics import Optics
+from warpsense.camera.photons import PhotonBudget
 from warpsense.camera.quantizer import Quantizer
 from warpsense.camera.stage import SensorArguments, Stage
 from warpsense.ops.cfa import cfa_mosaic
@@ -24,6 +25,7 @@ STAGES: dict[str, type[Stage]] = {
     "optics": Optics,
     "exposure": Exposure,
     "cfa": CFA,
+    "photons": PhotonBudget,
     "noise": SensorNoise,
     "quantizer": Quantizer,
 }
@@ -44,6 +46,8 @@ class LearnedCamera:
         exposure_gain: the exposure gain a(g), in [0.25, 4].
         zernike_waves: a learnable lens's Zernike coefficients (waves).
         noise_shot, noise_read: noise levels (variance coefficient, standard deviation; units of the white level).
+        analog_gain: a photon budget's analog gain G (dimensionless, >= 1).
+        f_number, exposure_ms: the optics' f-number and exposure time (ms).
     """
 
     cfa_layout: str | None = None
@@ -52,12 +56,16 @@ class LearnedCamera:
     zernike_waves: list | None = None
     noise_shot: float | None = None
     noise_read: float | None = None
+    analog_gain: float | None = None
+    f_number: float | None = None
+    exposure_ms: float | None = None
 
     @classmethod
     def from_summary(cls, summary: dict) -> "LearnedCamera":
         """From `Camera.summary` (also as recorded in metrics.jsonl and checkpoints)."""
         return cls(summary.get("cfa_layout"), summary.get("cfa_phi"), summary.get("exposure_gain"),
-                   summary.get("zernike_waves"), summary.get("noise_shot"), summary.get("noise_read"))
+                   summary.get("zernike_waves"), summary.get("noise_shot"), summary.get("noise_read"),
+                   summary.get("analog_gain"), summary.get("f_number"), summary.get("exposure_ms"))
 
 
 class Camera(nn.Module):
@@ -125,6 +133,21 @@ class Camera(nn.Module):
             section = getattr(config, stage.config_section, None)
             if section is not None:
                 stage.check_section(section, source)
+        photons = getattr(config, PhotonBudget.config_section, None)
+        if photons is not None and photons.enabled:
+            # the photon budget states the noise and the exposure itself; a rescaled frame would hide its count
+            if config.noise.enabled:
+                raise ValueError(f"{source}: photons.enabled states the noise from electrons: set noise.enabled = "
+                                 "false")
+            if config.exposure.enabled:
+                raise ValueError(f"{source}: photons.enabled sets the exposure through optics.exposure_ms, the "
+                                 "f-number and photons.analog_gain: set exposure.enabled = false")
+            if config.optics.enabled and config.optics.normalize_mean > 0:
+                raise ValueError(f"{source}: photons.enabled needs optics.normalize_mean = 0 (rescaling each frame "
+                                 "to a mean would hide the photon count)")
+            if config.quantize.enabled and (config.quantize.mode != "full_well" or config.quantize.white_level != 1):
+                raise ValueError(f"{source}: photons.enabled needs quantize.mode = \"full_well\" and "
+                                 "quantize.white_level = 1 (the analog gain maps the charge to the ADC's range)")
 
     def stages(self) -> list[tuple[str, Stage]]:
         """The constructed stages in data-path order, as (attribute name, module)."""
@@ -237,15 +260,17 @@ class Camera(nn.Module):
         arguments, fusable = self.sensor_arguments()
         if fusable:
             seeds = arguments.seeds(image.shape[0], image_index) if arguments.noisy else 0
-            return sensor_capture(image, arguments.responses(), arguments.shot, arguments.read, seeds,
-                                  arguments.bits, arguments.white_level)
-        signal, is_rgb = image, True
-        for stage in self._part("sensor"):
-            if is_rgb and stage.takes == "raw":
-                signal, is_rgb = cfa_mosaic(signal, self.mono_phi), False  # a monochrome sensor
-            signal = stage(signal, image_index)
-            is_rgb = stage.gives == "rgb"
-        return cfa_mosaic(signal, self.mono_phi) if is_rgb else signal
+            raw = sensor_capture(image, arguments.responses(), arguments.shot, arguments.read, seeds,
+                                 arguments.bits, arguments.white_level)
+        else:
+            signal, is_rgb = image, True
+            for stage in self._part("sensor"):
+                if is_rgb and stage.takes == "raw":
+                    signal, is_rgb = cfa_mosaic(signal, self.mono_phi), False  # a monochrome sensor
+                signal = stage(signal, image_index)
+                is_rgb = stage.gives == "rgb"
+            raw = cfa_mosaic(signal, self.mono_phi) if is_rgb else signal
+        return raw * arguments.digital_gain if arguments.digital_gain is not None else raw
 
     # --- pictures ------------------------------------------------------------------------------------------------
 

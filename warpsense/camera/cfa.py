@@ -1,4 +1,4 @@
-"""Colour filter array stage C (paper eq. 4): layouts, learnable responses, hard export."""
+"""Colour filter array stage C (paper eq. 4): filters, layouts, learnable responses, hard export."""
 
 from __future__ import annotations
 
@@ -7,12 +7,15 @@ from torch import nn
 from torch.nn import functional as F
 
 from warpsense.camera.stage import SensorArguments, Stage
-from warpsense.choices import CFA_LAYOUTS, CFA_MODES
+from warpsense.choices import CFA_FILTERS, CFA_LAYOUTS, CFA_MODES
 from warpsense.ops.cfa import cfa_mosaic
 
-# Candidate filters as RGB transmissions. "C" (clear) passes all three bands, as on RCCC automotive sensors.
-FILTERS = {"R": (1.0, 0.0, 0.0), "G": (0.0, 1.0, 0.0), "B": (0.0, 0.0, 1.0), "C": (1.0, 1.0, 1.0)}
-FILTER_NAMES = tuple(FILTERS)
+FILTERS = {"R": (1.0, 0.0, 0.0), "G": (0.0, 1.0, 0.0), "B": (0.0, 0.0, 1.0), "C": (1.0, 1.0, 1.0),
+           "Y": (1.0, 1.0, 0.0)}
+"""Filter transmittances per band (R, G, B), each in [0, 1]: C (clear) passes all three bands (RCCC / RCCB automotive
+sensors), Y (yellow) passes red and green (RYYB phone sensors). In a flat white field a clear pixel collects 3x the
+light of a green one and a yellow pixel 2x."""
+assert tuple(FILTERS) == tuple(CFA_FILTERS)
 
 
 def layout_letters(pattern: str, tile: int) -> list[list[str]]:
@@ -24,17 +27,36 @@ def layout_letters(pattern: str, tile: int) -> list[list[str]]:
 
 
 def letters_to_phi(letters: list[list[str]]) -> torch.Tensor:
-    """[T, T, 3] responses of a layout given as letters (R, G, B, C)."""
+    """[T, T, 3] responses of a layout given as letters (`FILTERS`)."""
     return torch.tensor([[FILTERS[letter] for letter in row] for row in letters], dtype=torch.float32)
+
+
+def check_candidates(candidates: str, pattern: str, mode: str) -> str | None:
+    """Why ``candidates`` (filter letters a learned CFA chooses among) cannot start at ``pattern`` in ``mode``, or
+    None."""
+    unknown = sorted(set(candidates) - set(FILTERS))
+    if unknown:
+        return f"unknown filter letter {unknown[0]!r}; filters: {', '.join(FILTERS)}"
+    if len(set(candidates)) != len(candidates) or len(candidates) < 2:
+        return f"needs at least two different letters, got {candidates!r}"
+    missing = sorted(set("".join(CFA_LAYOUTS[pattern])) - set(candidates))
+    if mode in ("softmax", "gumbel") and missing:
+        return f"the layout {pattern} uses {missing[0]!r}, which is not a candidate ({candidates})"
+    return None
 
 
 class CFA(Stage):
     """Learnable colour filter array producing phi [T, T, 3] and the RAW mosaic.
 
     Modes:
-        softmax: phi[site] = sum_k softmax(logits[site] / temperature)_k * filter_k over the candidates R, G, B, C
-            (a learned choice of filter per site, annealed towards one-hot; `hard_letters()` exports the argmax).
-        free: phi[site] = softplus(raw[site]) (any non-negative response), initialised at the layout.
+        softmax: phi[site] = sum_k softmax(logits[site] / temperature)_k * filter_k over the candidate filters (a
+            learned choice of filter per site, annealed towards one-hot; `hard_letters()` exports the argmax).
+        gumbel: an exploring choice (Jang et al. 2017, "Categorical reparameterization with Gumbel-softmax"): in
+            training each site takes the one-hot filter argmax(logits + Gumbel noise) in the forward pass and the
+            gradient of softmax((logits + noise) / temperature) in the backward pass (straight-through), a new draw
+            every step, so filters the start does not favour are tried; in eval the argmax. Start it uniform
+            (``init_logit = 0``) or at a layout.
+        free: phi[site] = sigmoid(raw[site]): any transmittance in [0, 1] per band, initialised at the layout.
         fixed: phi is the layout, not learnable.
     """
 
@@ -42,44 +64,55 @@ class CFA(Stage):
     takes, gives = "rgb", "raw"
 
     def __init__(self, pattern: str = "RGGB", tile: int = 2, mode: str = "softmax", init_logit: float = 4.0,
-                 temperature_start: float = 1.0, temperature_end: float = 1.0):
+                 temperature_start: float = 1.0, temperature_end: float = 1.0, candidates: str = "RGBC"):
         """Args:
             pattern, tile: the layout the responses start at (a `CFA_LAYOUTS` name) tiled to T x T.
             mode: a `CFA_MODES` name (see the class docstring).
-            init_logit: softmax mode: the starting logit of each site's layout filter (the others 0).
-            temperature_start, temperature_end: softmax temperature through warm-up and at the last epoch
+            init_logit: softmax and gumbel modes: the starting logit of each site's layout filter (the others 0).
+            temperature_start, temperature_end: softmax / gumbel temperature through warm-up and at the last epoch
                 (`on_epoch` anneals geometrically between them through the joint phase).
+            candidates: the filter letters (`FILTERS`) a softmax or gumbel CFA chooses among, in logit order.
         """
         super().__init__()
         if mode not in CFA_MODES:
             raise KeyError(f"unknown CFA mode {mode!r}; valid modes: {', '.join(CFA_MODES)}")
         if tile < 1:
             raise ValueError(f"CFA tile must be >= 1, got {tile}")
+        letters = layout_letters(pattern, tile)
+        problem = check_candidates(candidates, pattern, mode)
+        if problem:
+            raise ValueError(f"CFA candidates: {problem}")
         self.mode = mode
         self.tile = tile
+        self.filter_names = tuple(candidates)
         self.temperature_plan = (float(temperature_start), float(temperature_end))
-        letters = layout_letters(pattern, tile)
-        self.register_buffer("candidates", letters_to_phi([list(FILTER_NAMES)])[0])  # [K, 3]
+        self.register_buffer("candidates", letters_to_phi([list(self.filter_names)])[0])  # [K, 3]
         self.register_buffer("temperature", torch.tensor(float(temperature_start)))
-        if mode == "softmax":
-            index = torch.tensor([[FILTER_NAMES.index(letter) for letter in row] for row in letters])
-            self.logits = nn.Parameter(F.one_hot(index, len(FILTER_NAMES)).float() * init_logit)
+        if mode in ("softmax", "gumbel"):
+            index = torch.tensor([[self.filter_names.index(letter) for letter in row] for row in letters])
+            self.logits = nn.Parameter(F.one_hot(index, len(self.filter_names)).float() * init_logit)
         elif mode == "free":
-            target = letters_to_phi(letters).clamp_min(1e-3)
-            self.responses = nn.Parameter(target + torch.log(-torch.expm1(-target)))  # softplus^-1
+            self.responses = nn.Parameter(torch.logit(letters_to_phi(letters).clamp(1e-3, 1 - 1e-3)))
         else:
             self.register_buffer("fixed_phi", letters_to_phi(letters))
 
     @classmethod
     def from_config(cls, section) -> "CFA":
         return cls(section.pattern, section.tile, section.mode, section.init_logit, section.temperature_start,
-                   section.temperature_end)
+                   section.temperature_end, section.candidates)
+
+    @classmethod
+    def check_section(cls, section, where: str) -> None:
+        problem = check_candidates(section.candidates, section.pattern, section.mode)
+        if problem:
+            raise ValueError(f"{where}: cfa.candidates: {problem}")
 
     def summary(self) -> dict:
-        """The exported layout (letters row by row, e.g. "RGGB"), the responses phi [T, T, 3] in use and the
-        softmax temperature."""
+        """The exported layout (letters row by row, e.g. "RGGB"), the responses phi [T, T, 3] in use (a gumbel CFA:
+        its exported layout's) and the temperature."""
+        phi = self.hard_phi() if self.mode == "gumbel" else self.phi()
         return {"cfa_layout": "".join("".join(row) for row in self.hard_letters()),
-                "cfa_phi": self.phi().detach().cpu().tolist(), "temperature": float(self.temperature)}
+                "cfa_phi": phi.detach().cpu().tolist(), "temperature": float(self.temperature)}
 
     def on_epoch(self, schedule, epoch: int) -> None:
         """Anneal the temperature along the plan (`Schedule.temperature`)."""
@@ -90,23 +123,30 @@ class CFA(Stage):
         return True
 
     def phi(self) -> torch.Tensor:
-        """[T, T, 3] current spectral responses."""
+        """[T, T, 3] current spectral responses (a gumbel CFA in training: a new draw per call)."""
         if self.mode == "softmax":
-            weights = torch.softmax(self.logits / self.temperature, dim=-1)
-            return weights @ self.candidates
+            return torch.softmax(self.logits / self.temperature, dim=-1) @ self.candidates
+        if self.mode == "gumbel":
+            if not self.training:
+                return self.hard_phi()
+            uniform = torch.rand_like(self.logits).clamp(1e-10, 1 - 1e-7)
+            soft = torch.softmax((self.logits - torch.log(-torch.log(uniform))) / self.temperature, dim=-1)
+            hard = F.one_hot(soft.argmax(dim=-1), soft.shape[-1]).to(soft.dtype)
+            return (hard - soft.detach() + soft) @ self.candidates
         if self.mode == "free":
-            return F.softplus(self.responses)
+            return torch.sigmoid(self.responses)
         return self.fixed_phi
 
     def hard_letters(self) -> list[list[str]]:
-        """The exported layout: argmax filter per site (softmax), nearest candidate by cosine (free), or fixed."""
-        if self.mode == "softmax":
+        """The exported layout: argmax filter per site (softmax, gumbel), nearest candidate by cosine (free), or
+        fixed."""
+        if self.mode in ("softmax", "gumbel"):
             index = self.logits.argmax(dim=-1)
         else:
             phi = self.phi().detach()
             cosine = F.normalize(phi, dim=-1) @ F.normalize(self.candidates, dim=-1).T
             index = cosine.argmax(dim=-1)
-        return [[FILTER_NAMES[int(k)] for k in row] for row in index]
+        return [[self.filter_names[int(k)] for k in row] for row in index]
 
     def hard_phi(self) -> torch.Tensor:
         return letters_to_phi(self.hard_letters()).to(self.candidates.device)

@@ -9,33 +9,91 @@ from warpsense.camera.stage import SensorArguments, Stage
 from warpsense.ops.noise import poisson_gaussian, poisson_gaussian_exact
 
 
-class SensorNoise(Stage):
-    """Poisson-Gaussian noise with shot (variance coefficient) and read (std) levels.
+class NoisySensor(Stage):
+    """What every noisy sensor stage shares: per-image seeds, the what-if overrides, the fused and unfused paths.
 
     Seeds are per image and live on the device (no host round trip, and a captured CUDA graph draws new noise on
     every replay): training takes the next ``batch`` values of a counter started from torch's generator at
     construction (a seeded run is reproducible; the counter is saved with the model, so a resumed run continues
-    the same draws); eval uses ``eval_seed`` + the image's index in its dataset when
-    the caller gives it (``image_index``), else + its place in the batch. Learnable levels are bounded to [0, 2x]
-    their initial values: level = 2 * init * sigmoid(p). ``exact=True`` samples true Poisson photon counts (eval
-    only, not differentiable).
+    the same draws); eval uses ``eval_seed`` + the image's index in its dataset when the caller gives it
+    (``image_index``), else + its place in the batch. ``exact=True`` samples true Poisson photon counts (eval only,
+    not differentiable). A subclass gives `levels` and, where it converts its input, `signal_gain`.
+    """
+
+    what_if = {"noise_scale": "scale", "exact_noise": "exact"}
+
+    def __init__(self, eval_seed: int = 1234):
+        super().__init__()
+        self.register_buffer("seed_counter", torch.randint(0, 2**30, (1,), dtype=torch.int64))
+        self.eval_seed = eval_seed
+        self.scale = 1.0
+        self.exact = False
+
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                              error_msgs):
+        # checkpoints written before the counter existed load with the counter this module started with
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                                      error_msgs)
+        if prefix + "seed_counter" in missing_keys:
+            missing_keys.remove(prefix + "seed_counter")
+
+    def levels(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(shot variance coefficient, read standard deviation) in units of the white level, scaled by
+        ``noise_scale`` (shot by its square)."""
+        raise NotImplementedError
+
+    def signal_gain(self) -> torch.Tensor | None:
+        """A gain on the input before the noise (None: none)."""
+        return None
+
+    def seeds(self, batch: int, image_index: torch.Tensor | None = None) -> torch.Tensor:
+        """int64 [batch] per-image seeds on the module's device (see the class docstring)."""
+        offsets = torch.arange(batch, device=self.seed_counter.device)
+        if self.training:
+            seeds = self.seed_counter + offsets
+            self.seed_counter.add_(batch)
+            return seeds % (2**31 - 1)
+        if image_index is not None:
+            offsets = image_index.to(self.seed_counter.device)
+        return (self.eval_seed + offsets) % (2**31 - 1)
+
+    def fuse(self, arguments: SensorArguments) -> bool:
+        """The gain folds into the responses; the fused kernel draws the Gaussian approximation (exact Poisson counts
+        take this stage's own op)."""
+        gain = self.signal_gain()
+        if gain is not None:
+            arguments.multiply_gain(gain)
+        arguments.shot, arguments.read = self.levels()
+        arguments.seeds = self.seeds
+        return not self.exact
+
+    def forward(self, raw: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
+        gain = self.signal_gain()
+        if gain is not None:
+            raw = raw * gain
+        shot, read = self.levels()
+        seeds = self.seeds(raw.shape[0], image_index)
+        if self.exact:
+            return poisson_gaussian_exact(raw, shot, read, seeds)
+        return poisson_gaussian(raw, shot, read, seeds)
+
+
+class SensorNoise(NoisySensor):
+    """Poisson-Gaussian noise with shot (variance coefficient) and read (std) levels stated directly or from the
+    full well (see `from_config`). Learnable levels are bounded to [0, 2x] their initial values:
+    level = 2 * init * sigmoid(p). Seeds and exact counts: `NoisySensor`.
     """
 
     config_section = "noise"
-    what_if = {"noise_scale": "scale", "exact_noise": "exact"}
 
     def __init__(self, shot: float = 0.015, read: float = 0.002, learnable: bool = False, eval_seed: int = 1234):
-        super().__init__()
+        super().__init__(eval_seed)
         if not (shot >= 0 and read >= 0):
             raise ValueError(f"noise levels must be >= 0, got shot={shot}, read={read}")
         self.register_buffer("shot_init", torch.tensor(float(shot)))
         self.register_buffer("read_init", torch.tensor(float(read)))
         self.shot_logit = nn.Parameter(torch.tensor(0.0), requires_grad=learnable)
         self.read_logit = nn.Parameter(torch.tensor(0.0), requires_grad=learnable)
-        self.register_buffer("seed_counter", torch.randint(0, 2**30, (1,), dtype=torch.int64))
-        self.eval_seed = eval_seed
-        self.scale = 1.0
-        self.exact = False
 
     @classmethod
     def from_config(cls, section) -> "SensorNoise":
@@ -60,39 +118,7 @@ class SensorNoise(Stage):
         shot, read = self.levels()
         return {"noise_shot": float(shot.detach()), "noise_read": float(read.detach())}
 
-    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
-                              error_msgs):
-        # checkpoints written before the counter existed load with the counter this module started with
-        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
-                                      error_msgs)
-        if prefix + "seed_counter" in missing_keys:
-            missing_keys.remove(prefix + "seed_counter")
-
     def levels(self) -> tuple[torch.Tensor, torch.Tensor]:
         shot = 2 * self.shot_init * torch.sigmoid(self.shot_logit) * self.scale**2
         read = 2 * self.read_init * torch.sigmoid(self.read_logit) * self.scale
         return shot, read
-
-    def seeds(self, batch: int, image_index: torch.Tensor | None = None) -> torch.Tensor:
-        """int64 [batch] per-image seeds on the module's device (see the class docstring)."""
-        offsets = torch.arange(batch, device=self.seed_counter.device)
-        if self.training:
-            seeds = self.seed_counter + offsets
-            self.seed_counter.add_(batch)
-            return seeds % (2**31 - 1)
-        if image_index is not None:
-            offsets = image_index.to(self.seed_counter.device)
-        return (self.eval_seed + offsets) % (2**31 - 1)
-
-    def fuse(self, arguments: SensorArguments) -> bool:
-        """The fused kernel draws the Gaussian approximation; exact Poisson counts take this stage's own op."""
-        arguments.shot, arguments.read = self.levels()
-        arguments.seeds = self.seeds
-        return not self.exact
-
-    def forward(self, raw: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
-        shot, read = self.levels()
-        seeds = self.seeds(raw.shape[0], image_index)
-        if self.exact:
-            return poisson_gaussian_exact(raw, shot, read, seeds)
-        return poisson_gaussian(raw, shot, read, seeds)

@@ -1,23 +1,45 @@
-"""Optics stage O (paper eq. 2): a lens rendered to a PSF grid and applied by the PSF-convolution kernel."""
+"""Optics stage O (paper eq. 2): a lens and the exposure's motion rendered to a PSF grid, applied by the
+PSF-convolution kernel."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
+from torch import nn
 
 from warpsense.camera.stage import Stage
 from warpsense.ops.psf import psf_conv
 from warpsense.optics.lens import Lens, LensFileError, read_lens_spec
+from warpsense.optics.motion import compose, streak_psfs, streak_size
 from warpsense.optics.psf_support import collapse_grid, crop_to_energy, display_half_width
+
+REFERENCE_F_NUMBER, REFERENCE_EXPOSURE_MS = 2.0, 10.0
+"""The throughput 1 of the photon budget (`warpsense.camera.photons`): f/2 for 10 ms."""
+
+
+def _bounded(value: float, low: float, high: float) -> nn.Parameter:
+    """A learnable value in [low, high], log-uniform: low * (high / low) ** sigmoid(p), started at ``value``."""
+    fraction = (math.log(value) - math.log(low)) / (math.log(high) - math.log(low))
+    return nn.Parameter(torch.logit(torch.tensor(fraction, dtype=torch.float64)).float())
 
 
 class Optics(Stage):
-    """Spatially varying blur from a lens file.
+    """What reaches the sensor during the exposure: the lens's spatially varying blur at its f-number, the motion
+    blur of the vehicle's forward motion over the exposure time, and the light both let through.
 
-    A frozen lens renders its PSF grid once, cropped to the smallest odd support holding >= 1 - energy_eps of the
-    energy and collapsed to one PSF when the field variation is below ``field_tolerance``. A learnable lens
-    re-renders the full grid from its (bounded) Zernike coefficients while they train. ``normalize_mean`` > 0 rescales each output image to
-    that mean (paper section 4.4).
+    A lens renders its PSF grid from the lens file (`warpsense.optics.lens`), optionally stopped to another
+    f-number; with ``corner_speed_px_per_ms`` > 0 each node's PSF is convolved with its radial motion streak
+    (`warpsense.optics.motion`), so `psf_conv` renders both in one pass. A frozen design renders once, cropped to the
+    smallest odd support holding >= 1 - energy_eps of the energy and collapsed to one PSF when the field variation
+    is below ``field_tolerance``; a learnable lens (Zernike terms), f-number or (with motion) exposure time re-renders
+    the grid while it trains.
+
+    Light: ``normalize_mean`` > 0 rescales each output image to that mean (paper section 4.4; the photon count is
+    then hidden). With ``normalize_mean`` = 0 the output is the radiance times the relative throughput
+    (2 / F#)^2 * t / 10 ms: one stop (F# x sqrt 2) halves it, doubling t doubles it.
+    Learnable f-number and exposure time are bounded log-uniformly (`_bounded`).
     """
 
     config_section = "optics"
@@ -25,16 +47,36 @@ class Optics(Stage):
     takes = gives = "rgb"
 
     def __init__(self, lens: Lens, learnable: bool = False, normalize_mean: float = 0.5, method: str = "direct",
-                 energy_eps: float = 1e-3, field_tolerance: float = 1e-3):
+                 energy_eps: float = 1e-3, field_tolerance: float = 1e-3, f_number: float = 0.0,
+                 f_number_learnable: bool = False, f_number_bounds: tuple[float, float] = (1.4, 8.0),
+                 exposure_ms: float = REFERENCE_EXPOSURE_MS, exposure_learnable: bool = False,
+                 exposure_bounds: tuple[float, float] = (1.0, 30.0), corner_speed_px_per_ms: float = 0.0):
         super().__init__()
         self.lens = lens
         self.learnable = learnable
         self.normalize_mean = normalize_mean
         self.method = method
+        self.corner_speed = float(corner_speed_px_per_ms)
         lens.offset.requires_grad_(learnable)
-        if not learnable:
+        self.f_number_bounds = tuple(float(b) for b in f_number_bounds)
+        self.exposure_bounds = tuple(float(b) for b in exposure_bounds)
+        self.stopped = f_number_learnable or f_number > 0  # rendered at another f-number than the file's
+        start_f = f_number if f_number > 0 else lens.spec.f_number
+        if f_number_learnable:
+            self.f_number_logit = _bounded(start_f, *self.f_number_bounds)
+        else:
+            self.register_buffer("fixed_f_number", torch.tensor(float(start_f)))
+        self.grid_f_number = self.f_number_bounds[0] if f_number_learnable else float(start_f)
+        if exposure_learnable:
+            self.exposure_logit = _bounded(exposure_ms, *self.exposure_bounds)
+        else:
+            self.register_buffer("fixed_exposure_ms", torch.tensor(float(exposure_ms)))
+        longest = self.exposure_bounds[1] if exposure_learnable else exposure_ms
+        self.streak_size = streak_size(self.corner_speed * longest) if self.corner_speed > 0 else 0
+        self.dynamic = learnable or f_number_learnable or (exposure_learnable and self.corner_speed > 0)
+        if not self.dynamic:
             with torch.no_grad():
-                psf = collapse_grid(crop_to_energy(lens.psf_grid(), energy_eps), field_tolerance)
+                psf = collapse_grid(crop_to_energy(self.render(), energy_eps), field_tolerance)
             self.register_buffer("frozen_psf", psf.float())
 
         self._cached_psf: torch.Tensor | None = None
@@ -43,44 +85,108 @@ class Optics(Stage):
 
     @classmethod
     def from_config(cls, section) -> "Optics":
-        """From the [optics] section: the lens file (a name in configs/lenses or a path) and how it is applied."""
+        """From the [optics] section: the lens file (a name in configs/lenses or a path), its f-number, the exposure
+        time and motion, and how the PSFs are applied."""
         lens = Lens.from_json(section.lens, learnable=section.learnable)
         return cls(lens, learnable=section.learnable, normalize_mean=section.normalize_mean, method=section.method,
-                   energy_eps=section.energy_eps, field_tolerance=section.field_tolerance)
+                   energy_eps=section.energy_eps, field_tolerance=section.field_tolerance,
+                   f_number=section.f_number, f_number_learnable=section.f_number_learnable,
+                   f_number_bounds=(section.f_number_min, section.f_number_max), exposure_ms=section.exposure_ms,
+                   exposure_learnable=section.exposure_learnable,
+                   exposure_bounds=(section.exposure_ms_min, section.exposure_ms_max),
+                   corner_speed_px_per_ms=section.corner_speed_px_per_ms)
 
     @classmethod
     def check_section(cls, section, where: str) -> None:
-        """The lens file must parse, even while optics is off: a saved config must run when it is turned on."""
+        """The lens file must parse, even while optics is off: a saved config must run when it is turned on. A
+        learned f-number or exposure time starts inside its bounds and trades light, so it needs the photon count
+        (normalize_mean = 0)."""
         try:
-            read_lens_spec(section.lens)
+            spec = read_lens_spec(section.lens)
         except LensFileError as error:
             raise ValueError(f"{where}: optics.lens: {error}") from None
+        learned = [("f_number", section.f_number or spec.f_number, section.f_number_min, section.f_number_max,
+                    section.f_number_learnable),
+                   ("exposure_ms", section.exposure_ms, section.exposure_ms_min, section.exposure_ms_max,
+                    section.exposure_learnable)]
+        for key, start, low, high, learnable in learned:
+            if not learnable:
+                continue
+            if not low < start < high:
+                raise ValueError(f"{where}: optics.{key} = {start} must lie inside (optics.{key.split('_')[0]}"
+                                 f"{'_ms' if key == 'exposure_ms' else '_number'}_min, ..._max) = ({low}, {high}) "
+                                 "to be learned")
+            if section.normalize_mean > 0:
+                raise ValueError(f"{where}: optics.{key.replace('_ms', '')}_learnable needs optics.normalize_mean = "
+                                 "0: rescaling each frame hides the light it trades")
+
+    def f_number(self) -> torch.Tensor:
+        """The f-number in use (dimensionless)."""
+        if hasattr(self, "f_number_logit"):
+            low, high = self.f_number_bounds
+            return low * (high / low) ** torch.sigmoid(self.f_number_logit)
+        return self.fixed_f_number
+
+    def exposure_ms(self) -> torch.Tensor:
+        """The exposure time in use (ms)."""
+        if hasattr(self, "exposure_logit"):
+            low, high = self.exposure_bounds
+            return low * (high / low) ** torch.sigmoid(self.exposure_logit)
+        return self.fixed_exposure_ms
+
+    def throughput(self) -> torch.Tensor:
+        """Light relative to f/2 for 10 ms: (2 / F#)^2 * t / 10 ms."""
+        return (REFERENCE_F_NUMBER / self.f_number()) ** 2 * self.exposure_ms() / REFERENCE_EXPOSURE_MS
 
     def on_epoch(self, schedule, epoch: int) -> None:
-        """A phase switch may have frozen or unfrozen the lens: render the cached PSF grid anew."""
+        """A phase switch may have frozen or unfrozen the design: render the cached PSF grid anew."""
         self.invalidate_cache()
 
     def summary(self) -> dict:
-        """A learnable lens's Zernike coefficients (waves, as `Lens.coefficients`); nothing for a fixed lens."""
-        if not self.learnable:
-            return {}
-        return {"zernike_waves": self.lens.coefficients().detach().cpu().tolist()}
+        """The learned design: a learnable lens's Zernike coefficients (waves, as `Lens.coefficients`), a learnable
+        f-number and exposure time (ms); nothing for a fixed design."""
+        summary = {}
+        if self.learnable:
+            summary["zernike_waves"] = self.lens.coefficients().detach().cpu().tolist()
+        if hasattr(self, "f_number_logit"):
+            summary["f_number"] = float(self.f_number().detach())
+        if hasattr(self, "exposure_logit"):
+            summary["exposure_ms"] = float(self.exposure_ms().detach())
+        return summary
 
     def invalidate_cache(self) -> None:
-        """Mark the cached PSF grid stale (call after changing the lens coefficients or their requires_grad)."""
+        """Mark the cached PSF grid stale (call after changing the design or its requires_grad)."""
         self._cache_valid = False
 
+    def render(self) -> torch.Tensor:
+        """[3, Gy, Gx, K, K] PSF grid of the design now (lens at its f-number, composed with the motion streaks)."""
+        options = {"f_number": self.f_number(), "grid_f_number": self.grid_f_number} if self.stopped else {}
+        psf = self.lens.psf_grid(**options)
+        if self.corner_speed > 0:
+            grid_y, grid_x = self.lens.spec.psf_grid
+            height, azimuth = self.lens.field_points()
+            lengths = height * self.corner_speed * self.exposure_ms().to(height.dtype)
+            streaks = streak_psfs(lengths, azimuth, self.streak_size).reshape(grid_y, grid_x, self.streak_size,
+                                                                              self.streak_size)
+            psf = compose(psf, streaks)
+        return psf
+
+    def _training_design(self) -> bool:
+        parameters = [self.lens.offset] + [getattr(self, name) for name in ("f_number_logit", "exposure_logit")
+                                           if hasattr(self, name)]
+        return any(p.requires_grad for p in parameters)
+
     def psf(self) -> torch.Tensor:
-        """[3, Gy, Gx, K, K] PSF grid in use. A learnable lens is re-rendered while its coefficients take gradients
-        (joint phase); while they are frozen or in eval mode the rendering is cached."""
-        if not self.learnable:
+        """[3, Gy, Gx, K, K] PSF grid in use. A learnable design is re-rendered while it takes gradients (joint
+        phase); while it is frozen or in eval mode the rendering is cached."""
+        if not self.dynamic:
             return self.frozen_psf
-        if self.lens.offset.requires_grad and self.training and torch.is_grad_enabled():
+        if self._training_design() and self.training and torch.is_grad_enabled():
             self._cache_valid = False
-            return self.lens.psf_grid().float()
+            return self.render().float()
         if not self._cache_valid:
             with torch.no_grad():
-                psf = self.lens.psf_grid().float()
+                psf = self.render().float()
             # refreshed in place: a captured CUDA graph holds the cache's address, not the Python attribute
             if self._cached_psf is None or self._cached_psf.shape != psf.shape or self._cached_psf.device != psf.device:
                 self._cached_psf = psf
@@ -105,8 +211,10 @@ class Optics(Stage):
         axis.set_title(f"PSF grid (green, sqrt, per-PSF max; central {size} of K = {kernel_size})", fontsize=10)
 
     def forward(self, radiance: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
+        """Radiance [B, 3, H, W] -> irradiance [B, 3, H, W]: blurred, then rescaled to ``normalize_mean`` or times
+        the throughput."""
         image = psf_conv(radiance, self.psf().to(radiance.device), method=self.method)
         if self.normalize_mean > 0:
             mean = image.mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-6)
-            image = image * (self.normalize_mean / mean)
-        return image
+            return image * (self.normalize_mean / mean)
+        return image * self.throughput().to(image.dtype)

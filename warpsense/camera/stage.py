@@ -22,6 +22,8 @@ class SensorArguments:
         shot, read: noise levels (variance coefficient, standard deviation; units of the white level), or None.
         seeds: callable (batch, image_index) -> int64 [B] per-image seeds (drawn only when the capture runs).
         bits, white_level: ADC bit depth and full-well level, or bits None for no quantization.
+        digital_gain: scalar tensor the camera multiplies its output by after the ADC (the network's input gain of a
+            photon budget), or None.
     """
 
     phi: torch.Tensor
@@ -31,6 +33,7 @@ class SensorArguments:
     seeds: Callable[[int, torch.Tensor | None], torch.Tensor] | None = None
     bits: int | None = None
     white_level: float = 1.0
+    digital_gain: torch.Tensor | None = None
 
     @property
     def noisy(self) -> bool:

@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from warpsense.optics.zernike import zernike
+from warpsense.optics.zernike import noll_to_nm, zernike
 from warpsense.resources import CONFIG_DIR
 
 REQUIRED_KEYS = {
@@ -184,23 +184,30 @@ def read_lens_spec(name_or_path: str | Path) -> LensSpec:
 
 
 def pupil_psf(
-    coefficients: torch.Tensor, noll: list[int], azimuth: torch.Tensor, pupil_samples: int, zero_padding: float
+    coefficients: torch.Tensor, noll: list[int], azimuth: torch.Tensor, pupil_samples: int, zero_padding: float,
+    pupil_radius: torch.Tensor | float | None = None,
 ) -> torch.Tensor:
     """|FFT{P exp(i 2 pi W)}|^2 on an M x M grid, M = round(D * Q), centred at M // 2, each summing to 1.
 
     Args:
-        coefficients: [N, J] Zernike coefficients (waves) for N field points.
+        coefficients: [N, J] Zernike coefficients (waves) for N field points, on the pupil in use.
         noll: the J Noll indices.
         azimuth: [N] field azimuth (radians); the pupil frame is rotated to it.
-        pupil_samples: D, samples across the pupil diameter.
-        zero_padding: Q = M / D; image-plane samples are lambda * F# / Q apart.
+        pupil_samples: D, samples across the pupil diameter the grid is sized for.
+        zero_padding: Q = M / D; image-plane samples are lambda * F#_grid / Q apart.
+        pupil_radius: r in (0, 1]: the pupil in use as a fraction of that diameter (a stopped-down aperture,
+            F# = F#_grid / r), with an edge one sample wide so that r takes gradients; None: the hard unit pupil.
     """
     size = int(round(pupil_samples * zero_padding))
     dtype = coefficients.dtype
     axis = (torch.arange(size, dtype=dtype, device=coefficients.device) - size // 2) / (pupil_samples / 2)
     y, x = torch.meshgrid(axis, axis, indexing="ij")
     rho = torch.sqrt(x * x + y * y)
-    aperture = (rho <= 1.0).to(dtype)
+    if pupil_radius is None:
+        aperture = (rho <= 1.0).to(dtype)
+    else:  # antialiased edge: the fraction of a sample inside the radius, linear in r
+        aperture = ((pupil_radius - rho) * (pupil_samples / 2) + 0.5).clamp(0.0, 1.0)
+        rho = rho / pupil_radius
     theta = torch.atan2(y, x)[None] - azimuth[:, None, None]
     rho_clamped = rho.clamp(max=1.0)[None]
     wavefront = torch.zeros(coefficients.shape[0], size, size, dtype=dtype, device=coefficients.device)
@@ -327,21 +334,37 @@ class Lens(nn.Module):
     def psf_at(
         self, field_height: torch.Tensor, azimuth: torch.Tensor, sample_pitch_um: float | None = None,
         kernel_size: int | None = None, oversampling: int | None = None,
+        f_number: torch.Tensor | float | None = None, grid_f_number: float | None = None,
     ) -> torch.Tensor:
         """[3, N, K, K] PSFs at N field points, integrated over pixels of ``sample_pitch_um`` (default: the
-        sensor pitch) from an ``oversampling``-times finer diffraction sampling, each summing to 1."""
+        sensor pitch) from an ``oversampling``-times finer diffraction sampling, each summing to 1.
+
+        ``f_number`` (a float or a scalar tensor that takes gradients) renders the lens stopped down or opened up
+        from the file's F#0: the pupil radius scales by F#0 / F# (diffraction grows with F#), and each wavefront term
+        of radial order n by (F#0 / F#)^n (an aberration of the pupil's edge, seen on a smaller pupil). The FFT grid
+        is sized for ``grid_f_number`` (default: ``f_number`` when a float, else the file's), which must be <= every
+        F# rendered on it; the pupil in use is a fraction grid_F# / F# of the grid's."""
         spec = self.spec
         pitch = sample_pitch_um or spec.pixel_pitch_um
         size = kernel_size or spec.psf_kernel_size
         factor = oversampling or spec.oversampling
         coefficients = self.field_coefficients(field_height)
+        stopped = f_number is not None
+        if grid_f_number is None:
+            grid_f_number = float(f_number) if stopped and not isinstance(f_number, torch.Tensor) else spec.f_number
         per_wavelength = []
         for channel, wavelength in enumerate(spec.wavelengths_um):
             # sample spacing lambda F# / Q = pitch / factor  ->  Q = lambda F# factor / pitch
-            padding = wavelength * spec.f_number * factor / pitch
+            padding = wavelength * (grid_f_number if stopped else spec.f_number) * factor / pitch
             waves, noll = self.wavelength_coefficients(coefficients, field_height, channel)
+            radius = None
+            if stopped:
+                ratio = spec.f_number / f_number  # pupil radius relative to the file's
+                orders = torch.tensor([noll_to_nm(j)[0] for j in noll], dtype=waves.dtype, device=waves.device)
+                waves = waves * ratio ** orders
+                radius = grid_f_number / f_number
             fine = pupil_psf(waves, noll, azimuth, pupil_samples_for(spec.pupil_samples, padding, size, factor),
-                             padding)
+                             padding, radius)
             per_wavelength.append(integrate_pixels(fine, size, factor))
         psf = torch.stack(per_wavelength)
         return psf / psf.sum(dim=(-2, -1), keepdim=True)

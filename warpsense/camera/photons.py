@@ -1,0 +1,128 @@
+"""Photon budget stage: the sensor stated physically, from a scene light level to ADC units (issue 29).
+
+A pixel behind filter phi (transmittance per band, `warpsense.camera.cfa.FILTERS`) that sees linear radiance L (the
+scene's, times the optics' relative throughput: (2 / N)^2 t / 10 ms, `warpsense.camera.optics`) collects
+
+    electrons = E_mid * (phi . L) / (3 * 0.18) * (pitch / 3 um)^2 * QE / 0.6
+
+where E_mid is the light level: the electrons a mid-grey patch (18% linear, all three bands) gives a clear pixel of
+the reference pixel (3 um pitch, quantum efficiency 0.6) at f/2 in 10 ms (named levels in
+`warpsense.choices.LIGHT_LEVELS`). A clear pixel thus collects 3x a green one in a flat white field. The pixel's
+count has Poisson shot noise (variance = electrons, the Gaussian approximation in training; ``exact_noise`` draws true
+Poisson counts), read noise of ``read_electrons`` (std), and an analog gain G >= 1 maps the charge to the ADC: the
+signal in ADC units (1 = the top code) is electrons * G / FWC, so unity gain puts the full well at the top code and a
+higher gain amplifies a dim signal above the ADC's steps at the price of clipping at FWC / G electrons. With G >= 1
+the ADC clips at or below the full well, so the quantizer's clip is the full-well clip.
+
+The network does not see a frame rescaled to a fixed mean (that would hide the photon count): the camera's output is
+the ADC value times a fixed digital gain (``digital_gain``; 0 = the gain that maps the mid-grey patch through a clear
+filter to 0.5 at the starting design), recorded in the checkpoint.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from warpsense.camera.noise import NoisySensor
+from warpsense.camera.stage import SensorArguments
+from warpsense.choices import LIGHT_LEVELS
+
+MID_GREY = 0.18
+"""Linear reflectance of the mid-grey patch that states a light level."""
+REFERENCE_PITCH_UM, REFERENCE_QE = 3.0, 0.6
+"""The reference pixel of the light levels."""
+
+
+def light_electrons(light: str, mid_grey_electrons: float = 0.0) -> float:
+    """The light level E_mid in electrons: ``mid_grey_electrons`` when > 0, else the named level."""
+    if mid_grey_electrons > 0:
+        return float(mid_grey_electrons)
+    if light not in LIGHT_LEVELS:
+        raise KeyError(f"unknown light level {light!r}; valid levels: {', '.join(LIGHT_LEVELS)}")
+    return LIGHT_LEVELS[light]
+
+
+class PhotonBudget(NoisySensor):
+    """Relative exposure [B, 1, H, W] (phi . L, after the CFA) -> noisy signal in ADC units; owns the analog gain.
+
+    Learnable gain: G = G_max ** sigmoid(p) in [1, G_max] (log-uniform), started at ``analog_gain``.
+    """
+
+    config_section = "photons"
+
+    def __init__(self, mid_grey_electrons: float = LIGHT_LEVELS["night"], pixel_pitch_um: float = REFERENCE_PITCH_UM,
+                 quantum_efficiency: float = REFERENCE_QE, full_well_electrons: float = 6000.0,
+                 read_electrons: float = 2.0, analog_gain: float = 1.0, gain_learnable: bool = False,
+                 gain_max: float = 64.0, digital_gain: float = 0.0, eval_seed: int = 1234):
+        if not (mid_grey_electrons > 0 and pixel_pitch_um > 0 and quantum_efficiency > 0 and full_well_electrons > 0
+                and read_electrons >= 0):
+            raise ValueError("photons: light, pitch, quantum efficiency and full well must be > 0, read noise >= 0")
+        if not 1 <= analog_gain <= gain_max:
+            raise ValueError(f"photons: analog_gain must be in [1, gain_max = {gain_max}], got {analog_gain}")
+        if gain_learnable and not 1 < analog_gain < gain_max:
+            raise ValueError(f"photons: a learnable analog_gain must start inside (1, {gain_max}), got {analog_gain}")
+        super().__init__(eval_seed)
+        # electrons per unit of relative exposure phi . L (a clear pixel on the mid-grey patch collects E_mid)
+        self.electrons_per_unit = (mid_grey_electrons / (3 * MID_GREY) * (pixel_pitch_um / REFERENCE_PITCH_UM) ** 2
+                                   * quantum_efficiency / REFERENCE_QE)
+        self.full_well = float(full_well_electrons)
+        self.read_electrons = float(read_electrons)
+        self.gain_max = float(gain_max)
+        start = torch.logit(torch.tensor(math.log(analog_gain) / math.log(gain_max), dtype=torch.float64)).float()
+        self.gain_logit = nn.Parameter(start, requires_grad=gain_learnable)
+        if digital_gain <= 0:  # the mid-grey patch through a clear filter at the starting design -> 0.5
+            digital_gain = 0.5 * self.full_well / (mid_grey_electrons * analog_gain)
+        self.register_buffer("digital_gain", torch.tensor(float(digital_gain)))
+
+    @classmethod
+    def from_config(cls, section) -> "PhotonBudget":
+        return cls(light_electrons(section.light, section.mid_grey_electrons), section.pixel_pitch_um,
+                   section.quantum_efficiency, section.full_well_electrons, section.read_electrons,
+                   section.analog_gain, section.gain_learnable, section.gain_max, section.digital_gain,
+                   section.eval_seed)
+
+    @classmethod
+    def check_section(cls, section, where: str) -> None:
+        if section.mid_grey_electrons <= 0:
+            light_electrons(section.light)  # the config's choices already name the levels; kept for direct use
+        if not 1 <= section.analog_gain <= section.gain_max:
+            raise ValueError(f"{where}: photons.analog_gain must be in [1, photons.gain_max = {section.gain_max}], "
+                             f"got {section.analog_gain}")
+        if section.gain_learnable and not 1 < section.analog_gain < section.gain_max:
+            raise ValueError(f"{where}: photons.analog_gain must start inside (1, gain_max) to be learned, got "
+                             f"{section.analog_gain}")
+
+    def analog_gain(self) -> torch.Tensor:
+        """G in [1, G_max] (dimensionless)."""
+        return self.gain_max ** torch.sigmoid(self.gain_logit)
+
+    def adc_per_electron(self) -> torch.Tensor:
+        """ADC units (1 = the top code) per electron: G / FWC."""
+        return self.analog_gain() / self.full_well
+
+    def levels(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Noise in ADC units: shot variance coefficient G / FWC (variance = electrons * (G / FWC)^2) and read std
+        read_electrons * G / FWC; ``noise_scale`` scales both standard deviations."""
+        per_electron = self.adc_per_electron()
+        return per_electron * self.scale**2, per_electron * self.read_electrons * self.scale
+
+    def signal_gain(self) -> torch.Tensor:
+        """ADC units per unit of relative exposure phi . L: electrons_per_unit * G / FWC."""
+        return self.electrons_per_unit * self.adc_per_electron()
+
+    def summary(self) -> dict:
+        """The analog gain, the electrons a mid-grey patch gives a clear pixel at the reference throughput, the
+        noise levels in ADC units and the digital gain."""
+        shot, read = self.levels()
+        return {"analog_gain": float(self.analog_gain().detach()),
+                "mid_grey_electrons": self.electrons_per_unit * 3 * MID_GREY,
+                "noise_shot": float(shot.detach()), "noise_read": float(read.detach()),
+                "digital_gain": float(self.digital_gain)}
+
+    def fuse(self, arguments: SensorArguments) -> bool:
+        """As `NoisySensor.fuse`, and the camera applies the digital gain after the ADC."""
+        arguments.digital_gain = self.digital_gain
+        return super().fuse(arguments)
