@@ -206,3 +206,34 @@ def test_camera_from_a_preset_name_path_or_dict_equals_from_its_config(tmp_path)
         Camera.from_config({"optics": {"no_such_key": 1}})
     with pytest.raises(TypeError, match="Camera.from_config"):
         Camera.from_config(42)
+
+
+def test_gumbel_cfa_explores_one_hot_choices_and_learns_straight_through():
+    torch.manual_seed(0)
+    module = CFA("RGGB", 2, "gumbel", init_logit=0.0, candidates="RGBCY").train()  # uniform start
+    seen = set()
+    for _ in range(60):
+        phi = module.phi()
+        rows = {tuple(row) for row in phi.reshape(-1, 3).tolist()}
+        assert rows <= {(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (1.0, 1.0, 1.0), (1.0, 1.0, 0.0)}
+        seen |= rows
+    assert len(seen) == 5  # every candidate filter is tried
+    image = torch.rand(1, 3, 4, 4)
+    module(image).sum().backward()
+    assert module.logits.grad is not None and float(module.logits.grad.abs().sum()) > 0
+    with torch.no_grad():
+        module.logits.zero_()
+        module.logits[..., 3] = 5.0  # clear everywhere
+    module.eval()
+    assert module.hard_letters() == [["C", "C"], ["C", "C"]]
+    torch.testing.assert_close(module.phi(), torch.ones(2, 2, 3))
+    assert module.summary()["cfa_layout"] == "CCCC"
+
+
+def test_free_cfa_transmittances_stay_in_zero_one():
+    module = CFA("RYYB", 2, "free", candidates="RGBCY")
+    with torch.no_grad():
+        module.responses.mul_(100)
+    phi = module.phi()
+    assert float(phi.min()) >= 0 and float(phi.max()) <= 1
+    assert module.hard_letters() == [["R", "Y"], ["Y", "B"]]

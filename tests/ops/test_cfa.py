@@ -41,7 +41,7 @@ def test_layout_puts_right_channel_on_right_site(pattern):
     # distinct constant colour planes: the mosaic value tells which filter sits on each site
     rgb = torch.stack([torch.full((4, 6), 1.0), torch.full((4, 6), 10.0), torch.full((4, 6), 100.0)])[None]
     raw = cfa_mosaic(rgb, letters_to_phi(layout_letters(pattern, 2)))[0, 0]
-    value = {"R": 1.0, "G": 10.0, "B": 100.0, "C": 111.0}
+    value = {"R": 1.0, "G": 10.0, "B": 100.0, "C": 111.0, "Y": 11.0}
     for y in range(4):
         for x in range(6):
             assert raw[y, x] == value[CFA_LAYOUTS[pattern][y % 2][x % 2]], (pattern, y, x)

@@ -128,7 +128,16 @@ BAD_PLANS = [
     ("[study]\nseeds = [0, 0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\n"
      "full_well_electrons = 10.0\nread_electrons = 1.0\n", ("study.seeds",)),
     ("[study]\nseeds = [0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\n"
-     "full_well_electrons = 10.0\n", ("light[0].read_electrons", "missing")),
+     "full_well_electrons = 10.0\n", ("light[0]", "read_electrons")),
+    ("[study]\nseeds = [0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\n"
+     "scene = \"noon\"\n", ("light[0].scene", "'noon'", "night")),
+    ("[study]\nseeds = [0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\n"
+     "scene = \"day\"\n", ("camera 'a' at light 'l'", "photons.enabled")),
+    ("[study]\nseeds = [0]\nreference = \"a\"\nbase = \"camvid_photons\"\n"
+     "set = [\"data.dataset=scenes\"]\n[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\n"
+     "full_well_electrons = 10.0\nread_electrons = 1.0\n", ("camera 'a' at light 'l'", "scene")),
+    ("[study]\nseeds = [0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\n"
+     "full_well_electrons = 10.0\nread_electrons = 1.0\nanalog_gain = 2.0\n", ("light[0].analog_gain",)),
     ("[study]\nseeds = [0]\nreference = \"a\"\n[[camera]]\nname = \"a\"\n", ("light",)),
     ("[study\n", ("invalid TOML",)),
 ]
@@ -140,6 +149,19 @@ def test_bad_plans_are_one_line_errors_before_any_output(text, names, tmp_path, 
     path.write_text(text)
     assert_clean_failure(capsys, ["study", "run", str(path), "--out", str(tmp_path / "out")], (str(path), *names),
                          watched=tmp_path)
+
+
+def test_scene_lights_set_the_photon_budget_and_the_operating_point():
+    from warpsense.study.plan import Cell, load_plan
+
+    plan = load_plan("camvid_design", ["data.dataset=scenes"])
+    night = plan.config(Cell("learned_design", "night", 0), "runs")
+    day = plan.config(Cell("learned_design", "day", 1), "runs")
+    assert (night.photons.light, night.photons.analog_gain, night.optics.exposure_ms) == ("night", 8.0, 10.0)
+    assert (day.photons.light, day.photons.analog_gain, day.optics.exposure_ms) == ("day", 2.0, 2.5)
+    assert day.run.seed == 1 and day.optics.f_number_learnable and day.cfa.candidates == "RGBCY"
+    assert {cell.camera for cell in plan.cells() if cell.light == "day"} == {
+        "fixed_isp", "raw_rggb", "raw_rccb", "raw_ryyb", "learned_design"}
 
 
 def test_bad_study_directories_and_overrides(tmp_path, capsys):

@@ -102,3 +102,17 @@ def test_camera_figure_has_a_panel_per_pictured_stage_and_says_whether_it_wrote(
     assert Image.open(tmp_path / "both.png").width > 1.5 * Image.open(tmp_path / "cfa.png").width  # two panels
     bare = SimpleNamespace(camera=Camera.from_config(load_config(None, ["cfa.enabled=false"])))
     assert not plots.plot_camera(bare, tmp_path / "bare.png") and not (tmp_path / "bare.png").exists()
+
+
+def test_design_plot_draws_what_was_learned_and_nothing_else(tmp_path, figures):
+    records = [{"epoch": e, "f_number": 2.0 + 0.1 * e, "exposure_ms": 10.0, "analog_gain": 4.0 * (1 + 0.05 * e),
+                "cfa_layout": "RGGB" if e < 2 else "RCCB"} for e in range(4)]
+    assert plots.plot_design(records, tmp_path / "design.png")
+    axes = figures[0].axes
+    assert [axis.get_ylabel() for axis in axes[:2]] == ["f-number", "analog gain"]  # exposure time did not move
+    np.testing.assert_allclose(axes[0].get_lines()[0].get_ydata(), [2.0, 2.1, 2.2, 2.3])
+    strip = axes[2].get_images()[0].get_array()  # [sites, epochs, 3]: site 1 turns from green to clear
+    assert strip.shape == (4, 4, 3) and strip[1, 0].tolist() == [0, 1, 0] and strip[1, 3].tolist() == [1, 1, 1]
+    assert axes[2].get_title() == "CFA: RGGB -> RCCB"
+    fixed = [{"epoch": e, "cfa_layout": "RGGB", "exposure_gain": 1.0} for e in range(3)]
+    assert not plots.plot_design(fixed, tmp_path / "nothing.png") and not (tmp_path / "nothing.png").exists()

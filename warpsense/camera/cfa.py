@@ -52,10 +52,11 @@ class CFA(Stage):
         softmax: phi[site] = sum_k softmax(logits[site] / temperature)_k * filter_k over the candidate filters (a
             learned choice of filter per site, annealed towards one-hot; `hard_letters()` exports the argmax).
         gumbel: an exploring choice (Jang et al. 2017, "Categorical reparameterization with Gumbel-softmax"): in
-            training each site takes the one-hot filter argmax(logits + Gumbel noise) in the forward pass and the
-            gradient of softmax((logits + noise) / temperature) in the backward pass (straight-through), a new draw
-            every step, so filters the start does not favour are tried; in eval the argmax. Start it uniform
-            (``init_logit = 0``) or at a layout.
+            training each site takes the one-hot filter argmax(logits / temperature + Gumbel noise) in the forward
+            pass and the gradient of softmax(logits / temperature + noise) in the backward pass (straight-through),
+            a new draw every step: at temperature 1 a site's filter is drawn with probability softmax(logits), so
+            filters the start does not favour are tried, and as the temperature anneals the draws commit to the
+            argmax, which eval uses. Start it uniform (``init_logit = 0``) or at a layout.
         free: phi[site] = sigmoid(raw[site]): any transmittance in [0, 1] per band, initialised at the layout.
         fixed: phi is the layout, not learnable.
     """
@@ -130,7 +131,7 @@ class CFA(Stage):
             if not self.training:
                 return self.hard_phi()
             uniform = torch.rand_like(self.logits).clamp(1e-10, 1 - 1e-7)
-            soft = torch.softmax((self.logits - torch.log(-torch.log(uniform))) / self.temperature, dim=-1)
+            soft = torch.softmax(self.logits / self.temperature - torch.log(-torch.log(uniform)), dim=-1)
             hard = F.one_hot(soft.argmax(dim=-1), soft.shape[-1]).to(soft.dtype)
             return (hard - soft.detach() + soft) @ self.candidates
         if self.mode == "free":

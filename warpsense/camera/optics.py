@@ -65,12 +65,13 @@ class Optics(Stage):
         if f_number_learnable:
             self.f_number_logit = _bounded(start_f, *self.f_number_bounds)
         else:
-            self.register_buffer("fixed_f_number", torch.tensor(float(start_f)))
+            # from the config, not learned: not in the state dict (checkpoints from before it existed still load)
+            self.register_buffer("fixed_f_number", torch.tensor(float(start_f)), persistent=False)
         self.grid_f_number = self.f_number_bounds[0] if f_number_learnable else float(start_f)
         if exposure_learnable:
             self.exposure_logit = _bounded(exposure_ms, *self.exposure_bounds)
         else:
-            self.register_buffer("fixed_exposure_ms", torch.tensor(float(exposure_ms)))
+            self.register_buffer("fixed_exposure_ms", torch.tensor(float(exposure_ms)), persistent=False)
         longest = self.exposure_bounds[1] if exposure_learnable else exposure_ms
         self.streak_size = streak_size(self.corner_speed * longest) if self.corner_speed > 0 else 0
         self.dynamic = learnable or f_number_learnable or (exposure_learnable and self.corner_speed > 0)

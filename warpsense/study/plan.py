@@ -21,6 +21,12 @@ A plan is a TOML file (see `configs/studies/`)::
     bits = 10                       # ADC bit depth
     cameras = []                    # the cameras studied at this level (default: all)
 
+    [[light]]                       # or, with the photon budget (photons.enabled): a scene light level
+    name = "day"
+    scene = "day"                   # photons.light: night | dusk | day
+    analog_gain = 2.0               # photons.analog_gain (optional)
+    set = ["optics.exposure_ms=2.5"]  # the operating point at this level (optional)
+
 Every cell (camera x light x seed) is one ordinary training run; its config is the base, the camera's preset, the
 study's and the camera's overrides, the light's sensor keys, the seed, then the command line's ``--set``. Unknown
 keys, wrong types, duplicate or unknown names and configs that do not resolve are one-line `PlanError`s naming the
@@ -33,6 +39,7 @@ import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
+from warpsense.choices import LIGHT_LEVELS
 from warpsense.config import Config, ConfigError, load_config, read_toml
 from warpsense.data import DatasetError, build_dataset
 from warpsense.resources import CONFIG_DIR
@@ -51,17 +58,30 @@ class CameraSpec:
 
 @dataclass(frozen=True)
 class LightSpec:
-    """A light level stated physically: electrons at the white level (full well), read noise in electrons, ADC bits."""
+    """A light level stated physically: for the noise stage, electrons at the white level (full well) and read noise
+    in electrons; for the photon budget, a scene light level (``scene``, `warpsense.choices.LIGHT_LEVELS`) with the
+    analog gain and, where given, the full well and read noise; ADC bits; and the operating point's other overrides
+    (``set``)."""
 
     name: str
-    full_well_electrons: float
-    read_electrons: float
+    full_well_electrons: float | None = None
+    read_electrons: float | None = None
     bits: int = 10
     cameras: tuple[str, ...] = ()  # the cameras studied at this level (empty: all)
+    scene: str = ""
+    analog_gain: float | None = None
+    set: tuple[str, ...] = ()
 
     def overrides(self) -> list[str]:
-        return [f"noise.full_well_electrons={self.full_well_electrons!r}",
-                f"noise.read_electrons={self.read_electrons!r}", f"quantize.bits={self.bits}"]
+        if self.scene:
+            keys = [f"photons.light={self.scene!r}".replace("'", '"')]
+            for key in ("analog_gain", "full_well_electrons", "read_electrons"):
+                if getattr(self, key) is not None:
+                    keys.append(f"photons.{key}={getattr(self, key)!r}")
+        else:
+            keys = [f"noise.full_well_electrons={self.full_well_electrons!r}",
+                    f"noise.read_electrons={self.read_electrons!r}"]
+        return [*keys, f"quantize.bits={self.bits}", *self.set]
 
 
 @dataclass(frozen=True)
@@ -124,15 +144,16 @@ class Plan:
         return cls(source=data.get("source", ""), name=data["name"], base=data["base"], set=tuple(data["set"]),
                    seeds=tuple(data["seeds"]), reference=data["reference"],
                    cameras=tuple(CameraSpec(c["name"], c["preset"], tuple(c["set"])) for c in data["cameras"]),
-                   lights=tuple(LightSpec(x["name"], x["full_well_electrons"], x["read_electrons"], x["bits"],
-                                          tuple(x["cameras"])) for x in data["lights"]),
+                   lights=tuple(LightSpec(x["name"], x.get("full_well_electrons"), x.get("read_electrons"),
+                                          x["bits"], tuple(x["cameras"]), x.get("scene", ""),
+                                          x.get("analog_gain"), tuple(x.get("set", ()))) for x in data["lights"]),
                    overrides=tuple(data.get("overrides", ())))
 
 
 STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str}
 CAMERA_KEYS = {"name": str, "preset": str, "set": list}
 LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons": (int, float), "bits": int,
-              "cameras": list}
+              "cameras": list, "scene": str, "analog_gain": (int, float), "set": list}
 
 
 def study_names() -> list[str]:
@@ -159,6 +180,10 @@ def _strings(values: list, where: str) -> tuple[str, ...]:
     if not all(isinstance(value, str) for value in values):
         raise PlanError(f"{where}: expected a list of \"section.key=value\" strings")
     return tuple(values)
+
+
+def _float(value) -> float | None:
+    return None if value is None else float(value)
 
 
 def _names(items: list, where: str) -> None:
@@ -203,8 +228,7 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     if not isinstance(lights, list) or not lights:
         raise PlanError(f"{source}: light: at least one [[light]] table is needed")
     cameras = [_table(c, CAMERA_KEYS, f"{source}: camera[{i}]", ("name",)) for i, c in enumerate(cameras)]
-    lights = [_table(x, LIGHT_KEYS, f"{source}: light[{i}]", ("name", "full_well_electrons", "read_electrons"))
-              for i, x in enumerate(lights)]
+    lights = [_table(x, LIGHT_KEYS, f"{source}: light[{i}]", ("name",)) for i, x in enumerate(lights)]
     _names(cameras, f"{source}: camera")
     _names(lights, f"{source}: light")
     seeds = study["seeds"]
@@ -216,7 +240,16 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                         f"{', '.join(c['name'] for c in cameras)}")
     camera_names = [c["name"] for c in cameras]
     for i, light in enumerate(lights):
-        if not light["full_well_electrons"] > 0 or not light["read_electrons"] >= 0:
+        if light.get("scene"):
+            if light["scene"] not in LIGHT_LEVELS:
+                raise PlanError(f"{source}: light[{i}].scene: {light['scene']!r} is not a light level; levels: "
+                                f"{', '.join(LIGHT_LEVELS)}")
+        elif "full_well_electrons" not in light or "read_electrons" not in light:
+            raise PlanError(f"{source}: light[{i}]: give full_well_electrons and read_electrons (the noise stage) or "
+                            "scene (the photon budget)")
+        elif "analog_gain" in light:
+            raise PlanError(f"{source}: light[{i}].analog_gain: only with scene (the photon budget)")
+        if not light.get("full_well_electrons", 1) > 0 or not light.get("read_electrons", 0) >= 0:
             raise PlanError(f"{source}: light[{i}]: full_well_electrons must be > 0 and read_electrons >= 0")
         for name in light.get("cameras", []):
             if name not in camera_names:
@@ -232,8 +265,10 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
         reference=study["reference"],
         cameras=tuple(CameraSpec(c["name"], c.get("preset", ""), _strings(c.get("set", []), f"{source}: camera "
                                                                            f"{c['name']}.set")) for c in cameras),
-        lights=tuple(LightSpec(x["name"], float(x["full_well_electrons"]), float(x["read_electrons"]),
-                               x.get("bits", 10), tuple(x.get("cameras", []))) for x in lights),
+        lights=tuple(LightSpec(x["name"], _float(x.get("full_well_electrons")), _float(x.get("read_electrons")),
+                               x.get("bits", 10), tuple(x.get("cameras", [])), x.get("scene", ""),
+                               _float(x.get("analog_gain")),
+                               _strings(x.get("set", []), f"{source}: light {x['name']}.set")) for x in lights),
         overrides=tuple(overrides))
     checked_data = set()
     for camera in plan.cameras:  # every cell's config resolves (seeds only change run.seed)
@@ -246,6 +281,11 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                 check_config(config, "config")
             except ConfigError as error:
                 raise PlanError(f"{where}: {error}") from None
+            if bool(light.scene) != config.photons.enabled:  # else the light's keys would change nothing
+                raise PlanError(f"{where}: " + (
+                    "the light states a scene level (scene), which needs the photon budget (photons.enabled)"
+                    if light.scene else "the camera has a photon budget (photons.enabled): state the light as a "
+                    "scene level (scene), not as noise-stage electrons"))
             data = (config.data.dataset, config.data.root, config.data.train_split, config.data.val_split)
             if data not in checked_data:
                 checked_data.add(data)

@@ -53,6 +53,44 @@ def plot_camera(model, path: Path) -> bool:
     return True
 
 
+DESIGN_KEYS = {"f_number": "f-number", "exposure_ms": "exposure time (ms)", "analog_gain": "analog gain",
+               "exposure_gain": "exposure gain a(g)"}
+"""The scalar camera design values a run records per epoch (`Camera.summary`) that `plot_design` draws."""
+
+
+def plot_design(records: list[dict], path: Path) -> bool:
+    """The learned design over training: one panel per scalar design value that changes (`DESIGN_KEYS`) and the
+    exported CFA layout per epoch (a strip of filter colours, one column per epoch); whether ``path`` was written
+    (not when nothing was learned)."""
+    from warpsense.camera.cfa import FILTERS
+
+    epochs = [r["epoch"] + 1 for r in records]
+    scalars = [key for key in DESIGN_KEYS if all(key in r for r in records)
+               and len({round(r[key], 9) for r in records}) > 1]
+    layouts = [r.get("cfa_layout") for r in records]
+    show_cfa = all(layouts) and len(set(layouts)) > 1
+    panels = len(scalars) + show_cfa
+    if not panels:
+        return False
+    figure, axes = plt.subplots(1, panels, figsize=(4 * panels, 3.2), squeeze=False)
+    for axis, key in zip(axes[0], scalars):
+        axis.plot(epochs, [r[key] for r in records], marker=".")
+        axis.ticklabel_format(axis="y", useOffset=False)
+        axis.set_xlabel("epoch"), axis.set_ylabel(DESIGN_KEYS[key])
+    if show_cfa:
+        axis = axes[0][-1]
+        colours = np.array([[FILTERS[letter] for letter in layout] for layout in layouts])  # [E, sites, 3]
+        axis.imshow(colours.transpose(1, 0, 2), aspect="auto", interpolation="nearest",
+                    extent=(epochs[0] - 0.5, epochs[-1] + 0.5, colours.shape[1] - 0.5, -0.5))
+        axis.set_yticks(range(colours.shape[1]), [f"site {i}" for i in range(colours.shape[1])])
+        axis.set_xlabel("epoch"), axis.set_title(f"CFA: {layouts[0]} -> {layouts[-1]}", fontsize=10)
+    figure.suptitle("learned camera design over training", fontsize=10)
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+    return True
+
+
 def spread_indices(length: int, count: int) -> list[int]:
     """``count`` indices spread evenly over ``range(length)`` (first and last included): frames from across a
     dataset rather than neighbours of one sequence."""
@@ -114,5 +152,6 @@ def write_run_plots(run_dir: Path, model, val_set, device) -> None:
     records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
     if records:
         plot_curves(records, run_dir / "curves.png")
+        plot_design(records, run_dir / "design.png")
     plot_camera(model, run_dir / "camera.png")
     plot_predictions(model, val_set, device, run_dir / "predictions.png")
