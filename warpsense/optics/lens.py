@@ -360,8 +360,10 @@ class Lens(nn.Module):
             radius = None
             if stopped:
                 ratio = spec.f_number / f_number  # pupil radius relative to the file's
-                orders = torch.tensor([noll_to_nm(j)[0] for j in noll], dtype=waves.dtype, device=waves.device)
-                waves = waves * ratio ** orders
+                # powers of a device scalar: no host-to-device copy (the step may be captured in a CUDA graph)
+                ratio = torch.as_tensor(ratio, dtype=waves.dtype)
+                if noll:
+                    waves = waves * torch.stack([ratio ** noll_to_nm(j)[0] for j in noll])
                 radius = grid_f_number / f_number
             fine = pupil_psf(waves, noll, azimuth, pupil_samples_for(spec.pupil_samples, padding, size, factor),
                              padding, radius)
