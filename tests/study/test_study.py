@@ -162,6 +162,16 @@ def test_scene_lights_set_the_photon_budget_and_the_operating_point():
     assert day.run.seed == 1 and day.optics.f_number_learnable and day.cfa.candidates == "RGBCY"
     assert {cell.camera for cell in plan.cells() if cell.light == "day"} == {
         "fixed_isp", "raw_rggb", "raw_rccb", "raw_ryyb", "learned_design"}
+    from warpsense.study.plan import Plan
+
+    assert Plan.from_dict(json.loads(json.dumps(plan.to_dict()))) == plan  # as the report reads plan.json
+
+
+def test_report_names_the_learned_design():
+    from warpsense.study.report import _learned
+
+    camera = {"cfa_layout": "CCCC", "f_number": 1.9263, "exposure_ms": 11.21, "analog_gain": 7.991}
+    assert _learned(camera) == "CFA CCCC; f/1.93; exposure 11.2 ms; analog gain 7.99"
 
 
 def test_bad_study_directories_and_overrides(tmp_path, capsys):

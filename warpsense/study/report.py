@@ -124,6 +124,10 @@ def _learned(camera: dict) -> str:
         parts.append(f"CFA {camera['cfa_layout']}")
     if "exposure_gain" in camera:
         parts.append(f"gain {camera['exposure_gain']:.3f}")
+    for key, label, unit in (("f_number", "f/", ""), ("exposure_ms", "exposure ", " ms"),
+                             ("analog_gain", "analog gain ", "")):
+        if key in camera:
+            parts.append(f"{label}{camera[key]:.3g}{unit}")
     if "zernike_waves" in camera:
         on_axis = [row[0] if isinstance(row, list) else row for row in camera["zernike_waves"]]  # [J, 3]: constant term
         parts.append("lens Zernike on axis [" + ", ".join(f"{w:+.3f}" for w in on_axis) + "] waves")
