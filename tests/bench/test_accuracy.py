@@ -113,3 +113,16 @@ def test_cli_refuses_a_plot_without_the_accuracy_suite_and_a_folder_without_val(
     assert main(["bench", "--suite", "accuracy", "--camvid", str(tmp_path)]) != 0
     assert "val.txt" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_kernel_table_has_headers_and_the_spread(capsys):
+    from warpsense.bench.runner import Bench
+
+    bench = Bench("cpu", repeats=1)
+    bench.record("cfa", "warp", "float32", (1, 3, 8, 8), "fwd", {"median_ms": 1.25, "iqr_ms": 0.5},
+                 {"max_abs_err": 0.0, "max_rel_err": 1e-7})
+    bench.record("cfa", "warp", "float32", (1, 3, 8, 8), "bwd", {"median_ms": 2.0, "iqr_ms": 0.25})
+    header, first, second = capsys.readouterr().out.splitlines()
+    assert header.split() == ["kernel", "method", "dtype", "shape", "pass", "median", "ms", "IQR", "ms", "max", "rel",
+                              "err"]
+    assert first.split()[-3:] == ["1.250", "0.500", "1e-07"] and second.split()[-3:] == ["2.000", "0.250", "-"]

@@ -71,6 +71,7 @@ def test_convert_cli_writes_readable_files_and_skips_bad_ones(shared_data, tmp_p
     err = capsys.readouterr().err
     assert "linear_raw_not_cfa.dng: not a colour-filter mosaic" in err
     assert "truncated_leica_m10.dng: LibRaw cannot read it" in err
+    assert "TiffTag" not in err and len(err.splitlines()) == 2  # one line per skipped file, nothing else
     outputs = sorted(p.name for p in tmp_path.iterdir())
     assert outputs == sorted(n.replace(".dng", ".safetensors") for n in GOOD)  # no partial files
     from warpsense.data import load_raw

@@ -64,9 +64,12 @@ class Bench:
             row["bandwidth_gb_s"] = bytes_moved / (timing["median_ms"] * 1e-3) / 1e9
         row.update(extra)
         self.records.append(row)
-        error = f"  err {row['max_rel_err']:.3g}" if row["max_rel_err"] is not None else ""
-        print(f"{kernel:>16s} {method:>12s} {dtype:>9s} {str(tuple(shape)):>22s} {pass_name:>4s} "
-              f"{timing['median_ms']:9.3f} ms{error}", flush=True)
+        if len(self.records) == 1:
+            print(f"{'kernel':>16s} {'method':>12s} {'dtype':>13s} {'shape':>22s} {'pass':>7s} {'median ms':>10s} "
+                  f"{'IQR ms':>9s} {'max rel err':>11s}", flush=True)
+        error = f"{row['max_rel_err']:11.3g}" if row["max_rel_err"] is not None else f"{'-':>11s}"
+        print(f"{kernel:>16s} {method:>12s} {dtype:>13s} {str(tuple(shape)):>22s} {pass_name:>7s} "
+              f"{timing['median_ms']:10.3f} {timing['iqr_ms']:9.3f} {error}", flush=True)
 
     def case(self, kernel, method, shape, function, inputs64, bytes_fwd=None, bytes_bwd=None, precisions=("float32",),
              reference=None, compare=True):

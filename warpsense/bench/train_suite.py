@@ -142,8 +142,12 @@ def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
     def add(record):
         record.update({"suite": "train", "device": device, "device_name": metadata.get("device_name")})
         records.append(record)
+        if len(records) == 1:
+            print(f"train-suite {'method':>15s} {'camera':>9s} {'loss':>6s} {'compile':>8s} {'graph':>5s} "
+                  "img/s or median ms [IQR ms]", flush=True)
         figure = (f"{record['images_per_s']:8.1f} img/s" if "images_per_s" in record
-                  else f"{record['median_ms']:8.3f} ms" if "median_ms" in record else f"failed: {record['error']}")
+                  else f"{record['median_ms']:8.3f} ms [{record['iqr_ms']:.3f}]" if "median_ms" in record
+                  else f"failed: {record['error']}")
         print(f"train-suite {record['method']:>15s} {record['camera']:>9s} {record.get('loss', record.get('mode')):>6s}"
               f" {record.get('compile', ''):>8s} {'graph' if record.get('cuda_graph') else '':>5s} {figure}", flush=True)
 

@@ -7,9 +7,11 @@ tile, black levels, white level, bit depth, as-shot white balance, colour matrix
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import hashlib
 import json
+import logging
 import math
 import sys
 from pathlib import Path
@@ -29,12 +31,25 @@ class RawFileError(ValueError):
     """A raw file cannot be converted; the message names the file and the reason."""
 
 
+@contextlib.contextmanager
+def _quiet_tifffile():
+    """tifffile logs every tag it cannot read (a truncated file: one line per tag) before raising or going on; the
+    caller reports the file's problem in one line, so those logs are held back while it reads tags."""
+    logger = logging.getLogger("tifffile")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
 def _camera_names(path: Path) -> tuple[str, str]:
     """Make and Model from the TIFF/DNG tags when present (LibRaw's Python binding does not expose them)."""
     try:
         import tifffile
 
-        with tifffile.TiffFile(path) as tif:
+        with _quiet_tifffile(), tifffile.TiffFile(path) as tif:
             tags = tif.pages[0].tags
             return (str(tags["Make"].value).strip("\0 ") if "Make" in tags else "",
                     str(tags["Model"].value).strip("\0 ") if "Model" in tags else "")
@@ -47,7 +62,7 @@ def _require_dng(path: Path) -> None:
     import tifffile
 
     try:
-        with tifffile.TiffFile(path) as tif:
+        with _quiet_tifffile(), tifffile.TiffFile(path) as tif:
             is_dng = "DNGVersion" in tif.pages[0].tags
     except Exception:  # noqa: BLE001 (unparsable as TIFF: LibRaw gives the reason)
         return
