@@ -1,4 +1,4 @@
-"""CFA mosaic R(p) = <I(p), phi[p mod T]> (paper eq. 4) as Warp kernels.
+"""CFA mosaic R(p) = <I(p), phi[p mod T]> (eq. 4 of the paper, docs/references.md) as Warp kernels.
 
 Layouts: rgb [B,3,H,W], phi [T,T,3] (per-site spectral response), raw [B,1,H,W].
 """

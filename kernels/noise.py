@@ -1,4 +1,4 @@
-"""Poisson-Gaussian sensor noise R' = R + sqrt(shot * max(R, 0) + read^2) * eps (paper eq. 5) as Warp kernels.
+"""Poisson-Gaussian sensor noise R' = R + sqrt(shot * max(R, 0) + read^2) * eps (eq. 5 of the paper, docs/references.md) as Warp kernels.
 
 ``shot`` is a variance coefficient, ``read`` a standard deviation, both 1-element arrays so learnable values stay
 on the device. eps ~ N(0, 1) comes from Warp's counter-based generator keyed by (seed, element index): the same on

@@ -1,4 +1,4 @@
-"""Spatially varying PSF convolution (paper eq. 2) as Warp kernels.
+"""Spatially varying PSF convolution (eq. 2 of the paper, docs/references.md) as Warp kernels.
 
     out(p) = sum_d x(clamp(p - d)) * PSF_{clamp(p - d)}(d),   PSF_q = sum_n w_n(q) PSF_n
 
@@ -18,7 +18,7 @@ of each cell (the last entry is the padded size). The op layer builds them (`war
 PSF layout: ``cells`` [C, cells_y * cells_x, K, K] of 4-vectors (PSF of the cell's nodes (0,0), (0,1), (1,0),
 (1,1)), so a tap reads its four node values in one vector load; tap (i, j) sits at offset d = (i - r, j - r).
 
-Why these kernels are fast (issue 12): each thread keeps `ROWS` outputs (or `TAPS` PSF taps) in registers. When its
+Why these kernels are fast: each thread keeps `ROWS` outputs (or `TAPS` PSF taps) in registers. When its
 rows lie in one grid cell, which holds for most pixels, a tap is loaded and interpolated along x once for all of
 them, and each output then costs one load and two fused multiply-adds. Every kernel is a gather with one writer
 per output element: no atomics, deterministic.

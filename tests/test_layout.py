@@ -74,3 +74,16 @@ def test_commands_and_tools_load_models_through_the_composition_root():
         text = path.read_text()
         assert "warpsense.train.checkpoint" not in text and "warpsense.models.sensing" not in text, path
         assert not re.search(r"from warpsense\.train\.\w+ import .*(load_system|resolve_device|colorize)", text), path
+
+
+def test_the_code_cites_only_references_that_ship():
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    assert (root / "docs" / "references.md").is_file()
+    unshipped = re.compile(r"SPEC|\(issue \d+|paper eq\.")
+    offenders = [f"{path.relative_to(root)}:{number}" for folder in ("warpsense", "kernels")
+                 for path in sorted((root / folder).rglob("*.py"))
+                 for number, line in enumerate(path.read_text().splitlines(), 1) if unshipped.search(line)]
+    assert offenders == []

@@ -305,3 +305,10 @@ def test_a_kernel_wider_than_the_pupil_window_keeps_the_psf_scale():
     wide = lens.psf_grid((3, 3), kernel_size=101)[..., 43:58, 43:58]
     wide = wide / wide.sum(dim=(-2, -1), keepdim=True)
     assert (narrow - wide).abs().sum(dim=(-2, -1)).max() < 0.02
+
+
+def test_lens_prints_what_it_is():
+    from warpsense.optics import Lens
+
+    text = repr(Lens.from_json("phone_68deg"))
+    assert text == ("Lens('phone_68deg', f=4.2 mm, f/1.9, 68 deg, pitch 1.4 um, K=15, grid=5x5, learnable=False)")

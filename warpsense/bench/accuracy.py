@@ -1,5 +1,5 @@
 """`warpsense bench --suite accuracy`: error against run time, for every kernel and for the lens model's
-discretisation (issue 15).
+discretisation.
 
 Errors are measured against a float64 reference computed by a different implementation than the one measured
 (the direct torch blend for the PSF convolution, the eager torch formulas for the CFA and the quantizer):

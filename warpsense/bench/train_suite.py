@@ -1,5 +1,5 @@
 """`warpsense bench --suite train`: the training step and batch-1 latency of the whole system (sensor + network),
-warpsense against the plain-torch baseline of SPEC section 8 built from `warpsense.ops.reference` and the same
+warpsense against the plain-torch baseline (docs/references.md, convention 5) built from `warpsense.ops.reference` and the same
 network, in one run.
 
 Cameras: "simple" = the baseline's camera (one 7x7 Gaussian PSF, exposure, 2x2 softmax CFA, Poisson-Gaussian

@@ -1,4 +1,4 @@
-"""nn.Modules that own the camera's parameters, and the Camera that chains them (SPEC section 3)."""
+"""nn.Modules that own the camera's parameters, and the Camera that chains them."""
 
 from warpsense.camera.camera import Camera
 from warpsense.camera.cfa import CFA, CFA_LAYOUTS, FILTERS, layout_letters, letters_to_phi

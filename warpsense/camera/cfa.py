@@ -1,4 +1,4 @@
-"""Colour filter array stage C (paper eq. 4): filters, layouts, learnable responses, hard export."""
+"""Colour filter array stage C (eq. 4 of the paper, docs/references.md): filters, layouts, learnable responses, hard export."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Exposure stage E (paper eq. 3)."""
+"""Exposure stage E (eq. 3 of the paper, docs/references.md)."""
 
 from __future__ import annotations
 

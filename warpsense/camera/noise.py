@@ -1,4 +1,4 @@
-"""Sensor noise stage N (paper eq. 5)."""
+"""Sensor noise stage N (eq. 5 of the paper, docs/references.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Optics stage O (paper eq. 2): a lens and the exposure's motion rendered to a PSF grid, applied by the
+"""Optics stage O (eq. 2 of the paper, docs/references.md): a lens and the exposure's motion rendered to a PSF grid, applied by the
 PSF-convolution kernel."""
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ class Optics(Stage):
     is below ``field_tolerance``; a learnable lens (Zernike terms), f-number or (with motion) exposure time re-renders
     the grid while it trains.
 
-    Light: ``normalize_mean`` > 0 rescales each output image to that mean (paper section 4.4; the photon count is
+    Light: ``normalize_mean`` > 0 rescales each output image to that mean (section 4.4 of the paper; the photon count is
     then hidden). With ``normalize_mean`` = 0 the output is the radiance times the relative throughput
     (2 / F#)^2 * t / 10 ms: one stop (F# x sqrt 2) halves it, doubling t doubles it.
     Learnable f-number and exposure time are bounded log-uniformly (`_bounded`).

@@ -1,4 +1,4 @@
-"""ADC quantization stage Q (paper eq. 6 as corrected in SPEC section 1)."""
+"""ADC quantization stage Q (eq. 6 of the paper as corrected in docs/references.md, convention 1)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Compact UNet with depthwise-separable convolutions and squeeze-and-excitation (paper section 3.6)."""
+"""Compact UNet with depthwise-separable convolutions and squeeze-and-excitation (section 3.6 of the paper, docs/references.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Differentiable camera ops: Warp kernels registered into torch autograd (functional API, SPEC section 4)."""
+"""Differentiable camera ops: Warp kernels registered into torch autograd (functional API, docs/references.md)."""
 
 from warpsense.ops.cfa import cfa_mosaic
 from warpsense.ops.exposure import exposure, exposure_gain

@@ -1,4 +1,4 @@
-"""The one place where torch tensors meet Warp kernels (the checklist of SPEC section 5).
+"""The one place where torch tensors meet Warp kernels (docs/references.md, convention 4).
 
 - Inputs are wrapped with ``wp.from_torch(t.detach(), requires_grad=False)`` so Warp neither allocates gradients nor
   syncs the device; outputs and input gradients are allocated by torch; grad_output is made contiguous (a copy when

@@ -1,5 +1,5 @@
 """Argument checks shared by the ops, run before any kernel launch: a wrong type, shape or value is a one-line
-TypeError / ValueError that names the op and the argument (issue 14, items 3 and 12).
+TypeError / ValueError that names the op and the argument.
 
 Value policy (documented per op):
 - tensors are checked for type, floating dtype, shape and device, never for their values: reading values would

@@ -53,7 +53,7 @@ def _cfa_mosaic(rgb: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
 
 
 def cfa_mosaic(rgb: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
-    """Mosaic a linear RGB image through a colour filter array (paper eq. 4).
+    """Mosaic a linear RGB image through a colour filter array (eq. 4 of the paper, docs/references.md).
 
     Args:
         rgb: [B, 3, H, W] linear irradiance (any real values; >= 0 physically).

@@ -1,4 +1,4 @@
-"""Exposure gain a(g) = 0.25 + 3.75 sigmoid(g), bounded to [0.25, 4] (paper eq. 3).
+"""Exposure gain a(g) = 0.25 + 3.75 sigmoid(g), bounded to [0.25, 4] (eq. 3 of the paper, docs/references.md).
 
 Exposure is one scalar per camera, so it has no Warp kernel of its own: `Camera` folds a(g) into the CFA
 responses (phi_eff = a(g) * phi, exact because both are linear), which costs no pass over the image. The standalone

@@ -91,7 +91,7 @@ def _noise_inputs(raw, shot, read, seed, name):
 def poisson_gaussian(
     raw: torch.Tensor, shot: float | torch.Tensor, read: float | torch.Tensor, seed: int | torch.Tensor
 ) -> torch.Tensor:
-    """Add heteroscedastic Gaussian noise, the Poisson-Gaussian model of paper eq. 5.
+    """Add heteroscedastic Gaussian noise, the Poisson-Gaussian model of eq. 5 of the paper (docs/references.md).
 
     R' = R + sqrt(shot * max(R, 0) + read^2) * eps, eps ~ N(0, 1).
 

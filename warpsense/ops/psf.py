@@ -193,7 +193,7 @@ def _check(image: torch.Tensor, psf: torch.Tensor, method: str) -> None:
 
 
 def psf_conv(image: torch.Tensor, psf: torch.Tensor, method: str = "auto") -> torch.Tensor:
-    """Convolve with a spatially varying PSF (paper eq. 2, SPEC section 1).
+    """Convolve with a spatially varying PSF (eq. 2 of the paper, docs/references.md).
 
     Args:
         image: [B, C, H, W] linear irradiance (float32 or float64; half types compute in float32).

@@ -60,7 +60,7 @@ def white_levels(rows: torch.Tensor, white_level: float, mode: str) -> torch.Ten
 
 
 def quantize_ste(raw: torch.Tensor, bits: int, white_level: float = 1.0, mode: str = "full_well") -> torch.Tensor:
-    """Quantize to ``bits`` with 2^bits - 1 steps on [0, w], straight-through gradient (SPEC section 1).
+    """Quantize to ``bits`` with 2^bits - 1 steps on [0, w], straight-through gradient (docs/references.md, convention 1).
 
     Q(R) = floor(clip(R, 0, w) / w * (2^b - 1) + 1/2) / (2^b - 1) * w.
 
@@ -70,7 +70,7 @@ def quantize_ste(raw: torch.Tensor, bits: int, white_level: float = 1.0, mode: s
             the exact codes of the input values (float32 arithmetic flips a code by one level
             for ~1e-3 of pixels at 16 bits, 50% at 24; docs/benchmarks.md round 7).
         white_level: full-well level w (> 0) in mode "full_well"; fallback for black frames in mode "max".
-        mode: "full_well" (fixed w, physical) or "max" (w = per-image max, paper eq. 6; treated as a constant
+        mode: "full_well" (fixed w, physical) or "max" (w = per-image max, eq. 6 of the paper; treated as a constant
             in backward).
 
     Returns:

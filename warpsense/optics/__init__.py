@@ -1,4 +1,4 @@
-"""Lens files, Zernike pupil PSFs and PSF-grid utilities (SPEC section 2)."""
+"""Lens files, Zernike pupil PSFs and PSF-grid utilities (docs/references.md, convention 3)."""
 
 from warpsense.optics.lens import Lens, LensFileError, LensSpec, integrate_pixels, parse_lens, pupil_psf
 from warpsense.optics.psf_support import collapse_grid, crop_to_energy

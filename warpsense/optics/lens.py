@@ -1,4 +1,4 @@
-"""Lens files (JSON) and the pupil-FFT PSF model (SPEC section 2).
+"""Lens files (JSON) and the pupil-FFT PSF model (docs/references.md, convention 3).
 
 A lens file gives first-order data (focal length, f-number, field of view, pixel pitch), three wavelengths, the
 PSF kernel size and grid, and Zernike coefficients (Noll index) each with a field dependence
@@ -6,7 +6,7 @@ c_j(h) = constant + linear * h + quadratic * h^2 in the normalised field height 
 image corner). Coefficients are given in the meridional frame of each field point (the pupil frame is rotated by
 the field azimuth), as for a rotationally symmetric lens: coma points radially, astigmatism is sagittal/tangential.
 
-Chromatic behaviour (issue 12): the coefficients are waves at ``reference_wavelength_um`` (default: the middle,
+Chromatic behaviour: the coefficients are waves at ``reference_wavelength_um`` (default: the middle,
 green wavelength), i.e. an optical path difference OPD = c * lambda_ref that every wavelength shares; at wavelength
 lambda the phase is OPD / lambda waves. ``axial_color_waves`` adds per-channel defocus (Noll 4, waves at the
 reference wavelength: longitudinal chromatic aberration) and ``lateral_color`` a per-channel relative
@@ -235,6 +235,12 @@ class Lens(nn.Module):
         if spec.max_energy_outside is not None:  # K chosen from the energy the kernel may leave out
             spec.psf_kernel_size = self.kernel_size_for(spec.max_energy_outside, max_size=ENERGY_WINDOW)
 
+    def extra_repr(self) -> str:
+        spec = self.spec
+        return (f"{spec.name!r}, f={spec.focal_length_mm:g} mm, f/{spec.f_number:g}, {spec.diagonal_fov_deg:g} deg, "
+                f"pitch {spec.pixel_pitch_um:g} um, K={spec.psf_kernel_size}, grid={spec.psf_grid[0]}x"
+                f"{spec.psf_grid[1]}, learnable={self.offset.requires_grad}")
+
     @classmethod
     def from_json(cls, path: str | Path, learnable: bool = False) -> "Lens":
         return cls(read_lens_spec(path), learnable=learnable)
@@ -404,7 +410,7 @@ def integrate_pixels(fine: torch.Tensor, size: int, factor: int) -> torch.Tensor
     the box filter of a pixel is exact in the frequency domain: multiply the spectrum by sinc(f * pitch) along each
     axis, transform back and read the pixel centres (the fine grid's centre sample M // 2 is the centre of the
     middle pixel). The block sum of ``factor`` x ``factor`` samples (the midpoint rule) would converge only as
-    O(1 / factor^2) (issue 12, item 4). The caller sizes M >= K * factor + 2."""
+    O(1 / factor^2). The caller sizes M >= K * factor + 2."""
     samples = fine.shape[-1]
     frequency_row = torch.fft.fftfreq(samples, d=1.0 / factor, dtype=fine.dtype, device=fine.device)  # cycles/pixel
     frequency_col = torch.fft.rfftfreq(samples, d=1.0 / factor, dtype=fine.dtype, device=fine.device)

@@ -1,4 +1,4 @@
-"""Motion blur of forward motion as PSFs: the radial streak a point draws during the exposure (issue 29).
+"""Motion blur of forward motion as PSFs: the radial streak a point draws during the exposure .
 
 A vehicle moving forward at speed v sees a static point at depth Z and image distance r from the focus of expansion
 (the image centre for a forward-looking camera) move outward at r v / Z pixels per unit time, so over an exposure t

@@ -1,5 +1,5 @@
 """A lens's numerical budget: how much light its K x K kernel leaves out per node, which K a tolerance needs, and
-how far its pixel integration is from converged (issue 12, items 3 and 4)."""
+how far its pixel integration is from converged."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Segmentation losses of paper eq. 7-10: OHEM cross-entropy, Lovasz-softmax, edge-aware smoothness."""
+"""Segmentation losses of eqs. 7-10 of the paper (docs/references.md): OHEM cross-entropy, Lovasz-softmax, edge-aware smoothness."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from warpsense.data.labels import IGNORE_INDEX
 
 def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: float = 0.25,
                        ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
-    """Mean cross-entropy over the hardest ``fraction`` of the valid pixels (paper eq. 7).
+    """Mean cross-entropy over the hardest ``fraction`` of the valid pixels (eq. 7 of the paper).
 
     Computed without a host round trip (the number of valid pixels stays on the device): the losses are ranked
     by a sort and the first round(fraction * valid) kept. Returns 0 when no pixel is valid.
@@ -76,7 +76,7 @@ def lovasz_softmax(logits: torch.Tensor, target: torch.Tensor, ignore_index: int
 
 
 def edge_aware_smoothness(logits: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1) -> torch.Tensor:
-    """Mean over 4-neighbour pairs of w_pq |P(p) - P(q)|_1 (paper eq. 9), w_pq = exp(-|I_p - I_q| / sigma) from the
+    """Mean over 4-neighbour pairs of w_pq |P(p) - P(q)|_1 (eq. 9 of the paper), w_pq = exp(-|I_p - I_q| / sigma) from the
     guide image [B, C, H, W] (the sensor output), so predictions stay smooth except across image edges."""
     probabilities = torch.softmax(logits.float(), dim=1)
     guide = guide.float().mean(dim=1, keepdim=True)
@@ -90,7 +90,7 @@ def edge_aware_smoothness(logits: torch.Tensor, guide: torch.Tensor, sigma: floa
 
 
 def segmentation_loss(logits, target, guide, loss_config) -> tuple[torch.Tensor, dict[str, float]]:
-    """Total loss 0.6 OHEM + 0.4 Lovasz + lambda smoothness (paper eq. 10; weights from the config).
+    """Total loss 0.6 OHEM + 0.4 Lovasz + lambda smoothness (eq. 10 of the paper; weights from the config).
 
     Returns the loss and a dict of its detached parts (tensors: no host sync per step)."""
     parts = {}

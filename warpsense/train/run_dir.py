@@ -1,5 +1,5 @@
 """A training run's directory: where a new run goes, which run `--resume` means, the config a resumed run keeps,
-its metrics log, and a lock so that two trainings never write into one run (issue 14, items 2 and 9)."""
+its metrics log, and a lock so that two trainings never write into one run."""
 
 from __future__ import annotations
 
