@@ -23,6 +23,7 @@ def _train(args) -> int:
     from warpsense.commands.train import run_train
 
     return run_train(args.config, args.overrides, args.resume, args.resume_dir, args.allow_config_change,
+                     extend=args.extend,
                      progress=not args.no_progress, print_config=args.print_config)
 
 
@@ -98,6 +99,11 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--allow-config-change", action="store_true",
                        help="with --resume/--resume-dir: continue with the given --config/--set even where it differs "
                             "from the run's saved config (refused otherwise)")
+    train.add_argument("--extend", type=int, metavar="N",
+                       help="with --resume/--resume-dir: train N more epochs after the last checkpoint, finished run or "
+                            "not (train.epochs becomes the epochs trained + N, any time budget is dropped; the cosine "
+                            "learning rate is laid over the new total, so it rises again and decays to 0 at the new "
+                            "end; the previous config.json is kept as config.epoch<E>.json)")
     train.add_argument("--no-progress", action="store_true", help="hide progress bars")
     train.add_argument("--print-config", action="store_true",
                        help="print the resolved config (after --config and --set) as JSON and exit")

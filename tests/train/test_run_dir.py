@@ -58,6 +58,26 @@ def test_resume_dir_alone_continues_with_the_runs_config(tmp_path, capsys):
     assert "train.epochs: 2 -> 3" in capsys.readouterr().err
 
 
+def test_extend_trains_more_epochs_of_a_finished_run_and_keeps_the_old_config(tmp_path, capsys):
+    config, run = _run(tmp_path, extra=["train.epochs=2", "train.warmup_epochs=1", "train.time_budget_minutes=60"])
+    assert main(["train", "--resume-dir", str(run), "--extend", "1", "--no-progress"]) == 0
+    assert f"resuming {run} from epoch 3/3" in capsys.readouterr().out
+    assert [r["epoch"] for r in read_metrics(run / "metrics.jsonl", 10)] == [0, 1, 2]
+    now = json.loads((run / "config.json").read_text())["train"]
+    before = json.loads((run / "config.epoch2.json").read_text())["train"]
+    assert (now["epochs"], now["warmup_epochs"], now["time_budget_minutes"]) == (3, 1, 0.0)
+    assert (before["epochs"], before["time_budget_minutes"]) == (2, 60)
+    assert json.loads((run / "checkpoint_last.json").read_text())["state"]["epoch"] == 2
+    # a plain resume of the extended run changes nothing and keeps no copy
+    assert main(["train", "--resume-dir", str(run), "--no-progress"]) == 0
+    assert sorted(p.name for p in run.glob("config*.json")) == ["config.epoch2.json", "config.json"]
+    for bad, message in ((["--extend", "2"], "give --resume or --resume-dir"),
+                         (["--resume-dir", str(run), "--extend", "0"], "--extend must be")):
+        assert main(["train", *bad, "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
+
+
 def test_torn_metrics_line_in_the_middle_is_an_error(tmp_path):
     path = tmp_path / "metrics.jsonl"
     path.write_text('{"epoch": 0}\n{"epo\n{"epoch": 1}\n')

@@ -14,8 +14,20 @@ from warpsense.train.run_dir import LAST, newest_run, resumed_config
 LOCATING_KEYS = ("run.output_dir=", "run.name=")  # overrides that only say where the run to resume is
 
 
+def trained_epochs(run_dir: Path) -> int:
+    """How many epochs the run's last checkpoint holds (from its readable JSON copy)."""
+    path = Path(run_dir) / LAST.replace(".safetensors", ".json")
+    try:
+        return int(json.loads(path.read_text())["state"]["epoch"]) + 1
+    except OSError:
+        raise ValueError(f"{run_dir}: no last checkpoint ({path.name}) to extend") from None
+    except (ValueError, KeyError, TypeError):
+        raise ValueError(f"{path}: not a checkpoint record with state.epoch") from None
+
+
 def run_train(config_file: str | None, overrides: list[str], resume: bool = False, resume_dir: str | None = None,
-              allow_config_change: bool = False, progress: bool = True, print_config: bool = False) -> int:
+              allow_config_change: bool = False, progress: bool = True, print_config: bool = False,
+              extend: int | None = None) -> int:
     """Train; returns the exit code (130 after Ctrl-C, with the command that continues the run on stderr).
 
     Args:
@@ -26,6 +38,9 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
         allow_config_change: when continuing, use ``config_file`` / ``overrides`` even where they differ from the
             run's saved config (refused otherwise). Without them a run continues with its own config.
         progress: show progress bars.
+        extend: with ``resume`` / ``resume_dir``: train this many epochs more than the last checkpoint holds
+            (finished run or not): train.epochs becomes the epochs trained + ``extend`` and the time budget is
+            dropped.
         print_config: print the resolved config (JSON, as each run saves it) and return without training.
     """
     if print_config:
@@ -46,6 +61,15 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
             config = load_config(config_file, overrides)
         else:
             config = with_overrides(resumed_config(run_dir, None), changes) if changes else None
+    if extend is not None:
+        if not run_dir:
+            raise ValueError("--extend continues a run: give --resume or --resume-dir")
+        if extend < 1:
+            raise ValueError(f"--extend must be a number of epochs >= 1, got {extend}")
+        trained = trained_epochs(run_dir)
+        config = with_overrides(config or resumed_config(run_dir, None),
+                                [f"train.epochs={trained + extend}", "train.time_budget_minutes=0.0"])
+        allow_config_change = True
     try:
         train(config, resume=run_dir, progress=progress, allow_config_change=allow_config_change)
     except TrainingInterrupted as interrupted:

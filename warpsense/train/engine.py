@@ -269,7 +269,11 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         # each rank draws its own noise seeds from here on (parameters stay identical: DDP syncs gradients)
         torch.manual_seed(config.run.seed * 1000 + context.rank + 1)
     if context.is_main:
-        config.save(run_dir / "config.json")
+        saved = run_dir / "config.json"
+        if resume and saved.is_file() and json.loads(saved.read_text()) != json.loads(json.dumps(config.to_dict())):
+            # a continued run that changed its config keeps the config its earlier epochs trained with
+            saved.replace(run_dir / f"config.epoch{start_epoch}.json")
+        config.save(saved)
         versions = environment()
         write_json(run_dir / "environment.json", versions)
         (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in history))
