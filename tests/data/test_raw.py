@@ -168,3 +168,16 @@ def test_batch_problems_are_reported_and_the_batch_goes_on(tmp_path, capsys):
     assert "empty: no raw files" in err
     assert sorted(p.name for p in out.iterdir()) == ["frame.safetensors", "whole.safetensors"]
     assert all(len(line) < 300 for line in err.splitlines())
+
+
+def test_predict_legend_scales_with_the_image_and_the_overlay_has_no_checkerboard():
+    from warpsense.commands.predict import legend_strip, preview_grey
+
+    small = legend_strip(["sky", "road"], {0, 1}, 2, 480)
+    large = legend_strip(["sky", "road"], {0, 1}, 2, 1734)
+    assert small.shape[1] == 480 and large.shape[1] == 1734
+    assert large.shape[0] >= 1734 // 60 + 8 > small.shape[0]  # the text grows with the capture
+    flat = np.tile(np.array([[0.2, 0.5], [0.5, 0.8]]), (3, 4))[:5, :7]  # a flat scene through RGGB, odd size
+    preview = preview_grey(flat)
+    assert preview.shape == (5, 7)
+    np.testing.assert_allclose(preview[:4, :6], 0.5)  # no checkerboard left (the odd last row / column: its edge)

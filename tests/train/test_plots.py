@@ -39,7 +39,8 @@ def test_sweep_panels_share_the_miou_axis_and_star_the_operating_point(tmp_path,
     rows = [{"factor": "blur_sigma_px", "value": v, "miou": 0.45 - 0.01 * v, "operating_point": v == 0.0}
             for v in (0.0, 0.5, 1.0)]
     rows += [{"factor": "bits", "value": b, "miou": 0.13 + 0.03 * b, "operating_point": b == 10} for b in (4, 8, 10)]
-    plots.plot_sweep(rows, tmp_path / "sweep.png")
+    plots.plot_sweep(rows, tmp_path / "sweep.png", "robustness sweep: ckpt.safetensors, camvid val, 101 images")
+    assert figures[0]._suptitle.get_text() == "robustness sweep: ckpt.safetensors, camvid val, 101 images"
     first, second = figures[0].axes
     assert first.get_ylim() == second.get_ylim()
     starred = [axis.collections[0].get_offsets().tolist() for axis in (first, second)]

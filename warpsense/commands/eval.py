@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import torch
 
@@ -102,7 +103,8 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
         if plot_out:
             from warpsense.train.plots import plot_sweep
 
-            plot_sweep(rows, plot_out)
+            plot_sweep(rows, plot_out, f"robustness sweep: {Path(checkpoint).name}, {data} {split}, "
+                                       f"{metrics['num_images']} images")
     if latency:
         payload["latency"] = measure_latency(model, torch_device, *latency_size, latency_batch)
         print("latency:", json.dumps(payload["latency"]))

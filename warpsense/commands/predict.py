@@ -62,27 +62,42 @@ def read_capture(path: str | Path) -> tuple[np.ndarray, dict]:
 
 
 def legend_strip(class_names: list[str], present: set[int], num_classes: int, width: int) -> np.ndarray:
-    """[h, width, 3] uint8 strip naming the colour of each class present in the prediction."""
-    from PIL import Image, ImageDraw
+    """[h, width, 3] uint8 strip naming the colour of each class present in the prediction; its text scales with the
+    image (about 1/60 of its width, at least 11 px) so that it reads on a full-resolution capture."""
+    from PIL import Image, ImageDraw, ImageFont
 
     from warpsense.data.labels import colorize
 
     palette = colorize(np.arange(num_classes)[None], num_classes)[0]
-    row_height, swatch, gap = 16, 12, 10
+    font_size = max(11, width // 60)
+    try:
+        font = ImageFont.load_default(size=font_size)
+    except TypeError:  # Pillow < 10.1: the fixed bitmap font
+        font = ImageFont.load_default()
+    row_height, swatch, gap = font_size + 8, font_size, font_size
     entries = [(index, class_names[index] if index < len(class_names) else f"class {index}") for index in sorted(present)]
     strip = Image.new("RGB", (width, row_height), "white")
     draw = ImageDraw.Draw(strip)
     rows, x = [strip], 4
     for index, name in entries:
-        needed = swatch + 4 + int(draw.textlength(name)) + gap
+        needed = swatch + 4 + int(draw.textlength(name, font=font)) + gap
         if x + needed > width and x > 4:  # wrap onto a new row
             strip = Image.new("RGB", (width, row_height), "white")
             draw, x = ImageDraw.Draw(strip), 4
             rows.append(strip)
-        draw.rectangle([x, 2, x + swatch, 2 + swatch], fill=tuple(int(v) for v in palette[index]), outline="black")
-        draw.text((x + swatch + 4, 2), name, fill="black")
+        draw.rectangle([x, 4, x + swatch, 4 + swatch], fill=tuple(int(v) for v in palette[index]), outline="black")
+        draw.text((x + swatch + 4, 3), name, fill="black", font=font)
         x += needed
     return np.concatenate([np.asarray(row) for row in rows], axis=0)
+
+
+def preview_grey(mosaic: np.ndarray) -> np.ndarray:
+    """[H, W] grey preview of a CFA mosaic without its checkerboard: each 2 x 2 tile's mean (every filter of the
+    tile once), on the tile's four pixels."""
+    height, width = mosaic.shape
+    even = np.pad(mosaic, ((0, height % 2), (0, width % 2)), mode="edge")
+    tiles = (even[0::2, 0::2] + even[0::2, 1::2] + even[1::2, 0::2] + even[1::2, 1::2]) / 4
+    return np.repeat(np.repeat(tiles, 2, axis=0), 2, axis=1)[:height, :width]
 
 
 @torch.no_grad()
@@ -132,7 +147,8 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
     labels = np.asarray(Image.fromarray(prediction).resize((capture_width, capture_height), Image.NEAREST))
     picture = colorize(labels, num_classes)
     if overlay:
-        grey = np.clip(mosaic_np / max(float(np.percentile(mosaic_np, 99)), 1e-6), 0, 1) ** (1 / 2.2) * 255
+        preview = preview_grey(mosaic_np)
+        grey = np.clip(preview / max(float(np.percentile(preview, 99)), 1e-6), 0, 1) ** (1 / 2.2) * 255
         picture = (OVERLAY_ALPHA * picture + (1 - OVERLAY_ALPHA) * grey[..., None]).astype(np.uint8)
     if legend:
         names = list(state.get("class_names") or [])

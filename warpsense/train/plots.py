@@ -128,9 +128,10 @@ def plot_predictions(model, dataset, device, path: Path, count: int = 4) -> None
     plt.close(figure)
 
 
-def plot_sweep(rows: list[dict], path: str | Path) -> None:
+def plot_sweep(rows: list[dict], path: str | Path, title: str = "") -> None:
     """mIoU against each swept factor, on one shared mIoU axis so the factors compare at a glance; the
-    checkpoint's operating point (rows with ``operating_point``) is starred."""
+    checkpoint's operating point (rows with ``operating_point``) is starred. ``title`` names what was swept (the
+    checkpoint, the split and its image count)."""
     factors = list(dict.fromkeys(r["factor"] for r in rows))
     figure, axes = plt.subplots(1, len(factors), figsize=(4 * len(factors), 3.2), squeeze=False, sharey=True)
     for axis, factor in zip(axes[0], factors):
@@ -143,6 +144,8 @@ def plot_sweep(rows: list[dict], path: str | Path) -> None:
             axis.legend(fontsize=8)
         axis.set_xlabel(factor)
     axes[0][0].set_ylabel("mIoU")
+    if title:
+        figure.suptitle(title, fontsize=10)
     figure.tight_layout()
     figure.savefig(path, dpi=100)
     plt.close(figure)
