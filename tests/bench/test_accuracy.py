@@ -101,8 +101,22 @@ def test_plot_has_one_panel_per_kernel(tmp_path):
                for kernel in ("psf_conv", "quantize_ste") for method, time_ms, error in
                (("a", 1.0, 0.1), ("b", 2.0, 0.0))]
     path = tmp_path / "pareto.png"
-    plot_accuracy(records, path)
+    import matplotlib.pyplot as plt
+
+    kept, close = [], plt.close
+    plt.close = kept.append
+    try:
+        plot_accuracy(records, path)
+    finally:
+        plt.close = close
     assert path.stat().st_size > 10_000
+    psf_axis, quantize_axis = kept[0].axes
+    for axis in (psf_axis, quantize_axis):
+        labels = [t.get_text() for t in axis.get_yticklabels()]
+        assert labels[0] == "exact (0)"  # method b's zero error sits on the labelled line, not at a number
+        legend = axis.get_legend()  # below the panel: it hides no point
+        assert legend.get_bbox_to_anchor().y1 < axis.get_window_extent().y0 + 1
+    close(kept[0])
     with pytest.raises(ValueError, match="no accuracy records"):
         plot_accuracy([{"suite": "train"}], tmp_path / "none.png")
 

@@ -313,7 +313,8 @@ def pareto_frontier(points: list[tuple[float, float]]) -> list[tuple[float, floa
 def plot_accuracy(records: list[dict], path: str | Path, scene: str | None = None) -> None:
     """One panel per kernel: forward + backward time against the L2 relative error (the quantizer: code-flip
     rate) on ``scene`` (default CamVid when measured, else white noise), one marker per method, the Pareto
-    frontier dashed. Zero errors are drawn a decade below the panel's smallest error, labelled "exact"."""
+    frontier dashed, the legend below each panel. Zero errors are drawn on their own line a decade below the panel's
+    smallest error, its tick labelled "exact (0)"."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -327,7 +328,7 @@ def plot_accuracy(records: list[dict], path: str | Path, scene: str | None = Non
     kernels = list(dict.fromkeys(r["kernel"] for r in rows))
     columns = min(4, len(kernels))
     figure, axes = plt.subplots(-(-len(kernels) // columns), columns, figsize=(4.2 * columns,
-                                3.6 * -(-len(kernels) // columns)), squeeze=False)
+                                5.0 * -(-len(kernels) // columns)), squeeze=False)
     markers = "osD^vP*Xhp<>"
     for axis, kernel in zip(axes.flat, kernels):
         selected = [r for r in rows if r["kernel"] == kernel and r["scene"] == scene]
@@ -344,16 +345,25 @@ def plot_accuracy(records: list[dict], path: str | Path, scene: str | None = Non
         axis.step([p[0] for p in frontier], [p[1] for p in frontier], where="post", color="0.4", linestyle="--",
                   linewidth=1, label="Pareto frontier")
         axis.set_xscale("log"), axis.set_yscale("log")
+        if any(row[metric] == 0 for row in selected):  # exact points sit on their own labelled line, not at a value
+            axis.axhline(floor, color="0.8", linewidth=0.8, zorder=0)
+            ticks = [t for t in axis.get_yticks() if floor * 3 < t]
+            axis.set_yticks([floor, *ticks], ["exact (0)", *[f"{t:.0e}" for t in ticks]])
+            axis.set_ylim(floor / 2, max(p[1] for p in points) * 2)
         axis.set_title(kernel, fontsize=9)
         axis.set_xlabel("forward + backward (ms)" if not kernel.startswith("lens_") else
                         "PSF render + conv fwd+bwd (ms)", fontsize=8)
         axis.set_ylabel("code-flip rate" if metric == "code_flip_rate" else f"L2 relative error ({scene})", fontsize=8)
-        axis.legend(fontsize=6, loc="best")
+        # below the panel: a legend inside would hide points
+        axis.legend(fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2, frameon=False)
         axis.tick_params(labelsize=7)
-        # ticks at 1, 2, 5 x 10^n, written plainly: a log axis shorter than a decade would otherwise have none
+        # ticks at 1, 2, 5 x 10^n, written plainly; the 2 and 5 labelled only on an axis shorter than two decades,
+        # where they would not overlap (a log axis shorter than a decade would otherwise have no label)
+        times = [p[0] for p in points]
         axis.xaxis.set_minor_locator(LogLocator(subs=(2, 5)))
-        for formatter in (axis.xaxis.set_major_formatter, axis.xaxis.set_minor_formatter):
-            formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        axis.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        short = max(times) / min(times) < 100
+        axis.xaxis.set_minor_formatter(FuncFormatter(lambda value, _: f"{value:g}" if short else ""))
     for axis in list(axes.flat)[len(kernels):]:
         axis.axis("off")
     device = rows[0]["device"]
