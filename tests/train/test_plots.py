@@ -74,6 +74,7 @@ def test_predictions_show_spread_frames_and_a_class_legend(tmp_path, figures):
     titles = [axis.get_title() for axis in figure.axes if axis.get_title().startswith("input")]
     assert titles == [f"input (sRGB), frame {i}" for i in (0, 13, 26, 39)]
     assert [text.get_text() for text in figure.legends[0].get_texts()] == ["sky", "road", "car"]
+    assert figure.legends[0]._ncols == 3  # one row: the legend does not wrap
 
 
 def test_psf_display_window_holds_every_pixel_above_one_percent():

@@ -121,8 +121,10 @@ def plot_predictions(model, dataset, device, path: Path, count: int = 4) -> None
             axis.axis("off")
     names = getattr(dataset, "classes", None) or [f"class {c}" for c in range(num_classes)]
     palette = colorize(np.arange(num_classes)[None], num_classes)[0] / 255.0
-    figure.legend(handles=[Patch(color=palette[c], label=names[c]) for c in range(min(num_classes, len(names)))],
-                  loc="lower center", ncol=min(num_classes, 10), fontsize=8, frameon=False)
+    shown = min(num_classes, len(names))
+    # one row for up to 12 classes (CamVid's 11 fit a 12-inch figure), else two balanced rows
+    figure.legend(handles=[Patch(color=palette[c], label=names[c]) for c in range(shown)],
+                  loc="lower center", ncol=shown if shown <= 12 else -(-shown // 2), fontsize=8, frameon=False)
     figure.tight_layout(rect=(0, 0.6 / (2.6 * len(rows) + 0.6), 1, 1))
     figure.savefig(path, dpi=90)
     plt.close(figure)
