@@ -35,10 +35,12 @@ def test_epochs_within_a_budget():
     assert schedule.epochs_within(1.0, 1.0) == 2  # never below two epochs
 
 
-def test_time_budget_shortens_the_run_not_its_config_and_resume_keeps_the_shortened_plan(tmp_path):
+def test_time_budget_shortens_the_run_not_its_config_and_resume_keeps_the_shortened_plan(tmp_path, capsys):
     config = load_config(None, TINY + ["train.epochs=5", "train.warmup_epochs=2", "train.time_budget_minutes=1e-6",
                                        f"run.output_dir={tmp_path}"])
     run = train(config, progress=False)
+    warning = [line for line in capsys.readouterr().err.splitlines() if "cannot be met" in line]
+    assert len(warning) == 1 and "the shortest plan (2 epochs) needs about" in warning[0]
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert [r["phase"] for r in records] == ["warmup", "joint"]  # 5 epochs (2 warm-up) cut to 2 (1 warm-up)
     assert config.train.epochs == 5 and config.train.warmup_epochs == 2  # the caller's config is untouched

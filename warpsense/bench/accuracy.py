@@ -363,7 +363,7 @@ def plot_accuracy(records: list[dict], path: str | Path, scene: str | None = Non
         axis.xaxis.set_minor_locator(LogLocator(subs=(2, 5)))
         axis.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
         short = max(times) / min(times) < 100
-        axis.xaxis.set_minor_formatter(FuncFormatter(lambda value, _: f"{value:g}" if short else ""))
+        axis.xaxis.set_minor_formatter(FuncFormatter(lambda value, _, short=short: f"{value:g}" if short else ""))
     for axis in list(axes.flat)[len(kernels):]:
         axis.axis("off")
     device = rows[0]["device"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 import json
 import shutil
+import sys
 import time
 from pathlib import Path
 from typing import NamedTuple
@@ -42,6 +43,12 @@ def _fit_time_budget(schedule: Schedule, budget_minutes: float, epoch_seconds: f
     if shortened != schedule and context.is_main:
         print(f"time budget {budget_minutes} min: {schedule.epochs} -> {shortened.epochs} epochs "
               f"(warm-up {shortened.warmup_epochs})", flush=True)
+    expected_minutes = shortened.epochs * epoch_seconds * 1.1 / 60
+    if expected_minutes > budget_minutes and context.is_main:  # the shortest plan (2 epochs) does not fit either
+        print(f"warning: time budget {budget_minutes:g} min cannot be met: the first epoch took "
+              f"{epoch_seconds / 60:.1f} min, so the shortest plan ({shortened.epochs} epochs) needs about "
+              f"{expected_minutes:.0f} min; stop it with Ctrl-C (it resumes) or use a smaller setting",
+              file=sys.stderr, flush=True)
     return shortened
 
 
