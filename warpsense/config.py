@@ -192,6 +192,7 @@ class TrainConfig:
     amp: bool = True
     compile: str = _field("off", choices=COMPILE_MODES)
     cuda_graph: bool = False
+    micro_batch: int = _field(0, minimum=0)
     max_steps_per_epoch: int = _field(0, minimum=0)
     time_budget_minutes: float = _field(0.0, minimum=0)
     eval_every: int = _field(1, minimum=1)
@@ -250,6 +251,9 @@ def validate(config: "Config", source: str) -> "Config":
     if config.train.cuda_graph and config.train.compile in SELF_CAPTURING_COMPILE_MODES:
         raise ConfigError(f"{source}: train.cuda_graph captures the whole step; train.compile = "
                           f"{config.train.compile!r} captures graphs itself (use \"off\" or \"default\" with it)")
+    if config.train.micro_batch and config.train.cuda_graph:
+        raise ConfigError(f"{source}: train.micro_batch splits the step for a memory-bound (CPU) run; with "
+                          "train.cuda_graph use the whole batch (train.micro_batch = 0)")
     name = config.run.name
     if not name or name in (".", "..") or "/" in name or "\\" in name or name != name.strip():
         raise ConfigError(f"{source}: run.name must be a plain folder name (no path separators), got {name!r}")

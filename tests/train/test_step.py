@@ -211,3 +211,35 @@ def test_compiled_step_trains_the_camera_after_warm_up(device):
     for index in range(2, 4):
         step(model, images, labels, index, joint=True)
     assert all(not torch.equal(a, p.detach()) for a, p in zip(before, camera))
+
+
+def test_micro_batches_sum_to_the_whole_batch_gradient():
+    import copy
+
+    # cross-entropy over all pixels and batch norm on its running statistics (eval mode): a loss that is a mean over
+    # images, for which the chunked step must give the whole batch's gradient and loss
+    config, model, _, images, labels = _step_and_batch(["loss.ohem_fraction=1.0", "loss.lovasz_weight=0.0",
+                                                        "loss.smooth_weight=0.0", "loss.ohem_weight=1.0"])
+    images = torch.cat([images, images.flip(-1)])
+    labels = torch.cat([labels, labels.flip(-1)])  # a batch of 4
+    model.eval()
+    chunked_model = copy.deepcopy(model)
+    results = []
+    for net, micro in ((model, 0), (chunked_model, 3)):  # chunks of 3 + 1: unequal shares
+        optimizer = torch.optim.SGD(net.parameters(), lr=0.0)
+        step = TrainingStep(config.loss, optimizer, net.camera.learnable_parameters(), 4, False, micro_batch=micro)
+        step(net, images, labels, 0, joint=True)
+        results.append((step.epoch_statistics(DistributedContext())["train_loss"],
+                        [p.grad.clone() for p in net.parameters() if p.grad is not None]))
+    (loss, grads), (chunked_loss, chunked_grads) = results
+    assert chunked_loss == pytest.approx(loss, rel=1e-5)
+    assert len(grads) == len(chunked_grads) > 0
+    for a, b in zip(grads, chunked_grads):
+        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-6)
+
+
+def test_micro_batch_with_a_cuda_graph_is_a_config_error():
+    from warpsense.config import ConfigError
+
+    with pytest.raises(ConfigError, match="train.micro_batch"):
+        load_config(None, ["train.micro_batch=2", "train.cuda_graph=true"])

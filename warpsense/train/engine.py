@@ -291,7 +291,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     if config.train.cuda_graph and context.enabled:
         raise ValueError("train.cuda_graph captures one GPU's step; with several ranks (DDP) leave it false")
     training_step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), schedule.epochs * steps_per_epoch,
-                                 amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph)
+                                 amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph,
+                                 config.train.micro_batch)
     wrapped, wrapped_phase = model, None
     epoch = start_epoch
     while epoch < schedule.epochs:  # a while loop: the time budget may shorten the schedule after the first epoch

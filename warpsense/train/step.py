@@ -39,10 +39,15 @@ class TrainingStep:
             or kernel-launch overhead per step. The optimizer's learning rates become device tensors (the
             schedule writes them before each replay) and its steps capturable. Everything the step reads must
             keep its storage between steps (parameters, buffers, the optics' PSF cache do).
+        micro_batch: > 0: run forward and backward on chunks of this many images and sum their gradients, each
+            chunk's loss weighted by its share of the batch, before the one optimizer step: the peak memory of a
+            chunk, the step of the whole batch (exactly so for losses that are means over images; OHEM picks its
+            hardest pixels and batch norm its statistics within each chunk).
     """
 
     def __init__(self, loss_config, optimizer: torch.optim.Optimizer, camera_params: list, total_steps: int,
-                 amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False):
+                 amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False,
+                 micro_batch: int = 0):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
         if cuda_graph and compile_mode in SELF_CAPTURING_COMPILE_MODES:
@@ -54,6 +59,7 @@ class TrainingStep:
         self.total_steps = total_steps
         self.amp = amp
         self.camera_grad_clip = camera_grad_clip
+        self.micro_batch = micro_batch
         self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
         self.compiled = compile_mode != "off"
         self.forward_loss = self._forward_loss if not self.compiled else \
@@ -114,8 +120,20 @@ class TrainingStep:
         self._forward_backward_update(model, images, labels, joint)
 
     def _forward_backward_update(self, model, images, labels, joint) -> None:
-        loss, parts = self.forward_loss(model, images, labels)
-        loss.backward()
+        batch = images.shape[0]
+        size = self.micro_batch if 0 < self.micro_batch < batch else batch
+        if size == batch:
+            loss, parts = self.forward_loss(model, images, labels)
+            loss.backward()
+        else:
+            loss, parts = 0.0, {}
+            for start in range(0, batch, size):
+                share = min(size, batch - start) / batch
+                part_loss, part_parts = self.forward_loss(model, images[start : start + size],
+                                                          labels[start : start + size])
+                (part_loss * share).backward()
+                loss = loss + part_loss.detach() * share
+                parts = {name: parts.get(name, 0.0) + value.detach() * share for name, value in part_parts.items()}
         if joint and self.camera_grad_clip > 0:
             trainable = [p for p in self.camera_params if p.grad is not None]
             if trainable:
