@@ -107,6 +107,7 @@ def test_digital_gain_maps_mid_grey_through_clear_to_one_half_and_is_recorded():
     assert float(_noise_free(camera, _flat(0.18, 8))[0, 0, 0, 1]) == pytest.approx(0.5, rel=1e-5)
     assert "photons.digital_gain" in camera.state_dict()
     assert camera.learned().analog_gain == pytest.approx(8.0)
+    assert camera.learned().digital_gain == pytest.approx(0.5 * 6000 / (70 * 8.0))  # what predict scales a capture by
 
 
 # --- aperture -----------------------------------------------------------------------------------------------------

@@ -48,6 +48,7 @@ class LearnedCamera:
         noise_shot, noise_read: noise levels (variance coefficient, standard deviation; units of the white level).
         analog_gain: a photon budget's analog gain G (dimensionless, >= 1).
         f_number, exposure_ms: the optics' f-number and exposure time (ms).
+        digital_gain: a photon budget's fixed gain from ADC units to the network's input.
     """
 
     cfa_layout: str | None = None
@@ -59,13 +60,15 @@ class LearnedCamera:
     analog_gain: float | None = None
     f_number: float | None = None
     exposure_ms: float | None = None
+    digital_gain: float | None = None
 
     @classmethod
     def from_summary(cls, summary: dict) -> "LearnedCamera":
         """From `Camera.summary` (also as recorded in metrics.jsonl and checkpoints)."""
         return cls(summary.get("cfa_layout"), summary.get("cfa_phi"), summary.get("exposure_gain"),
                    summary.get("zernike_waves"), summary.get("noise_shot"), summary.get("noise_read"),
-                   summary.get("analog_gain"), summary.get("f_number"), summary.get("exposure_ms"))
+                   summary.get("analog_gain"), summary.get("f_number"), summary.get("exposure_ms"),
+                   summary.get("digital_gain"))
 
 
 class Camera(nn.Module):

@@ -138,7 +138,10 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
     mosaic = bin_mosaic(mosaic, factor)
     if learned.exposure_gain is not None:
         mosaic = mosaic * (model.camera.raw_mean() * 0.5 / max(float(mosaic.mean()), 1e-6))
-    sensed = mosaic.clamp(0, 1)[None, None].to(torch_device)
+    mosaic = mosaic.clamp(0, 1)
+    if learned.digital_gain is not None:  # a photon budget: the capture is in ADC units, as the camera's ADC gives
+        mosaic = mosaic * learned.digital_gain
+    sensed = mosaic[None, None].to(torch_device)
     if model.isp is not None:
         sensed = model.isp(sensed)
     logits = model.network(sensed)
