@@ -131,26 +131,13 @@ class Camera(nn.Module):
 
     @staticmethod
     def check_config(config, source: str = "config") -> None:
-        """Every stage's checks of its section (`Stage.check_section`), enabled or not; ValueError naming the key."""
+        """Every stage's checks of its section (`Stage.check_section`), enabled or not, and of how it fits the rest
+        of the config (`Stage.check_design`); ValueError naming the key."""
         for stage in STAGES.values():
             section = getattr(config, stage.config_section, None)
             if section is not None:
                 stage.check_section(section, source)
-        photons = getattr(config, PhotonBudget.config_section, None)
-        if photons is not None and photons.enabled:
-            # the photon budget states the noise and the exposure itself; a rescaled frame would hide its count
-            if config.noise.enabled:
-                raise ValueError(f"{source}: photons.enabled states the noise from electrons: set noise.enabled = "
-                                 "false")
-            if config.exposure.enabled:
-                raise ValueError(f"{source}: photons.enabled sets the exposure through optics.exposure_ms, the "
-                                 "f-number and photons.analog_gain: set exposure.enabled = false")
-            if config.optics.enabled and config.optics.normalize_mean > 0:
-                raise ValueError(f"{source}: photons.enabled needs optics.normalize_mean = 0 (rescaling each frame "
-                                 "to a mean would hide the photon count)")
-            if config.quantize.enabled and (config.quantize.mode != "full_well" or config.quantize.white_level != 1):
-                raise ValueError(f"{source}: photons.enabled needs quantize.mode = \"full_well\" and "
-                                 "quantize.white_level = 1 (the analog gain maps the charge to the ADC's range)")
+            stage.check_design(config, source)
 
     def stages(self) -> list[tuple[str, Stage]]:
         """The constructed stages in data-path order, as (attribute name, module)."""

@@ -3,12 +3,10 @@ PSF-convolution kernel."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
-from torch import nn
 
+from warpsense.camera.bounds import log_bounded, log_bounded_parameter
 from warpsense.camera.stage import Stage
 from warpsense.ops.psf import psf_conv
 from warpsense.optics.lens import Lens, LensFileError, read_lens_spec
@@ -17,12 +15,6 @@ from warpsense.optics.psf_support import collapse_grid, crop_to_energy, display_
 
 REFERENCE_F_NUMBER, REFERENCE_EXPOSURE_MS = 2.0, 10.0
 """The throughput 1 of the photon budget (`warpsense.camera.photons`): f/2 for 10 ms."""
-
-
-def _bounded(value: float, low: float, high: float) -> nn.Parameter:
-    """A learnable value in [low, high], log-uniform: low * (high / low) ** sigmoid(p), started at ``value``."""
-    fraction = (math.log(value) - math.log(low)) / (math.log(high) - math.log(low))
-    return nn.Parameter(torch.logit(torch.tensor(fraction, dtype=torch.float64)).float())
 
 
 class Optics(Stage):
@@ -39,7 +31,7 @@ class Optics(Stage):
     Light: ``normalize_mean`` > 0 rescales each output image to that mean (section 4.4 of the paper; the photon count is
     then hidden). With ``normalize_mean`` = 0 the output is the radiance times the relative throughput
     (2 / F#)^2 * t / 10 ms: one stop (F# x sqrt 2) halves it, doubling t doubles it.
-    Learnable f-number and exposure time are bounded log-uniformly (`_bounded`).
+    Learnable f-number and exposure time are bounded log-uniformly (`warpsense.camera.bounds`).
     """
 
     config_section = "optics"
@@ -63,13 +55,13 @@ class Optics(Stage):
         self.stopped = f_number_learnable or f_number > 0  # rendered at another f-number than the file's
         start_f = f_number if f_number > 0 else lens.spec.f_number
         if f_number_learnable:
-            self.f_number_logit = _bounded(start_f, *self.f_number_bounds)
+            self.f_number_logit = log_bounded_parameter(start_f, *self.f_number_bounds)
         else:
             # from the config, not learned: not in the state dict (checkpoints from before it existed still load)
             self.register_buffer("fixed_f_number", torch.tensor(float(start_f)), persistent=False)
         self.grid_f_number = self.f_number_bounds[0] if f_number_learnable else float(start_f)
         if exposure_learnable:
-            self.exposure_logit = _bounded(exposure_ms, *self.exposure_bounds)
+            self.exposure_logit = log_bounded_parameter(exposure_ms, *self.exposure_bounds)
         else:
             self.register_buffer("fixed_exposure_ms", torch.tensor(float(exposure_ms)), persistent=False)
         longest = self.exposure_bounds[1] if exposure_learnable else exposure_ms
@@ -106,33 +98,28 @@ class Optics(Stage):
             spec = read_lens_spec(section.lens)
         except LensFileError as error:
             raise ValueError(f"{where}: optics.lens: {error}") from None
-        learned = [("f_number", section.f_number or spec.f_number, section.f_number_min, section.f_number_max,
-                    section.f_number_learnable),
-                   ("exposure_ms", section.exposure_ms, section.exposure_ms_min, section.exposure_ms_max,
-                    section.exposure_learnable)]
-        for key, start, low, high, learnable in learned:
-            if not learnable:
+        starts = {"f_number": section.f_number or spec.f_number, "exposure_ms": section.exposure_ms}
+        for key, learnable_key in (("f_number", "f_number_learnable"), ("exposure_ms", "exposure_learnable")):
+            if not getattr(section, learnable_key):
                 continue
+            start, low, high = starts[key], getattr(section, f"{key}_min"), getattr(section, f"{key}_max")
             if not low < start < high:
-                raise ValueError(f"{where}: optics.{key} = {start} must lie inside (optics.{key.split('_')[0]}"
-                                 f"{'_ms' if key == 'exposure_ms' else '_number'}_min, ..._max) = ({low}, {high}) "
-                                 "to be learned")
+                raise ValueError(f"{where}: optics.{key} = {start} must lie inside (optics.{key}_min, ..._max) = "
+                                 f"({low}, {high}) to be learned")
             if section.normalize_mean > 0:
-                raise ValueError(f"{where}: optics.{key.replace('_ms', '')}_learnable needs optics.normalize_mean = "
-                                 "0: rescaling each frame hides the light it trades")
+                raise ValueError(f"{where}: optics.{learnable_key} needs optics.normalize_mean = 0: rescaling each "
+                                 "frame hides the light it trades")
 
     def f_number(self) -> torch.Tensor:
         """The f-number in use (dimensionless)."""
         if hasattr(self, "f_number_logit"):
-            low, high = self.f_number_bounds
-            return low * (high / low) ** torch.sigmoid(self.f_number_logit)
+            return log_bounded(self.f_number_logit, *self.f_number_bounds)
         return self.fixed_f_number
 
     def exposure_ms(self) -> torch.Tensor:
         """The exposure time in use (ms)."""
         if hasattr(self, "exposure_logit"):
-            low, high = self.exposure_bounds
-            return low * (high / low) ** torch.sigmoid(self.exposure_logit)
+            return log_bounded(self.exposure_logit, *self.exposure_bounds)
         return self.fixed_exposure_ms
 
     def throughput(self) -> torch.Tensor:

@@ -21,11 +21,9 @@ filter to 0.5 at the starting design), recorded in the checkpoint.
 
 from __future__ import annotations
 
-import math
-
 import torch
-from torch import nn
 
+from warpsense.camera.bounds import log_bounded, log_bounded_parameter
 from warpsense.camera.noise import NoisySensor
 from warpsense.camera.stage import SensorArguments
 from warpsense.choices import LIGHT_LEVELS
@@ -45,6 +43,15 @@ def light_electrons(light: str, mid_grey_electrons: float = 0.0) -> float:
     return LIGHT_LEVELS[light]
 
 
+def gain_problem(analog_gain: float, gain_max: float, learnable: bool) -> str | None:
+    """Why an analog gain cannot start at ``analog_gain`` (a message naming the key), or None."""
+    if not 1 <= analog_gain <= gain_max:
+        return f"analog_gain must be in [1, gain_max = {gain_max}], got {analog_gain}"
+    if learnable and not 1 < analog_gain < gain_max:
+        return f"analog_gain must start inside (1, gain_max = {gain_max}) to be learned, got {analog_gain}"
+    return None
+
+
 class PhotonBudget(NoisySensor):
     """Relative exposure [B, 1, H, W] (phi . L, after the CFA) -> noisy signal in ADC units; owns the analog gain.
 
@@ -60,10 +67,9 @@ class PhotonBudget(NoisySensor):
         if not (mid_grey_electrons > 0 and pixel_pitch_um > 0 and quantum_efficiency > 0 and full_well_electrons > 0
                 and read_electrons >= 0):
             raise ValueError("photons: light, pitch, quantum efficiency and full well must be > 0, read noise >= 0")
-        if not 1 <= analog_gain <= gain_max:
-            raise ValueError(f"photons: analog_gain must be in [1, gain_max = {gain_max}], got {analog_gain}")
-        if gain_learnable and not 1 < analog_gain < gain_max:
-            raise ValueError(f"photons: a learnable analog_gain must start inside (1, {gain_max}), got {analog_gain}")
+        problem = gain_problem(analog_gain, gain_max, gain_learnable)
+        if problem:
+            raise ValueError(f"photons: {problem}")
         super().__init__(eval_seed)
         # electrons per unit of relative exposure phi . L (a clear pixel on the mid-grey patch collects E_mid)
         self.electrons_per_unit = (mid_grey_electrons / (3 * MID_GREY) * (pixel_pitch_um / REFERENCE_PITCH_UM) ** 2
@@ -71,8 +77,7 @@ class PhotonBudget(NoisySensor):
         self.full_well = float(full_well_electrons)
         self.read_electrons = float(read_electrons)
         self.gain_max = float(gain_max)
-        start = torch.logit(torch.tensor(math.log(analog_gain) / math.log(gain_max), dtype=torch.float64)).float()
-        self.gain_logit = nn.Parameter(start, requires_grad=gain_learnable)
+        self.gain_logit = log_bounded_parameter(analog_gain, 1.0, gain_max, learnable=gain_learnable)
         if digital_gain <= 0:  # the mid-grey patch through a clear filter at the starting design -> 0.5
             digital_gain = 0.5 * self.full_well / (mid_grey_electrons * analog_gain)
         self.register_buffer("digital_gain", torch.tensor(float(digital_gain)))
@@ -86,18 +91,32 @@ class PhotonBudget(NoisySensor):
 
     @classmethod
     def check_section(cls, section, where: str) -> None:
-        if section.mid_grey_electrons <= 0:
-            light_electrons(section.light)  # the config's choices already name the levels; kept for direct use
-        if not 1 <= section.analog_gain <= section.gain_max:
-            raise ValueError(f"{where}: photons.analog_gain must be in [1, photons.gain_max = {section.gain_max}], "
-                             f"got {section.analog_gain}")
-        if section.gain_learnable and not 1 < section.analog_gain < section.gain_max:
-            raise ValueError(f"{where}: photons.analog_gain must start inside (1, gain_max) to be learned, got "
-                             f"{section.analog_gain}")
+        problem = gain_problem(section.analog_gain, section.gain_max, section.gain_learnable)
+        if problem:
+            raise ValueError(f"{where}: photons.{problem}")
+
+    @classmethod
+    def check_design(cls, config, where: str) -> None:
+        """The photon budget states the noise and the exposure itself, and a frame rescaled to a mean would hide its
+        photon count: the stages that do so otherwise must be off, the ADC range fixed."""
+        section = getattr(config, cls.config_section, None)
+        if section is None or not section.enabled:
+            return
+        if config.noise.enabled:
+            raise ValueError(f"{where}: photons.enabled states the noise from electrons: set noise.enabled = false")
+        if config.exposure.enabled:
+            raise ValueError(f"{where}: photons.enabled sets the exposure through optics.exposure_ms, the "
+                             "f-number and photons.analog_gain: set exposure.enabled = false")
+        if config.optics.enabled and config.optics.normalize_mean > 0:
+            raise ValueError(f"{where}: photons.enabled needs optics.normalize_mean = 0 (rescaling each frame "
+                             "to a mean would hide the photon count)")
+        if config.quantize.enabled and (config.quantize.mode != "full_well" or config.quantize.white_level != 1):
+            raise ValueError(f"{where}: photons.enabled needs quantize.mode = \"full_well\" and "
+                             "quantize.white_level = 1 (the analog gain maps the charge to the ADC's range)")
 
     def analog_gain(self) -> torch.Tensor:
         """G in [1, G_max] (dimensionless)."""
-        return self.gain_max ** torch.sigmoid(self.gain_logit)
+        return log_bounded(self.gain_logit, 1.0, self.gain_max)
 
     def adc_per_electron(self) -> torch.Tensor:
         """ADC units (1 = the top code) per electron: G / FWC."""

@@ -81,6 +81,11 @@ class Stage(nn.Module):
         """Refuse a config section this stage cannot be built from, before any work (raise ValueError naming
         ``where`` and the key). Checks of single values (types, ranges, choices) belong to the config itself."""
 
+    @classmethod
+    def check_design(cls, config, where: str) -> None:
+        """Refuse a whole config in which this stage cannot work with the others (e.g. a stage that replaces
+        another needs it off); ValueError naming ``where`` and the keys. The default: nothing to check."""
+
     def forward(self, signal: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         """The stage on its own (the unfused path): ``signal`` as `takes` says -> as `gives` says;
         ``image_index`` [B] keys per-image randomness in eval."""

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from warpsense.config import load_config, with_overrides
 from warpsense.files import check_output_folder
+from warpsense.system.checkpoint import read_checkpoint, resume_state
 from warpsense.train.engine import TrainingInterrupted, train
 from warpsense.train.run_dir import LAST, newest_run, resumed_config
 
@@ -15,14 +16,10 @@ LOCATING_KEYS = ("run.output_dir=", "run.name=")  # overrides that only say wher
 
 
 def trained_epochs(run_dir: Path) -> int:
-    """How many epochs the run's last checkpoint holds (from its readable JSON copy)."""
-    path = Path(run_dir) / LAST.replace(".safetensors", ".json")
-    try:
-        return int(json.loads(path.read_text())["state"]["epoch"]) + 1
-    except OSError:
-        raise ValueError(f"{run_dir}: no last checkpoint ({path.name}) to extend") from None
-    except (ValueError, KeyError, TypeError):
-        raise ValueError(f"{path}: not a checkpoint record with state.epoch") from None
+    """How many epochs the run's last checkpoint holds."""
+    checkpoint = Path(run_dir) / LAST
+    tensors, meta = read_checkpoint(checkpoint)
+    return resume_state(checkpoint, tensors, meta)["epoch"] + 1
 
 
 def run_train(config_file: str | None, overrides: list[str], resume: bool = False, resume_dir: str | None = None,

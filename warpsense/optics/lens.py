@@ -356,12 +356,14 @@ class Lens(nn.Module):
         factor = oversampling or spec.oversampling
         coefficients = self.field_coefficients(field_height)
         stopped = f_number is not None
-        if grid_f_number is None:
-            grid_f_number = float(f_number) if stopped and not isinstance(f_number, torch.Tensor) else spec.f_number
+        if not stopped:
+            grid_f_number = spec.f_number
+        elif grid_f_number is None:
+            grid_f_number = spec.f_number if isinstance(f_number, torch.Tensor) else float(f_number)
         per_wavelength = []
         for channel, wavelength in enumerate(spec.wavelengths_um):
             # sample spacing lambda F# / Q = pitch / factor  ->  Q = lambda F# factor / pitch
-            padding = wavelength * (grid_f_number if stopped else spec.f_number) * factor / pitch
+            padding = wavelength * grid_f_number * factor / pitch
             waves, noll = self.wavelength_coefficients(coefficients, field_height, channel)
             radius = None
             if stopped:
