@@ -19,6 +19,9 @@ ON_DEVICE_MODES = ("auto", "always", "never")
 PSF_METHODS = ("auto", "direct", "conv2d", "fft", "patch")
 """PSF-convolution methods (`warpsense.ops.psf.psf_conv`)."""
 
+RENDER_PRECISIONS = ("float32", "float64")
+"""Precisions of the lens's pupil FFTs (`warpsense.optics.lens.Lens.psf_at`): torch dtype names."""
+
 CFA_LAYOUTS = {
     "RGGB": ("RG", "GB"), "BGGR": ("BG", "GR"), "GRBG": ("GR", "BG"), "GBRG": ("GB", "RG"),
     "RCCC": ("RC", "CC"), "RCCB": ("RC", "CB"), "RYYB": ("RY", "YB"),
@@ -44,7 +47,7 @@ COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
 SELF_CAPTURING_COMPILE_MODES = ("reduce-overhead", "max-autotune")
 """Compile modes that capture CUDA graphs themselves (not combinable with ``train.cuda_graph``)."""
 
-MODEL_NAMES = ("dsunet",)
+MODEL_NAMES = ("dsunet", "packunet")
 """Segmentation networks (`warpsense.models.MODELS`)."""
 
 LIGHT_LEVELS = {"night": 70.0, "dusk": 700.0, "day": 7000.0}

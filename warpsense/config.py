@@ -26,6 +26,7 @@ from warpsense.choices import (
     ON_DEVICE_MODES,
     PSF_METHODS,
     QUANTIZE_MODES,
+    RENDER_PRECISIONS,
     SELF_CAPTURING_COMPILE_MODES,
 )
 from warpsense.resources import CONFIG_DIR
@@ -92,6 +93,7 @@ class OpticsConfig:
     learnable: bool = False
     normalize_mean: float = _field(0.5, minimum=0)
     method: str = _field("auto", choices=PSF_METHODS)
+    render_precision: str = _field("float32", choices=RENDER_PRECISIONS)
     energy_eps: float = _field(0.001, minimum=0, maximum=1)
     field_tolerance: float = _field(0.001, minimum=0)
     f_number: float = _field(0.0, minimum=0, maximum=64)

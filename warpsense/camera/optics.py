@@ -42,13 +42,15 @@ class Optics(Stage):
                  energy_eps: float = 1e-3, field_tolerance: float = 1e-3, f_number: float = 0.0,
                  f_number_learnable: bool = False, f_number_bounds: tuple[float, float] = (1.4, 8.0),
                  exposure_ms: float = REFERENCE_EXPOSURE_MS, exposure_learnable: bool = False,
-                 exposure_bounds: tuple[float, float] = (1.0, 30.0), corner_speed_px_per_ms: float = 0.0):
+                 exposure_bounds: tuple[float, float] = (1.0, 30.0), corner_speed_px_per_ms: float = 0.0,
+                 render_precision: str = "float32"):
         super().__init__()
         self.lens = lens
         self.learnable = learnable
         self.normalize_mean = normalize_mean
         self.method = method
         self.corner_speed = float(corner_speed_px_per_ms)
+        self.render_dtype = getattr(torch, render_precision)
         lens.offset.requires_grad_(learnable)
         self.f_number_bounds = tuple(float(b) for b in f_number_bounds)
         self.exposure_bounds = tuple(float(b) for b in exposure_bounds)
@@ -69,7 +71,8 @@ class Optics(Stage):
         self.dynamic = learnable or f_number_learnable or (exposure_learnable and self.corner_speed > 0)
         if not self.dynamic:
             with torch.no_grad():
-                psf = collapse_grid(crop_to_energy(self.render(), energy_eps), field_tolerance)
+                # rendered once: float64 costs nothing here
+                psf = collapse_grid(crop_to_energy(self.render(torch.float64), energy_eps), field_tolerance)
             self.register_buffer("frozen_psf", psf.float())
 
         self._cached_psf: torch.Tensor | None = None
@@ -87,7 +90,8 @@ class Optics(Stage):
                    f_number_bounds=(section.f_number_min, section.f_number_max), exposure_ms=section.exposure_ms,
                    exposure_learnable=section.exposure_learnable,
                    exposure_bounds=(section.exposure_ms_min, section.exposure_ms_max),
-                   corner_speed_px_per_ms=section.corner_speed_px_per_ms)
+                   corner_speed_px_per_ms=section.corner_speed_px_per_ms,
+                   render_precision=section.render_precision)
 
     @classmethod
     def check_section(cls, section, where: str) -> None:
@@ -146,10 +150,11 @@ class Optics(Stage):
         """Mark the cached PSF grid stale (call after changing the design or its requires_grad)."""
         self._cache_valid = False
 
-    def render(self) -> torch.Tensor:
-        """[3, Gy, Gx, K, K] PSF grid of the design now (lens at its f-number, composed with the motion streaks)."""
+    def render(self, dtype: torch.dtype | None = None) -> torch.Tensor:
+        """[3, Gy, Gx, K, K] PSF grid of the design now (lens at its f-number, composed with the motion streaks),
+        its pupil FFTs in ``dtype`` (default: the configured render precision)."""
         options = {"f_number": self.f_number(), "grid_f_number": self.grid_f_number} if self.stopped else {}
-        psf = self.lens.psf_grid(**options)
+        psf = self.lens.psf_grid(dtype=dtype or self.render_dtype, **options)
         if self.corner_speed > 0:
             grid_y, grid_x = self.lens.spec.psf_grid
             height, azimuth = self.lens.field_points()

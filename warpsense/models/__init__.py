@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from warpsense.models.dsunet import DSUNet
+from warpsense.models.packunet import PackUNet
 
-MODELS = {"dsunet": DSUNet}
+MODELS = {"dsunet": DSUNet, "packunet": PackUNet}
 
 
 def build_model(name: str, **kwargs):
@@ -18,4 +19,4 @@ def count_parameters(model) -> int:
     return sum(p.numel() for p in model.parameters())
 
 
-__all__ = ["DSUNet", "MODELS", "build_model", "count_parameters"]
+__all__ = ["DSUNet", "PackUNet", "MODELS", "build_model", "count_parameters"]
