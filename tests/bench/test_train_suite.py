@@ -12,7 +12,10 @@ def test_quick_cpu_suite_records_every_case():
                         for loss in ("ce", "full")}
     assert all(r["images_per_s"] > 0 and not r["cuda_graph"] and r["compile"] == "off"
                for r in records if "images_per_s" in r)
-    latency = [r for r in records if "median_ms" in r]
-    assert {(r["method"], r["camera"], r["mode"]) for r in latency} == {
-        ("torch_baseline", "simple", "eager"), ("warpsense", "simple", "eager"), ("warpsense", "codesign", "eager")}
+    timed = [r for r in records if "median_ms" in r]
+    cases = [("torch_baseline", "simple"), ("warpsense", "simple"), ("warpsense", "codesign")]
+    assert {(r["method"], r["camera"], r["mode"]) for r in timed} == {
+        (method, camera, mode) for method, camera in cases for mode in ("eager", "camera fwd+bwd eager")}
+    assert all(r["median_ms"] > 0 for r in timed)
+    assert {tuple(r["shape"]) for r in timed if r["mode"].startswith("camera")} == {(2, 3, 64, 96)}
     assert all(r["suite"] == "train" and r["device"] == "cpu" for r in records)

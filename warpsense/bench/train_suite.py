@@ -131,6 +131,24 @@ def latency(method, camera_name, device, height, width, graph: bool) -> dict:
     return time_cuda_graph(infer, 100) if graph else time_function(infer, device, 50)
 
 
+def camera_pass(method, camera_name, device, batch, height, width, graph: bool) -> dict:
+    """The camera alone in training: forward from linear radiance [batch, 3, height, width] to RAW, and backward to
+    its learnable parameters (the lens re-rendered, as in the joint phase), eager or replayed as a CUDA graph."""
+    torch.manual_seed(0)
+    camera, _ = build(method, camera_name, device)
+    camera.train()
+    set_finite_check(camera, False)
+    parameters = [p for p in camera.parameters() if p.requires_grad]
+    radiance = torch.rand(batch, 3, height, width, device=device) * 0.5
+    weights = torch.randn(batch, 1, height, width, device=device)
+
+    def step():
+        raw = camera(radiance)
+        return torch.autograd.grad((raw * weights).sum(), parameters)
+
+    return time_cuda_graph(step, 50) if graph else time_function(step, device, 20)
+
+
 def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
     """All records of the suite; prints one line each."""
     if quick:
@@ -171,6 +189,13 @@ def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
                     raise
                 record["error"] = f"{type(error).__name__}: {first_line(error)[:300]}"
             add(record)
+    camera_shape = (2, 64, 96) if quick else (16, 352, 480)  # the CamVid recipe's training crop
+    for method, camera_name in cases:
+        for graph in ((False, True) if device == "cuda" else (False,)):
+            timing = camera_pass(method, camera_name, device, *camera_shape, graph)
+            add({"method": method, "camera": camera_name, "mode": "camera fwd+bwd " + ("graph" if graph else "eager"),
+                 "median_ms": timing["median_ms"], "iqr_ms": timing["iqr_ms"], "shape": [camera_shape[0], 3,
+                                                                                          *camera_shape[1:]]})
     for method, camera_name in cases:
         for graph in ((False, True) if device == "cuda" else (False,)):
             timing = latency(method, camera_name, device, height, width, graph)
