@@ -47,6 +47,10 @@ COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
 SELF_CAPTURING_COMPILE_MODES = ("reduce-overhead", "max-autotune")
 """Compile modes that capture CUDA graphs themselves (not combinable with ``train.cuda_graph``)."""
 
+MODEL_INPUTS = ("sensor", "srgb")
+"""What the network reads: the camera's output (RAW, or RGB through the fixed ISP) or the clean sRGB frame itself
+(an RGB teacher for distillation, `warpsense.system.model.SensingModel`)."""
+
 MODEL_NAMES = ("dsunet", "packunet")
 """Segmentation networks (`warpsense.models.MODELS`)."""
 

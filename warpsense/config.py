@@ -22,6 +22,7 @@ from warpsense.choices import (
     DATASETS,
     DEVICES,
     LIGHT_LEVELS,
+    MODEL_INPUTS,
     MODEL_NAMES,
     ON_DEVICE_MODES,
     PSF_METHODS,
@@ -173,6 +174,7 @@ class ModelConfig:
     width: int = _field(16, minimum=1, maximum=512)
     num_classes: int = _field(0, minimum=0, maximum=1024)
     channels_last: bool = True
+    input: str = _field("sensor", choices=MODEL_INPUTS)
 
 
 @dataclass
@@ -181,6 +183,9 @@ class LossConfig:
     ohem_fraction: float = _field(0.25, minimum=0, maximum=1, exclusive=True)
     lovasz_weight: float = _field(0.4, minimum=0)
     smooth_weight: float = _field(0.01, minimum=0)
+    teacher: str = ""
+    distill_weight: float = _field(0.0, minimum=0)
+    distill_temperature: float = _field(1.0, minimum=0, exclusive=True)
 
 
 @dataclass

@@ -60,3 +60,32 @@ def test_lovasz_grad_equals_the_papers_algorithm_row_by_row():
         expected[index] = np.concatenate([jaccard[:1], np.diff(jaccard)])
     np.testing.assert_allclose(lovasz_grad(labels).numpy(), expected, atol=1e-6)
     np.testing.assert_allclose(lovasz_grad(labels.double()).numpy(), expected, atol=1e-12)
+
+
+def test_distillation_loss_against_a_numpy_kl():
+    """T^2 mean over pixels of sum_k p_t (log p_t - log p_s), with p = softmax(logits / T), against NumPy."""
+    import numpy as np
+
+    from warpsense.train.losses import distillation_loss
+
+    torch.manual_seed(0)
+    student, teacher = torch.randn(2, 5, 3, 4, dtype=torch.float64), 3 * torch.randn(2, 5, 3, 4, dtype=torch.float64)
+    for temperature in (1.0, 2.5):
+        s, t = student.numpy() / temperature, teacher.numpy() / temperature
+        log_s = s - np.log(np.exp(s).sum(axis=1, keepdims=True))
+        log_t = t - np.log(np.exp(t).sum(axis=1, keepdims=True))
+        expected = temperature**2 * (np.exp(log_t) * (log_t - log_s)).sum(axis=1).mean()
+        assert distillation_loss(student, teacher, temperature).item() == pytest.approx(expected, rel=1e-5)
+
+
+def test_distillation_loss_zero_at_the_teacher_and_gradient_to_the_student_only():
+    from warpsense.train.losses import distillation_loss
+
+    teacher = torch.randn(1, 4, 5, 5, requires_grad=True)
+    assert distillation_loss(teacher.detach().clone(), teacher).abs().item() < 1e-6
+    student = torch.zeros(1, 4, 5, 5, requires_grad=True)
+    distillation_loss(student, teacher).backward()
+    assert teacher.grad is None and student.grad.abs().sum() > 0
+    # the gradient is (p_s - p_t) / pixels: it pulls the student's probabilities towards the teacher's
+    expected = (torch.softmax(student, 1) - torch.softmax(teacher, 1)).detach() / 25
+    torch.testing.assert_close(student.grad, expected, rtol=1e-5, atol=1e-7)

@@ -45,7 +45,8 @@ def test_statistics_are_the_mean_of_the_step_losses():
     assert optimizer.param_groups[0]["lr"] == pytest.approx(1e-3 * cosine_scale(2, 4))
     statistics = step.epoch_statistics(DistributedContext())
     assert statistics["train_loss"] == pytest.approx(sum(losses) / 3) and statistics["nonfinite_steps"] == 0
-    assert set(statistics) == {"train_loss", "train_ohem", "train_lovasz", "train_smooth", "nonfinite_steps"}
+    assert set(statistics) == {"train_loss", "train_ohem", "train_lovasz", "train_smooth", "train_distill",
+                               "nonfinite_steps"}
     assert step.epoch_statistics(DistributedContext()) == {}  # reset after reading
 
 

@@ -140,3 +140,44 @@ def test_checkpoint_round_trip(tmp_path):
         assert torch.equal(a, b), name
     assert meta["config"]["optics"]["learnable"] is True
     assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_distillation_from_an_rgb_teacher(tmp_path):
+    """An RGB teacher (model.input = srgb, no camera) trains with the project's own command; a RAW student distils
+    it (the distillation term is recorded), its checkpoint holds the student alone and loads without the teacher."""
+    from warpsense.system import load_system
+
+    teacher_config = load_config(None, TINY + [
+        "train.epochs=1", "train.warmup_epochs=0", f"run.output_dir={tmp_path}", "run.name=teacher",
+        "model.input=srgb", "model.width=8", "optics.enabled=false", "exposure.enabled=false", "cfa.enabled=false",
+        "noise.enabled=false", "quantize.enabled=false"])
+    teacher_run = train(teacher_config, progress=False)
+    teacher, _, _ = load_system(teacher_run / "checkpoint_last.safetensors", "cpu")
+    assert teacher.network.stem[0].in_channels == 3 and not teacher.camera.stages()
+    student_config = load_config(None, TINY + [
+        "train.epochs=1", "train.warmup_epochs=0", f"run.output_dir={tmp_path}", "run.name=student",
+        f"loss.teacher={teacher_run / 'checkpoint_last.safetensors'}", "loss.distill_weight=1.0"])
+    student_run = train(student_config, progress=False)
+    record = json.loads((student_run / "metrics.jsonl").read_text().splitlines()[-1])
+    assert record["train_distill"] > 0
+    tensors, _ = read_checkpoint(student_run / "checkpoint_last.safetensors")
+    student = build_system(student_config, 4)
+    assert {name[len("model."):] for name in tensors if name.startswith("model.")} == set(student.state_dict())
+    (teacher_run / "checkpoint_last.safetensors").unlink()
+    model, _, _ = load_system(student_run / "checkpoint_last.safetensors", "cpu")
+    assert model.network.stem[0].in_channels == 1
+
+
+def test_srgb_input_reads_the_frame_and_refuses_a_camera():
+    from warpsense.config import ConfigError
+    from warpsense.system import check_config
+
+    off = ["optics.enabled=false", "exposure.enabled=false", "cfa.enabled=false", "noise.enabled=false",
+           "quantize.enabled=false"]
+    model = build_system(load_config(None, ["model.input=srgb", "model.width=4"] + off), 3)
+    frame = torch.randint(0, 256, (1, 3, 16, 16), dtype=torch.uint8)
+    torch.testing.assert_close(model.sense(frame), frame.float() / 255)
+    with pytest.raises(ConfigError, match=r"model.input = \"srgb\".*disable cfa.enabled"):
+        check_config(load_config(None, ["model.input=srgb"] + [o for o in off if not o.startswith("cfa")]))
+    with pytest.raises(ConfigError, match="loss.distill_weight = 1.0 needs loss.teacher"):
+        check_config(load_config(None, ["loss.distill_weight=1.0"]))

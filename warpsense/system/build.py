@@ -21,6 +21,15 @@ def check_config(config, source: str = "config") -> None:
         Camera.check_config(config, source)
     except ValueError as error:
         raise ConfigError(str(error)) from None
+    if config.model.input == "srgb":
+        on = [section for section in ("optics", "exposure", "cfa", "photons", "noise", "quantize", "isp")
+              if getattr(config, section).enabled]
+        if on:
+            raise ConfigError(f"{source}: model.input = \"srgb\" reads the clean frame without a camera; disable "
+                              f"{', '.join(f'{section}.enabled' for section in on)}")
+    if config.loss.distill_weight > 0 and not config.loss.teacher:
+        raise ConfigError(f"{source}: loss.distill_weight = {config.loss.distill_weight} needs loss.teacher (a "
+                          "checkpoint, e.g. of the camvid_rgb_teacher preset)")
 
 
 def build_system(config, num_classes: int) -> SensingModel:
@@ -32,10 +41,22 @@ def build_system(config, num_classes: int) -> SensingModel:
         if letters is None:
             raise ValueError("isp.enabled needs a CFA (cfa.enabled = true)")
         isp = FixedISP(letters, config.isp.gamma)
-    network = build_model(config.model.name, in_channels=3 if isp is not None else 1,
+    srgb = config.model.input == "srgb"
+    network = build_model(config.model.name, in_channels=3 if isp is not None or srgb else 1,
                           num_classes=config.model.num_classes or num_classes, width=config.model.width,
                           tile=camera.tile, channels_last=config.model.channels_last)
-    return SensingModel(camera, network, isp, unprocess_input=config.data.unprocess)
+    return SensingModel(camera, network, isp, unprocess_input=config.data.unprocess, srgb_input=srgb)
+
+
+def load_teacher(checkpoint: str | Path, num_classes: int, device) -> SensingModel:
+    """A frozen teacher for distillation (loss.teacher): the checkpoint's model in eval mode, no gradients, checked
+    to predict the student's ``num_classes``."""
+    teacher, _, _ = load_system(checkpoint, device)
+    classes = teacher.network.head.out_channels
+    if classes != num_classes:
+        raise CheckpointError(f"{checkpoint}: loss.teacher predicts {classes} classes, the dataset has {num_classes}")
+    teacher.requires_grad_(False)
+    return teacher
 
 
 def load_system(checkpoint: str | Path, device) -> tuple[torch.nn.Module, object, dict]:

@@ -8,18 +8,23 @@ from torch.nn import functional as F
 
 from warpsense.camera import Camera
 from warpsense.camera.isp import FixedISP
-from warpsense.data.color import srgb_to_linear, unprocess
+from warpsense.data.color import linear_to_srgb, srgb_to_linear, unprocess
 
 
 class SensingModel(nn.Module):
-    """uint8 sRGB or linear radiance [B, 3, H, W] -> (logits [B, K, H, W], sensor output fed to the network)."""
+    """uint8 sRGB or linear radiance [B, 3, H, W] -> (logits [B, K, H, W], sensor output fed to the network).
 
-    def __init__(self, camera: Camera, network: nn.Module, isp: FixedISP | None = None, unprocess_input: bool = False):
+    ``srgb_input``: the network reads the clean sRGB frame in [0, 1] instead of a capture (no camera: the RGB
+    teacher of distillation, model.input = "srgb"; linear radiance is encoded back to sRGB)."""
+
+    def __init__(self, camera: Camera, network: nn.Module, isp: FixedISP | None = None, unprocess_input: bool = False,
+                 srgb_input: bool = False):
         super().__init__()
         self.camera = camera
         self.isp = isp
         self.network = network
         self.unprocess_input = unprocess_input
+        self.srgb_input = srgb_input
 
     def radiance(self, image: torch.Tensor) -> torch.Tensor:
         """uint8 sRGB -> linear radiance (float tensors are taken as radiance already)."""
@@ -30,6 +35,8 @@ class SensingModel(nn.Module):
         return image
 
     def sense(self, image: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
+        if self.srgb_input:
+            return image.float() * (1 / 255) if image.dtype == torch.uint8 else linear_to_srgb(image)
         sensed = self.camera(self.radiance(image), image_index)
         return self.isp(sensed) if self.isp is not None else sensed
 

@@ -21,7 +21,7 @@ from warpsense.data.on_device import DeviceBatches, dataset_megabytes
 from warpsense.data.transforms import EpochSampler
 from warpsense.files import environment, write_json
 from warpsense.models import count_parameters
-from warpsense.system import build_system, check_config
+from warpsense.system import build_system, check_config, load_teacher
 from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
 from warpsense.train.distributed import DistributedContext, wrap_data_parallel
 from warpsense.train.evaluate import evaluate
@@ -290,9 +290,15 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
 
     if config.train.cuda_graph and context.enabled:
         raise ValueError("train.cuda_graph captures one GPU's step; with several ranks (DDP) leave it false")
+    teacher = None
+    if config.loss.distill_weight > 0:  # read for training only: the checkpoint keeps the student alone
+        teacher = load_teacher(config.loss.teacher, num_classes, device)
+        if context.is_main:
+            print(f"distilling {config.loss.teacher} ({count_parameters(teacher.network):,} parameters), weight "
+                  f"{config.loss.distill_weight}, T = {config.loss.distill_temperature}")
     training_step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), schedule.epochs * steps_per_epoch,
                                  amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph,
-                                 config.train.micro_batch)
+                                 config.train.micro_batch, teacher)
     wrapped, wrapped_phase = model, None
     epoch = start_epoch
     while epoch < schedule.epochs:  # a while loop: the time budget may shorten the schedule after the first epoch

@@ -89,6 +89,21 @@ def edge_aware_smoothness(logits: torch.Tensor, guide: torch.Tensor, sigma: floa
     return 0.5 * ((wx * dx_p).mean() + (wy * dy_p).mean())
 
 
+def distillation_loss(student: torch.Tensor, teacher: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
+    """Pixel-wise knowledge distillation (Hinton et al. 2015; per pixel as in Liu et al., CVPR 2019): the mean over
+    pixels of T^2 KL(softmax(teacher / T) || softmax(student / T)). The T^2 keeps its gradients' scale independent
+    of T. Every pixel counts, labelled or not: the teacher has an answer for void pixels too.
+
+    Args:
+        student: [B, K, H, W] logits being trained; teacher: [B, K, H, W] logits (no gradient flows into them).
+        temperature: T > 0.
+    """
+    log_student = torch.log_softmax(student.float() / temperature, dim=1)
+    log_teacher = torch.log_softmax(teacher.detach().float() / temperature, dim=1)
+    kl = (log_teacher.exp() * (log_teacher - log_student)).sum(dim=1)
+    return temperature**2 * kl.mean()
+
+
 def segmentation_loss(logits, target, guide, loss_config) -> tuple[torch.Tensor, dict[str, float]]:
     """Total loss 0.6 OHEM + 0.4 Lovasz + lambda smoothness (eq. 10 of the paper; weights from the config).
 

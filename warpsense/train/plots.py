@@ -21,8 +21,8 @@ def plot_curves(records: list[dict], path: Path) -> None:
     epochs = [r["epoch"] + 1 for r in records]
     figure, (left, right) = plt.subplots(1, 2, figsize=(10, 3.5))
     left.plot(epochs, [r["train_loss"] for r in records], label="total")
-    for key in ("train_ohem", "train_lovasz"):
-        if all(key in r for r in records):
+    for key in ("train_ohem", "train_lovasz", "train_distill"):
+        if all(key in r for r in records) and any(r[key] > 0 for r in records):
             left.plot(epochs, [r[key] for r in records], label=key[6:], alpha=0.7)
     evaluated = [r for r in records if "val_miou" in r]
     right.plot([r["epoch"] + 1 for r in evaluated], [r["val_miou"] for r in evaluated], marker="o")

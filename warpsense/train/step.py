@@ -10,10 +10,10 @@ import torch
 
 from warpsense.choices import COMPILE_MODES, SELF_CAPTURING_COMPILE_MODES
 from warpsense.errors import first_line
-from warpsense.train.losses import segmentation_loss
+from warpsense.train.losses import distillation_loss, segmentation_loss
 
 EAGER_STEPS_BEFORE_CAPTURE = 3  # side-stream steps that initialise optimizer state, cuDNN and `auto` choices
-LOSS_PARTS = ("ohem", "lovasz", "smooth")
+LOSS_PARTS = ("ohem", "lovasz", "smooth", "distill")
 STATISTICS = ("loss", *LOSS_PARTS, "steps", "nonfinite_steps")
 
 
@@ -43,11 +43,14 @@ class TrainingStep:
             chunk's loss weighted by its share of the batch, before the one optimizer step: the peak memory of a
             chunk, the step of the whole batch (exactly so for losses that are means over images; OHEM picks its
             hardest pixels and batch norm its statistics within each chunk).
+        teacher: a frozen model (`warpsense.system.build.load_teacher`) whose logits on the same images the
+            network distils with weight ``loss_config.distill_weight`` (`distillation_loss`); it runs inside the
+            step (compiled and captured with it) and is never part of the trained model.
     """
 
     def __init__(self, loss_config, optimizer: torch.optim.Optimizer, camera_params: list, total_steps: int,
                  amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False,
-                 micro_batch: int = 0):
+                 micro_batch: int = 0, teacher: torch.nn.Module | None = None):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
         if cuda_graph and compile_mode in SELF_CAPTURING_COMPILE_MODES:
@@ -60,6 +63,7 @@ class TrainingStep:
         self.amp = amp
         self.camera_grad_clip = camera_grad_clip
         self.micro_batch = micro_batch
+        self.teacher = teacher if loss_config.distill_weight > 0 else None
         self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
         self.compiled = compile_mode != "off"
         self.forward_loss = self._forward_loss if not self.compiled else \
@@ -82,6 +86,12 @@ class TrainingStep:
     def _forward_loss(self, model, images, labels):
         logits, sensed = model(images, self.amp)
         loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config)
+        if self.teacher is not None:
+            with torch.no_grad():
+                teacher_logits, _ = self.teacher(images, self.amp)
+            parts["distill"] = distillation_loss(logits, teacher_logits, self.loss_config.distill_temperature)
+            loss = loss + self.loss_config.distill_weight * parts["distill"].to(loss.dtype)
+            parts["distill"] = parts["distill"].detach()
         return loss, parts
 
     def __call__(self, model, images: torch.Tensor, labels: torch.Tensor, step: int, joint: bool) -> None:
