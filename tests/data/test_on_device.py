@@ -86,3 +86,27 @@ def test_downscale_never_pads_the_crop():
     for index in range(len(cpu_path)):
         image, label = cpu_path[index]
         assert image.shape == (3, 28, 36) and _padding_free(image[None], label[None])
+
+
+def test_decoded_dataset_gives_the_items_and_the_same_evaluation():
+    """The evaluation set kept decoded gives the dataset's own items (ignore pixels included) and so the same
+    metrics."""
+    from warpsense.config import load_config
+    from warpsense.data.on_device import DecodedDataset
+    from warpsense.system import build_system
+    from warpsense.train.evaluate import evaluate
+
+    dataset = StreetScenes(6, 24, 32, seed=3)
+    decoded = DecodedDataset(dataset, "cpu")
+    assert len(decoded) == 6 and decoded.classes == dataset.classes
+    for index in range(6):
+        image, label = dataset[index]
+        label = label.clone()
+        label[0, :3] = IGNORE_INDEX
+        decoded.items[index] = (decoded.items[index][0], label.to(torch.uint8))
+        got_image, got_label = decoded[index]
+        assert torch.equal(got_image, image) and got_label.dtype == torch.int64 and torch.equal(got_label, label)
+    torch.manual_seed(0)
+    model = build_system(load_config(None, ["model.width=4"]), len(dataset.classes))
+    plain = evaluate(model, DecodedDataset(dataset, "cpu"), "cpu", batch_size=4)
+    assert plain == evaluate(model, dataset, "cpu", batch_size=4)

@@ -20,6 +20,27 @@ def dataset_megabytes(dataset) -> float:
     return len(dataset) * image.shape[1] * image.shape[2] * 4 / 1e6
 
 
+class DecodedDataset(torch.utils.data.Dataset):
+    """An evaluation set decoded once and kept on ``device``: items are (uint8 image [3, H, W], int64 label [H, W])
+    as the wrapped dataset gives them, so a validation pass every few epochs decodes no file and copies nothing
+    from the host. Labels are stored as uint8 (classes and the ignore index fit) and widened per item."""
+
+    def __init__(self, dataset, device, progress: bool = False):
+        self.items = []
+        for index in tqdm(range(len(dataset)), desc="loading the evaluation set onto the device",
+                          disable=not progress, leave=False):
+            image, label = dataset[index]
+            self.items.append((image.to(device), label.clamp(max=IGNORE_INDEX).to(torch.uint8).to(device)))
+        self.classes = getattr(dataset, "classes", ())
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, index: int):
+        image, label = self.items[index]
+        return image, label.long()
+
+
 class DeviceBatches:
     """Iterates batches (uint8 images [B, 3, h, w], int64 labels [B, h, w]) of a dataset kept on ``device``.
 

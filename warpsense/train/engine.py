@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from warpsense.camera.camera import set_finite_check
 from warpsense.data import build_dataset, evaluation_splits
-from warpsense.data.on_device import DeviceBatches, dataset_megabytes
+from warpsense.data.on_device import DecodedDataset, DeviceBatches, dataset_megabytes
 from warpsense.data.transforms import EpochSampler
 from warpsense.files import environment, write_json
 from warpsense.models import count_parameters
@@ -255,6 +255,11 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     if config.data.batch_size % context.world_size:
         raise ValueError(f"data.batch_size={config.data.batch_size} must be divisible by {context.world_size} ranks")
     loader = build_train_batches(config, datasets.train, context, progress)
+    if isinstance(loader, DeviceBatches):  # the evaluation sets join the training set on the device
+        datasets = _Datasets(datasets.train, *(
+            DecodedDataset(split, device, progress and context.is_main)
+            if split is not None and dataset_megabytes(split) <= config.data.on_device_max_mb else split
+            for split in (datasets.val, datasets.selection)))
     steps_per_epoch = min(len(loader), config.train.max_steps_per_epoch or len(loader))
     if steps_per_epoch == 0:
         raise ValueError(f"training set of {len(datasets.train)} images gives no batch of {config.data.batch_size}")
