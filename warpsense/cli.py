@@ -137,13 +137,16 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--suite", default="kernels", choices=BENCH_SUITES,
                        help="kernels: each op vs its reference; accuracy: error against run time (three error norms, "
                             "three scenes, the lens's discretisation against converged references); train: training "
-                            "step and latency vs the plain-torch baseline; all: every suite (default: %(default)s)")
+                            "step, camera and latency vs the plain-torch baseline; time-to-accuracy: wall time to val "
+                            "mIoU levels, the CamVid recipe vs the baseline (needs --camvid); all: kernels, accuracy "
+                            "and train (default: %(default)s)")
     bench.add_argument("--quick", action="store_true", help="small sizes and few repeats (< 2 min on 2 CPU cores)")
     bench.add_argument("--json", metavar="OUT", help="write the records as JSON")
     bench.add_argument("--plot", metavar="OUT.png",
-                       help="write the error-against-run-time plot, one Pareto panel per kernel (accuracy suite)")
-    bench.add_argument("--camvid", metavar="ROOT", help="CamVid folder (with val.txt): the accuracy suite's real "
-                       "frames (without it that scene is left out)")
+                       help="write the error-against-run-time plot, one Pareto panel per kernel (accuracy suite), or "
+                            "val mIoU against wall time (time-to-accuracy suite)")
+    bench.add_argument("--camvid", metavar="ROOT", help="CamVid folder (with train.txt and val.txt): the accuracy "
+                       "suite's real frames (without it that scene is left out); the time-to-accuracy suite's data")
     bench.set_defaults(handler=_bench)
 
     convert = commands.add_parser("convert", help="convert raw captures (DNG, Bayer raws) to RAW tensors",

@@ -107,9 +107,11 @@ def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = N
         raise ValueError("--device cuda: no CUDA device available")
     if suite not in BENCH_SUITES:
         raise ValueError(f"--suite must be one of {BENCH_SUITES}, got {suite!r}")
-    if plot_out and suite not in ("accuracy", "all"):
-        raise ValueError(f"--plot draws the accuracy suite's error against run time: use --suite accuracy or all, "
-                         f"not {suite!r}")
+    if plot_out and suite not in ("accuracy", "all", "time-to-accuracy"):
+        raise ValueError(f"--plot draws the accuracy suite's error against run time or the time-to-accuracy curves: "
+                         f"use --suite accuracy, all or time-to-accuracy, not {suite!r}")
+    if suite == "time-to-accuracy" and not camvid_root:
+        raise ValueError("--suite time-to-accuracy needs --camvid ROOT (the CamVid folder with train.txt and val.txt)")
     records, metadata = [], _metadata(device)
     if suite in ("kernels", "all"):
         records += _kernel_suite(device, quick)
@@ -121,6 +123,13 @@ def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = N
         from warpsense.bench.train_suite import run_train_suite
 
         records += run_train_suite(device, quick, metadata)
+    if suite == "time-to-accuracy":
+        from warpsense.bench.time_to_accuracy import plot_time_to_accuracy, run_time_to_accuracy_suite
+
+        records += run_time_to_accuracy_suite(device, quick, camvid_root, metadata)
+        if plot_out:
+            plot_time_to_accuracy(records, plot_out)
+        plot_out = None
     if json_out:
         write_json(json_out, {"metadata": metadata, "records": records})
     if plot_out:

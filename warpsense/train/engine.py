@@ -243,6 +243,7 @@ def _epoch_line(record: dict, schedule: Schedule, config) -> str:
 
 
 def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_model: bool):
+    run_started = time.perf_counter()
     device = context.device
     torch.manual_seed(config.run.seed)
     datasets = _datasets(config)
@@ -332,6 +333,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         }
         if (epoch + 1) % config.train.eval_every == 0 or epoch == schedule.epochs - 1:
             record.update(_validate(model, datasets, config, context, amp, progress))
+        record["wall_s"] = time.perf_counter() - run_started  # this process's time so far, setup and evaluation included
         record.update(model.camera.summary())
         score = record.get("selection_miou", record.get("val_miou", -1.0))
         is_best = score > best_miou

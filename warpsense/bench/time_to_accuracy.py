@@ -1,0 +1,138 @@
+"""`warpsense bench --suite time-to-accuracy --camvid DIR`: wall time to reach val mIoU levels, the CamVid recipe
+against the plain-torch baseline of the train suite, in one run on one device.
+
+- recipe: `warpsense train --config camvid_codesign` as shipped (`warpsense.train.engine.train`), validated every
+  ``eval_every`` epochs; its times are the run's own ``wall_s`` (setup, training and evaluation included).
+- baseline: the train suite's plain-torch camera (`BaselineCamera`: a 7x7 Gaussian via conv2d, eager sensor ops)
+  with the same network, loss, optimizer, cosine schedule, epochs, training data on the device and validation,
+  trained by a plain eager loop (no compile, no CUDA graph), as a user's script would be.
+
+Records: one per method with its curve (epoch, wall_s, val mIoU), its final val, the time to each level in
+``LEVELS`` (None if never reached) and the time to the baseline's final val. ``--quick`` trains 2 epochs on 8
+images at a small crop (CI time on a CPU).
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from warpsense.bench.train_suite import BaselineCamera
+from warpsense.camera.camera import set_finite_check
+from warpsense.config import load_config
+from warpsense.data import build_dataset
+from warpsense.models import build_model
+from warpsense.system import SensingModel
+from warpsense.train.distributed import DistributedContext
+from warpsense.train.engine import build_train_batches, train
+from warpsense.train.evaluate import evaluate
+from warpsense.train.step import TrainingStep
+
+LEVELS = (0.5, 0.6, 0.65)
+"""Val mIoU levels the suite times (the CamVid recipe ends near 0.66 at the night point)."""
+
+QUICK = ["data.max_train_images=8", "data.max_val_images=4", "data.batch_size=2", "data.crop_height=64",
+         "data.crop_width=96", "train.epochs=2", "train.warmup_epochs=1", "train.eval_every=1", "model.width=8"]
+
+
+def suite_config(camvid_root: str, device: str, quick: bool, output_dir: str, eval_every: int = 5):
+    """The camvid_codesign preset on ``camvid_root`` with the training data on the device, validated every
+    ``eval_every`` epochs (``QUICK``: a tiny run); on a CPU without compile or CUDA graph."""
+    overrides = [f"data.root={camvid_root}", f"run.output_dir={output_dir}", "train.plots=false",
+                 f"train.eval_every={eval_every}", f"run.device={device}", "data.on_device=always"]
+    if device != "cuda":
+        overrides += ["train.compile=off", "train.cuda_graph=false"]
+    return load_config("camvid_codesign", overrides + (QUICK if quick else []))
+
+
+def time_to(curve: list[dict], level: float) -> float | None:
+    """Wall seconds at the first validation reaching ``level`` (None: never)."""
+    return next((point["wall_s"] for point in curve if point["val_miou"] >= level), None)
+
+
+def baseline_curve(config, device: torch.device) -> list[dict]:
+    """Train the plain-torch baseline under ``config``'s data, network, loss and schedule; its validation curve."""
+    started = time.perf_counter()
+    torch.manual_seed(config.run.seed)
+    train_set = build_dataset(config.data, config.data.train_split, train=True, seed=config.run.seed)
+    val_set = build_dataset(config.data, config.data.val_split, train=False, seed=config.run.seed)
+    context = DistributedContext(device=device)
+    batches = build_train_batches(config, train_set, context, progress=False)
+    steps = min(len(batches), config.train.max_steps_per_epoch or len(batches))
+    network = build_model(config.model.name, in_channels=1, num_classes=len(train_set.classes),
+                          width=config.model.width, tile=2, channels_last=config.model.channels_last)
+    model = SensingModel(BaselineCamera(), network).to(device).train()
+    set_finite_check(model, False)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=config.train.lr, weight_decay=config.train.weight_decay)
+    amp = config.train.amp and device.type == "cuda"
+    total = config.train.epochs * steps
+    step = TrainingStep(config.loss, optimizer, [], total, amp)
+    curve, index = [], 0
+    for epoch in range(config.train.epochs):
+        batches.set_epoch(epoch)
+        model.train()
+        for _, (images, labels) in zip(range(steps), batches):
+            step(model, images.to(device), labels.to(device), index, joint=True)
+            index += 1
+        if (epoch + 1) % config.train.eval_every == 0 or epoch == config.train.epochs - 1:
+            metrics = evaluate(model, val_set, device, max(1, config.data.batch_size // 2), amp=amp)
+            curve.append({"epoch": epoch, "wall_s": time.perf_counter() - started, "val_miou": metrics["miou"]})
+    return curve
+
+
+def recipe_curve(config) -> list[dict]:
+    """Train the recipe with `warpsense train`'s engine; its validation curve from the run's metrics."""
+    run = train(config, progress=False)
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    return [{"epoch": r["epoch"], "wall_s": r["wall_s"], "val_miou": r["val_miou"]} for r in records if "val_miou" in r]
+
+
+def run_time_to_accuracy_suite(device: str, quick: bool, camvid_root: str | None, metadata: dict) -> list[dict]:
+    """Both methods' records (printed as a table as they finish)."""
+    if not camvid_root:
+        raise ValueError("--suite time-to-accuracy needs --camvid ROOT (the CamVid folder with train.txt and val.txt)")
+    with tempfile.TemporaryDirectory(prefix="warpsense-tta-") as output_dir:
+        config = suite_config(camvid_root, device, quick, output_dir)
+        curves = {"warpsense recipe": recipe_curve(config),
+                  "torch_baseline": baseline_curve(config, torch.device(device))}
+    baseline_final = curves["torch_baseline"][-1]["val_miou"]
+    records = []
+    print(f"time-to-accuracy {'method':>17s} {'final val':>9s} {'end s':>8s} "
+          + " ".join(f"{'to ' + format(level, '.2f'):>8s}" for level in LEVELS) + f" {'to baseline':>11s}", flush=True)
+    for method, curve in curves.items():
+        record = {"suite": "time-to-accuracy", "method": method, "device": device,
+                  "device_name": metadata.get("device_name"), "epochs": config.train.epochs,
+                  "images": [config.data.batch_size, 3, config.data.crop_height, config.data.crop_width],
+                  "curve": curve, "final_val_miou": curve[-1]["val_miou"], "wall_s": curve[-1]["wall_s"],
+                  "time_to": {f"{level:.2f}": time_to(curve, level) for level in LEVELS},
+                  "time_to_baseline_final": time_to(curve, baseline_final)}
+        records.append(record)
+        cells = " ".join(f"{value:8.1f}" if value is not None else f"{'-':>8s}" for value in record["time_to"].values())
+        reached = record["time_to_baseline_final"]
+        print(f"time-to-accuracy {method:>17s} {record['final_val_miou']:9.4f} {record['wall_s']:8.1f} {cells} "
+              f"{format(reached, '11.1f') if reached is not None else format('-', '>11s')}", flush=True)
+    return records
+
+
+def plot_time_to_accuracy(records: list[dict], path: str | Path) -> None:
+    """Val mIoU against wall time, one line per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(6, 4))
+    for record in records:
+        curve = record["curve"]
+        axis.plot([p["wall_s"] for p in curve], [p["val_miou"] for p in curve], marker="o", label=record["method"])
+    axis.set_xlabel("wall time (s)"), axis.set_ylabel("val mIoU")
+    axis.set_title(f"time to accuracy, {records[0]['epochs']} epochs, {records[0].get('device_name') or records[0]['device']}",
+                   fontsize=10)
+    axis.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
