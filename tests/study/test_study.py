@@ -220,3 +220,41 @@ def test_ctrl_c_stops_the_local_pool_and_a_rerun_resumes(tmp_path, capsys):
     for cell in cells:
         records = [json.loads(line) for line in (out / "runs" / cell.run_name / "metrics.jsonl").read_text().splitlines()]
         assert [record["epoch"] for record in records] == list(range(6))
+
+
+def test_throughput_is_recorded_with_the_sampled_gpu_busy_fraction(tmp_path, monkeypatch, capsys):
+    """Each invocation appends cells finished, seconds and cells/hour; with a pool, the GPUs' busy fraction is the
+    mean of nvidia-smi samples (here a fake nvidia-smi: GPU 0 at 80%, GPU 1 at 40%)."""
+    from warpsense.study import runner
+
+    monkeypatch.setattr(runner, "gpu_busy", lambda gpus: [80.0, 40.0][: len(gpus)])
+    plan = load_plan("smoke", FAST)
+    cells = [cell for cell in plan.cells() if cell.camera == "rggb"]
+    assert run_cells(plan, tmp_path, cells, gpus=["0", "1"], per_gpu=1) == 0
+    assert run_cells(plan, tmp_path, cells) == 0  # nothing left to run: no entry
+    entries = json.loads((tmp_path / runner.THROUGHPUT).read_text())
+    assert len(entries) == 1
+    entry = entries[0]
+    assert entry["cells_finished"] == len(cells) and entry["gpus"] == ["0", "1"] and entry["per_gpu"] == 1
+    assert entry["cells_per_hour"] == pytest.approx(len(cells) * 3600 / entry["seconds"])
+    assert entry["gpu_busy_fraction"] == pytest.approx([0.8, 0.4])
+    assert "cells/hour; GPU busy 80%, 40%" in capsys.readouterr().out
+
+
+def test_gpu_busy_reads_nvidia_smi_and_tolerates_its_absence(monkeypatch):
+    import subprocess
+
+    from warpsense.study import runner
+
+    class Result:
+        stdout = "0, 97\n1, 3\n"
+
+    monkeypatch.setattr(subprocess, "run", lambda *args, **kwargs: Result())
+    assert runner.gpu_busy(["1", "0"]) == [3.0, 97.0]
+    assert runner.gpu_busy(["2"]) is None
+
+    def missing(*args, **kwargs):
+        raise FileNotFoundError("nvidia-smi")
+
+    monkeypatch.setattr(subprocess, "run", missing)
+    assert runner.gpu_busy(["0"]) is None

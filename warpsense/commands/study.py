@@ -34,10 +34,10 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         print("\n".join(plan_commands(plan, Path(out))))
         return 0
     if cell is not None:
-        return run_cells(plan, Path(out), [plan.cell(cell)], progress=progress)
+        return run_cells(plan, Path(out), [plan.cell(cell)], progress=progress, record=False)
     devices = parse_gpus(gpus)
     code = run_cells(plan, Path(out), gpus=devices if len(devices) * per_gpu > 1 else None, per_gpu=per_gpu,
-                     progress=progress)
+                     progress=progress, sample_gpus=devices)
     if code == 0:
         print(f"study finished; report: warpsense study report {out}")
     return code

@@ -26,6 +26,69 @@ from warpsense.study.plan import Cell, Plan, PlanError
 PLAN_RECORD = "plan.json"
 """The resolved plan, written in the study directory by its first run (the report reads it)."""
 
+THROUGHPUT = "throughput.json"
+"""What each `study run` invocation trained, appended: cells finished, seconds, cells per hour, GPUs, per-cell
+concurrency and the GPUs' busy fraction (sampled from nvidia-smi while it ran; absent without nvidia-smi)."""
+
+
+def gpu_busy(gpus: list[str]) -> list[float] | None:
+    """Busy percentage (0-100) of each GPU id now, from nvidia-smi; None where it cannot be read."""
+    try:
+        result = subprocess.run(["nvidia-smi", "--query-gpu=index,utilization.gpu", "--format=csv,noheader,nounits"],
+                                capture_output=True, text=True, timeout=10, check=True)
+        busy = dict(line.replace(" ", "").split(",")[:2] for line in result.stdout.strip().splitlines())
+        return [float(busy[gpu]) for gpu in gpus]
+    except (OSError, subprocess.SubprocessError, ValueError, KeyError):
+        return None
+
+
+class BusySampler:
+    """Samples `gpu_busy` every ``interval`` seconds on a thread while a study runs; ``fractions()`` is each GPU's
+    mean busy fraction in [0, 1] (None when nothing could be sampled)."""
+
+    def __init__(self, gpus: list[str], interval: float = 2.0):
+        self.gpus, self.interval, self.samples = gpus, interval, []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            sample = gpu_busy(self.gpus)
+            if sample is None:
+                return
+            self.samples.append(sample)
+            self._stop.wait(self.interval)
+
+    def __enter__(self) -> "BusySampler":
+        if self.gpus:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=15)
+
+    def fractions(self) -> list[float] | None:
+        if not self.samples:
+            return None
+        return [sum(sample[i] for sample in self.samples) / len(self.samples) / 100 for i in range(len(self.gpus))]
+
+
+def record_throughput(out: Path, finished: int, seconds: float, gpus: list[str] | None, per_gpu: int,
+                      busy: list[float] | None) -> dict:
+    """Append this invocation's throughput to <out>/`THROUGHPUT` and print it in one line."""
+    entry = {"cells_finished": finished, "seconds": seconds, "cells_per_hour": finished * 3600 / max(seconds, 1e-9),
+             "gpus": list(gpus or []), "per_gpu": per_gpu if gpus else 1, "gpu_busy_fraction": busy}
+    path = Path(out) / THROUGHPUT
+    history = json.loads(path.read_text()) if path.is_file() else []
+    write_json(path, history + [entry])
+    where = f"{len(gpus)} GPU(s) x {per_gpu}" if gpus else "this process"
+    busy_text = f"; GPU busy {', '.join(f'{fraction:.0%}' for fraction in busy)}" if busy else ""
+    print(f"study: {finished} cell(s) in {seconds:.0f} s on {where}: {entry['cells_per_hour']:.1f} cells/hour"
+          f"{busy_text}", flush=True)
+    return entry
+
 
 def run_dir(out: Path, cell: Cell) -> Path:
     return Path(out) / "runs" / cell.run_name
@@ -91,7 +154,8 @@ def _score(record: dict) -> str:
 
 
 def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list[str] | None = None,
-              per_gpu: int = 1, progress: bool = False) -> int:
+              per_gpu: int = 1, progress: bool = False, record: bool = True,
+              sample_gpus: list[str] | None = None) -> int:
     """Run the cells not finished yet; a progress line per cell; returns the exit code (0 all finished, 1 some
     failed, 130 interrupted).
 
@@ -99,6 +163,9 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
         cells: the cells to run (default: all of the plan).
         gpus: device ids for a local pool of processes (CUDA_VISIBLE_DEVICES of each), ``per_gpu`` cells at once
             on each; None or empty: the cells run one after another in this process.
+        record: append this invocation's throughput to <out>/`THROUGHPUT` (the pool's one-cell processes do not).
+        sample_gpus: GPU ids whose busy fraction is sampled meanwhile (default: ``gpus``; the command passes the
+            visible GPUs also when the cells run in this process on one GPU).
     """
     out = Path(out)
     cells = plan.cells() if cells is None else cells
@@ -111,10 +178,15 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
     if not pending:
         return 0
     numbering = {cell: cells.index(cell) + 1 for cell in pending}
-    if gpus:
-        failed = _pool(plan, out, pending, numbering, total, gpus, per_gpu)
-    else:
-        failed = _in_process(plan, out, pending, numbering, total, progress)
+    started = time.perf_counter()
+    with BusySampler(list((sample_gpus if sample_gpus is not None else gpus) or []) if record else []) as sampler:
+        if gpus:
+            failed = _pool(plan, out, pending, numbering, total, gpus, per_gpu)
+        else:
+            failed = _in_process(plan, out, pending, numbering, total, progress)
+    if record:
+        finished = sum(cell_state(out, cell) == "done" for cell in pending)
+        record_throughput(out, finished, time.perf_counter() - started, gpus, per_gpu, sampler.fractions())
     if failed is None:
         return 130
     if failed:
