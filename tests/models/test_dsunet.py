@@ -6,14 +6,6 @@ import torch
 from warpsense.models import DSUNet, build_model, count_parameters
 
 
-def _pair(**kwargs):
-    torch.manual_seed(0)
-    contiguous = DSUNet(**kwargs)
-    channels_last = DSUNet(**kwargs, channels_last=True)
-    channels_last.load_state_dict(contiguous.state_dict())
-    return contiguous, channels_last
-
-
 @pytest.mark.parametrize("in_channels, height, width", [(1, 32, 48), (1, 37, 45), (3, 30, 50)])
 def test_cardinality(in_channels, height, width):
     logits = DSUNet(in_channels=in_channels, num_classes=5, width=8)(torch.rand(2, in_channels, height, width))
@@ -29,10 +21,15 @@ def test_exception_unknown_model():
         build_model("unet9000")
 
 
-def test_feature_channels_last_matches_contiguous():
-    """Same weights, same input, float64: NHWC gives the NCHW logits and parameter gradients up to rounding."""
-    contiguous, channels_last = (network.double() for network in _pair(in_channels=1, num_classes=4, width=8))
-    assert channels_last.stem[0].weight.is_contiguous(memory_format=torch.channels_last)
+@pytest.mark.parametrize("name", ["dsunet", "packunet"])
+def test_feature_channels_last_matches_contiguous(name):
+    """Same weights, same input, float64: NHWC gives the NCHW logits and parameter gradients up to rounding (both
+    registered networks)."""
+    torch.manual_seed(0)
+    contiguous, channels_last = (build_model(name, in_channels=1, num_classes=4, width=8, channels_last=layout).double()
+                                 for layout in (False, True))
+    channels_last.load_state_dict(contiguous.state_dict())
+    assert next(channels_last.parameters()).is_contiguous(memory_format=torch.channels_last)
     image = torch.rand(2, 1, 35, 50, dtype=torch.float64)
     target = torch.randn(2, 4, 35, 50, dtype=torch.float64)
     outputs = []

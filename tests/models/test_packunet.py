@@ -1,5 +1,5 @@
-"""PackUNet: shapes, the parameter budget, the channels-last layout against the contiguous one, the 2 x 2 packing
-and the thin full-resolution path."""
+"""PackUNet: shapes, the parameter budget, the 2 x 2 packing and the thin full-resolution path (its channels-last
+layout is tested with DSUNet's, in test_dsunet.py)."""
 
 import pytest
 import torch
@@ -16,25 +16,6 @@ def test_cardinality(in_channels, height, width):
 def test_parameter_budget():
     """The registry's default width stays within the 0.5M budget for CamVid's 11 classes."""
     assert 400_000 < count_parameters(build_model("packunet", in_channels=1, num_classes=11, width=22)) < 500_000
-
-
-def test_feature_channels_last_matches_contiguous():
-    """Same weights, float64: NHWC gives the NCHW logits and parameter gradients up to rounding."""
-    torch.manual_seed(0)
-    contiguous = PackUNet(in_channels=1, num_classes=4, width=8, channels_last=False).double()
-    channels_last = PackUNet(in_channels=1, num_classes=4, width=8, channels_last=True).double()
-    channels_last.load_state_dict(contiguous.state_dict())
-    assert channels_last.detail.conv.weight.is_contiguous(memory_format=torch.channels_last)
-    image = torch.rand(2, 1, 35, 50, dtype=torch.float64)
-    target = torch.randn(2, 4, 35, 50, dtype=torch.float64)
-    results = []
-    for network in (contiguous, channels_last):
-        logits = network(image)
-        (logits * target).sum().backward()
-        results.append((logits, [p.grad for p in network.parameters()]))
-    torch.testing.assert_close(results[1][0], results[0][0], rtol=1e-9, atol=1e-10)
-    for grad_a, grad_b in zip(results[0][1], results[1][1]):
-        torch.testing.assert_close(grad_b, grad_a, rtol=1e-8, atol=1e-9)
 
 
 def test_feature_packing_sees_each_cfa_site():

@@ -96,11 +96,7 @@ class DSUNet(nn.Module):
         if pad_h or pad_w:
             raw = F.pad(raw, (0, pad_w, 0, pad_h), mode="replicate")
         raw = raw.contiguous(memory_format=self.memory_format)
-        s1 = self.enc1(self.stem(raw))
-        s2 = self.down2(s1)
-        if self.tile == 2:
-            s2 = self.mix2(torch.cat([s2, F.pixel_unshuffle(raw, 2)], dim=1))
-        s2 = self.enc2(s2)
+        s1, s2 = self.encode_high(raw)
         s3 = self.enc3(s2)
         s4 = self.enc4(s3)
         s5 = self.enc5(s4)
@@ -109,3 +105,12 @@ class DSUNet(nn.Module):
         d2 = self.dec2(torch.cat([self._up(d3, s2), s2], dim=1))
         d1 = self.dec1(torch.cat([self._up(d2, s1), s1], dim=1))
         return self.head(d1)[..., :height, :width]
+
+    def encode_high(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The features at full and half resolution (s1, s2) from the padded input; the rest of the UNet (1/4 to
+        1/16 and the decoder) is shared with the networks built on this one."""
+        s1 = self.enc1(self.stem(raw))
+        s2 = self.down2(s1)
+        if self.tile == 2:
+            s2 = self.mix2(torch.cat([s2, F.pixel_unshuffle(raw, 2)], dim=1))
+        return s1, self.enc2(s2)

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from warpsense.models.dsunet import SeparableBlock, Stage
+from warpsense.models.dsunet import DSUNet, SeparableBlock, Stage
 
 
 class ConvBlock(nn.Module):
@@ -29,7 +29,7 @@ class ConvBlock(nn.Module):
         return x + y if self.residual else y
 
 
-class PackUNet(nn.Module):
+class PackUNet(DSUNet):
     """RAW mosaic [B, 1, H, W] (or RGB [B, 3, H, W]) -> logits [B, K, H, W].
 
     Paths, for base width w (the widths match `DSUNet`'s: 2w at 1/2, 4w at 1/4, 6w at 1/8, 8w at 1/16):
@@ -43,12 +43,13 @@ class PackUNet(nn.Module):
         and the head at full resolution: a dense 3x3 over the upsampled features and the detail path, then 1x1.
 
     width=22 gives 0.45M parameters for 11 classes (budget 0.5M; width=24 gives 0.54M). ``tile`` is accepted for the registry's common
-    signature: the packing is 2 x 2 whatever the CFA tile (the detail path sees larger tiles whole).
+    signature: the packing is 2 x 2 whatever the CFA tile (the detail path sees larger tiles whole). The padding,
+    the 1/4-1/16 stages' order and the decoder's upsampling and skips are `DSUNet`'s (`encode_high` differs).
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 22, tile: int = 2,
                  channels_last: bool = True):
-        super().__init__()
+        nn.Module.__init__(self)  # its own layers: DSUNet's constructor would build the separable ones
         del tile
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
         w = width
@@ -66,26 +67,9 @@ class PackUNet(nn.Module):
         self.head = nn.Conv2d(w, num_classes, 1)
         self.to(memory_format=self.memory_format)
 
-    @staticmethod
-    def _up(x, like):
-        # in the activations' own dtype (see DSUNet._up: autocast would upsample in float32 and promote the concat)
-        with torch.autocast(x.device.type, enabled=False):
-            return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
-
-    def forward(self, raw: torch.Tensor) -> torch.Tensor:
-        height, width = raw.shape[-2:]
-        pad_h, pad_w = (-height) % 16, (-width) % 16
-        if pad_h or pad_w:  # even padding keeps the CFA phase of the 2 x 2 packing
-            raw = F.pad(raw, (0, pad_w, 0, pad_h), mode="replicate")
-        raw = raw.contiguous(memory_format=self.memory_format)
+    def encode_high(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The detail path at full resolution, joined with the 2 x 2-packed input at half resolution (the padding
+        to a multiple of 16 is even, so the packing keeps the CFA phase)."""
         s1 = self.detail(raw)
         s2 = self.join(torch.cat([self.down(s1), F.pixel_unshuffle(raw, 2)], dim=1))
-        s2 = self.enc2(s2)
-        s3 = self.enc3(s2)
-        s4 = self.enc4(s3)
-        s5 = self.enc5(s4)
-        d4 = self.dec4(torch.cat([self._up(s5, s4), s4], dim=1))
-        d3 = self.dec3(torch.cat([self._up(d4, s3), s3], dim=1))
-        d2 = self.dec2(torch.cat([self._up(d3, s2), s2], dim=1))
-        d1 = self.dec1(torch.cat([self._up(d2, s1), s1], dim=1))
-        return self.head(d1)[..., :height, :width]
+        return s1, self.enc2(s2)
