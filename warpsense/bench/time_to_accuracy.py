@@ -25,6 +25,7 @@ from warpsense.bench.train_suite import BaselineCamera
 from warpsense.camera.camera import set_finite_check
 from warpsense.config import load_config
 from warpsense.data import build_dataset
+from warpsense.data.on_device import DecodedDataset
 from warpsense.models import build_model
 from warpsense.system import SensingModel
 from warpsense.train.distributed import DistributedContext
@@ -59,7 +60,9 @@ def baseline_curve(config, device: torch.device) -> list[dict]:
     started = time.perf_counter()
     torch.manual_seed(config.run.seed)
     train_set = build_dataset(config.data, config.data.train_split, train=True, seed=config.run.seed)
-    val_set = build_dataset(config.data, config.data.val_split, train=False, seed=config.run.seed)
+    # decoded onto the device once, as the recipe's engine does with its training data there
+    val_set = DecodedDataset(build_dataset(config.data, config.data.val_split, train=False, seed=config.run.seed),
+                             device)
     context = DistributedContext(device=device)
     batches = build_train_batches(config, train_set, context, progress=False)
     steps = min(len(batches), config.train.max_steps_per_epoch or len(batches))
