@@ -183,6 +183,7 @@ class LossConfig:
     ohem_fraction: float = _field(0.25, minimum=0, maximum=1, exclusive=True)
     lovasz_weight: float = _field(0.4, minimum=0)
     smooth_weight: float = _field(0.01, minimum=0)
+    class_balance: float = _field(0.0, minimum=0, maximum=2)
     teacher: str = ""
     distill_weight: float = _field(0.0, minimum=0)
     distill_temperature: float = _field(1.0, minimum=0, exclusive=True)

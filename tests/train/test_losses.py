@@ -89,3 +89,31 @@ def test_distillation_loss_zero_at_the_teacher_and_gradient_to_the_student_only(
     # the gradient is (p_s - p_t) / pixels: it pulls the student's probabilities towards the teacher's
     expected = (torch.softmax(student, 1) - torch.softmax(teacher, 1)).detach() / 25
     torch.testing.assert_close(student.grad, expected, rtol=1e-5, atol=1e-7)
+
+
+def test_class_balance_weights_follow_the_power_and_keep_the_mean():
+    from warpsense.train.losses import class_balance_weights
+
+    counts = torch.tensor([700, 200, 100, 0])
+    share = torch.tensor([0.7, 0.2, 0.1, 0.0])
+    assert torch.allclose(class_balance_weights(counts, 0.0)[:3], torch.ones(3))
+    for power in (0.5, 1.0):
+        weights = class_balance_weights(counts, power)
+        assert (share * weights).sum().item() == pytest.approx(1.0, rel=1e-6)
+        assert weights[2] / weights[0] == pytest.approx(7.0**power, rel=1e-5)
+        assert weights[3] == weights.max()  # a class absent from the training labels gets the largest weight
+
+
+def test_ohem_with_class_weights_is_the_weighted_pixel_loss():
+    from warpsense.train.losses import class_balance_weights
+
+    torch.manual_seed(0)
+    logits, target = torch.randn(2, 3, 4, 5), torch.randint(0, 3, (2, 4, 5))
+    target[0, 0, 0] = 255
+    weights = class_balance_weights(torch.tensor([10, 3, 1]), 1.0)
+    per_pixel = F.cross_entropy(logits, target, reduction="none", ignore_index=255) * weights[target.clamp(max=2)]
+    valid = (target != 255).flatten()
+    torch.testing.assert_close(ohem_cross_entropy(logits, target, 1.0, class_weights=weights),
+                               per_pixel.flatten()[valid].sum() / valid.sum())
+    hardest = per_pixel.flatten()[valid].sort(descending=True).values[:10]  # round(0.25 * 39) = 10
+    torch.testing.assert_close(ohem_cross_entropy(logits, target, 0.25, class_weights=weights), hardest.mean())

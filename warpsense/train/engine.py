@@ -25,6 +25,7 @@ from warpsense.system import build_system, check_config, load_teacher
 from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
 from warpsense.train.distributed import DistributedContext, wrap_data_parallel
 from warpsense.train.evaluate import evaluate
+from warpsense.train.losses import class_balance_weights
 from warpsense.train.run_dir import LAST, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
 from warpsense.train.schedule import Schedule
 from warpsense.train.step import TrainingStep
@@ -99,6 +100,18 @@ def build_train_batches(config, train_set, context, progress: bool = True):
                         persistent_workers=config.data.num_workers > 0)
     loader.set_epoch = sampler.set_epoch
     return loader
+
+
+def _label_counts(batches, train_set, num_classes: int, device) -> torch.Tensor:
+    """Pixels per class [K] over the training labels (unaugmented): from the labels on the device when the batches
+    hold them there, else decoded from the dataset once."""
+    counts = torch.zeros(num_classes, dtype=torch.int64, device=device)
+    labels = (batches.labels[index] for index in range(len(batches.labels))) if isinstance(batches, DeviceBatches) \
+        else (train_set.dataset[index][1] for index in range(len(train_set.dataset)))
+    for label in labels:
+        label = label.to(device).flatten().long()
+        counts += torch.bincount(label[label < num_classes], minlength=num_classes)
+    return counts
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -302,9 +315,16 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         if context.is_main:
             print(f"distilling {config.loss.teacher} ({count_parameters(teacher.network):,} parameters), weight "
                   f"{config.loss.distill_weight}, T = {config.loss.distill_temperature}")
+    class_weights = None
+    if config.loss.class_balance > 0:
+        class_weights = class_balance_weights(_label_counts(loader, datasets.train, num_classes, device),
+                                              config.loss.class_balance).to(device)
+        if context.is_main:
+            print("class weights (OHEM): " + ", ".join(f"{name} {weight:.2f}" for name, weight in
+                                                       zip(datasets.train.classes, class_weights.tolist())))
     training_step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), schedule.epochs * steps_per_epoch,
                                  amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph,
-                                 config.train.micro_batch, teacher)
+                                 config.train.micro_batch, teacher, class_weights)
     wrapped, wrapped_phase = model, None
     epoch = start_epoch
     while epoch < schedule.epochs:  # a while loop: the time budget may shorten the schedule after the first epoch

@@ -8,8 +8,20 @@ from torch.nn import functional as F
 from warpsense.data.labels import IGNORE_INDEX
 
 
+def class_balance_weights(counts: torch.Tensor, power: float) -> torch.Tensor:
+    """Per-class loss weights w_k proportional to f_k^-power from pixel counts [K] (f_k = the class's share of the
+    labelled pixels; a class with no pixel gets the largest weight of the others), scaled so that the
+    pixel-weighted mean sum_k f_k w_k is 1: power 0 is no weighting, 0.5 inverse square root, 1 inverse frequency
+    (median-frequency balancing up to a constant: Eigen and Fergus, ICCV 2015)."""
+    counts = counts.double()
+    share = counts / counts.sum().clamp_min(1)
+    weights = torch.where(share > 0, share.clamp_min(1e-12) ** -power, torch.zeros_like(share))
+    weights = torch.where(share > 0, weights, weights.max())
+    return (weights / (share * weights).sum().clamp_min(1e-12)).float()
+
+
 def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: float = 0.25,
-                       ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
+                       ignore_index: int = IGNORE_INDEX, class_weights: torch.Tensor | None = None) -> torch.Tensor:
     """Mean cross-entropy over the hardest ``fraction`` of the valid pixels (eq. 7 of the paper).
 
     Computed without a host round trip (the number of valid pixels stays on the device): the losses are ranked
@@ -18,8 +30,11 @@ def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: flo
     Args:
         logits: [B, K, H, W]; target: [B, H, W] class indices, ``ignore_index`` excluded.
         fraction: share of valid pixels kept (at least one); 1.0 is plain cross-entropy.
+        class_weights: [K] per-class weights of each pixel's loss (`class_balance_weights`), applied before the
+            hardest pixels are picked; None: unweighted.
     """
-    losses = F.cross_entropy(logits.float(), target, ignore_index=ignore_index, reduction="none").flatten()
+    losses = F.cross_entropy(logits.float(), target, weight=class_weights, ignore_index=ignore_index,
+                             reduction="none").flatten()
     valid = target.flatten() != ignore_index
     count = valid.sum()
     if fraction >= 1.0:
@@ -104,14 +119,16 @@ def distillation_loss(student: torch.Tensor, teacher: torch.Tensor, temperature:
     return temperature**2 * kl.mean()
 
 
-def segmentation_loss(logits, target, guide, loss_config) -> tuple[torch.Tensor, dict[str, float]]:
-    """Total loss 0.6 OHEM + 0.4 Lovasz + lambda smoothness (eq. 10 of the paper; weights from the config).
+def segmentation_loss(logits, target, guide, loss_config,
+                      class_weights: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Total loss 0.6 OHEM + 0.4 Lovasz + lambda smoothness (eq. 10 of the paper; weights from the config), the
+    OHEM term's pixels weighted by ``class_weights`` [K] when given.
 
     Returns the loss and a dict of its detached parts (tensors: no host sync per step)."""
     parts = {}
     total = logits.new_zeros((), dtype=torch.float32)
     if loss_config.ohem_weight > 0:
-        parts["ohem"] = ohem_cross_entropy(logits, target, loss_config.ohem_fraction)
+        parts["ohem"] = ohem_cross_entropy(logits, target, loss_config.ohem_fraction, class_weights=class_weights)
         total = total + loss_config.ohem_weight * parts["ohem"]
     if loss_config.lovasz_weight > 0:
         parts["lovasz"] = lovasz_softmax(logits, target)

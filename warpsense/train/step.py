@@ -46,11 +46,13 @@ class TrainingStep:
         teacher: a frozen model (`warpsense.system.build.load_teacher`) whose logits on the same images the
             network distils with weight ``loss_config.distill_weight`` (`distillation_loss`); it runs inside the
             step (compiled and captured with it) and is never part of the trained model.
+        class_weights: [K] weights of the OHEM term's pixels by class (loss.class_balance), on the device.
     """
 
     def __init__(self, loss_config, optimizer: torch.optim.Optimizer, camera_params: list, total_steps: int,
                  amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False,
-                 micro_batch: int = 0, teacher: torch.nn.Module | None = None):
+                 micro_batch: int = 0, teacher: torch.nn.Module | None = None,
+                 class_weights: torch.Tensor | None = None):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
         if cuda_graph and compile_mode in SELF_CAPTURING_COMPILE_MODES:
@@ -64,6 +66,7 @@ class TrainingStep:
         self.camera_grad_clip = camera_grad_clip
         self.micro_batch = micro_batch
         self.teacher = teacher if loss_config.distill_weight > 0 else None
+        self.class_weights = class_weights
         self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
         self.compiled = compile_mode != "off"
         self.forward_loss = self._forward_loss if not self.compiled else \
@@ -85,7 +88,7 @@ class TrainingStep:
 
     def _forward_loss(self, model, images, labels):
         logits, sensed = model(images, self.amp)
-        loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config)
+        loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config, self.class_weights)
         if self.teacher is not None:
             with torch.no_grad():
                 teacher_logits, _ = self.teacher(images, self.amp)
