@@ -201,6 +201,7 @@ class TrainConfig:
     compile: str = _field("off", choices=COMPILE_MODES)
     cuda_graph: bool = False
     micro_batch: int = _field(0, minimum=0)
+    sync_batchnorm: bool = True
     max_steps_per_epoch: int = _field(0, minimum=0)
     time_budget_minutes: float = _field(0.0, minimum=0)
     eval_every: int = _field(1, minimum=1)

@@ -97,3 +97,18 @@ def test_device_choices_resolve_as_the_config_documents(monkeypatch):
         else:
             with pytest.raises(ValueError, match="device cuda: .*use --device cpu or auto"):
                 resolve_device("cuda")
+
+
+def test_sync_batchnorm_is_a_choice_for_ddp_on_cuda():
+    """SyncBatchNorm replaces BatchNorm for DDP on CUDA unless train.sync_batchnorm = false; never otherwise."""
+    from warpsense.system import build_system
+    from warpsense.train.engine import _ranked_batchnorm
+
+    def kinds(overrides, ddp_on_cuda):
+        config = load_config(None, ["model.width=4"] + overrides)
+        model = _ranked_batchnorm(build_system(config, 3), config, ddp_on_cuda)
+        return {type(module).__name__ for module in model.modules() if "BatchNorm" in type(module).__name__}
+
+    assert kinds([], True) == {"SyncBatchNorm"}
+    assert kinds(["train.sync_batchnorm=false"], True) == {"BatchNorm2d"}
+    assert kinds([], False) == {"BatchNorm2d"}

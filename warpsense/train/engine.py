@@ -102,6 +102,14 @@ def build_train_batches(config, train_set, context, progress: bool = True):
     return loader
 
 
+def _ranked_batchnorm(model, config, ddp_on_cuda: bool):
+    """With DDP on CUDA, BatchNorm becomes SyncBatchNorm unless ``train.sync_batchnorm`` is false (its per-layer
+    all-gather is latency a small network pays on every step; each rank then uses its own share of the batch)."""
+    if ddp_on_cuda and config.train.sync_batchnorm:
+        return torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
+    return model
+
+
 def _label_counts(batches, train_set, num_classes: int, device) -> torch.Tensor:
     """Pixels per class [K] over the training labels (unaugmented): from the labels on the device when the batches
     hold them there, else decoded from the dataset once."""
@@ -263,8 +271,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     num_classes = config.model.num_classes or len(datasets.train.classes)
     model = build_system(config, num_classes).to(device)
     set_finite_check(model, False)  # 8-bit inputs; the loss and parameters are checked each epoch (_check_finite)
-    if context.enabled and device.type == "cuda":
-        model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
+    model = _ranked_batchnorm(model, config, context.enabled and device.type == "cuda")
     optimizer = _optimizer(config, model, device)
     if config.data.batch_size % context.world_size:
         raise ValueError(f"data.batch_size={config.data.batch_size} must be divisible by {context.world_size} ranks")
