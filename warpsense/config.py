@@ -202,6 +202,7 @@ class TrainConfig:
     cuda_graph: bool = False
     micro_batch: int = _field(0, minimum=0)
     sync_batchnorm: bool = True
+    ema_decay: float = _field(0.0, minimum=0, maximum=0.99999)
     max_steps_per_epoch: int = _field(0, minimum=0)
     time_budget_minutes: float = _field(0.0, minimum=0)
     eval_every: int = _field(1, minimum=1)

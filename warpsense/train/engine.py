@@ -3,6 +3,7 @@ camera gradients, CFA temperature annealing, AdamW + cosine schedule, checkpoint
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import shutil
@@ -24,6 +25,7 @@ from warpsense.models import count_parameters
 from warpsense.system import build_system, check_config, load_teacher
 from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
 from warpsense.train.distributed import DistributedContext, wrap_data_parallel
+from warpsense.train.ema import WeightEMA
 from warpsense.train.evaluate import evaluate
 from warpsense.train.losses import class_balance_weights
 from warpsense.train.run_dir import LAST, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
@@ -245,14 +247,17 @@ def _run_epoch(training_step, model, batches, steps: int, step: int, joint: bool
     return step
 
 
-def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: bool) -> None:
+def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: bool, ema=None) -> None:
     """Append the epoch's record to metrics.jsonl, then write the checkpoints: the best one when the epoch scored
-    best, and the last one (with optimizer and RNG state, for resuming) always."""
+    best, and the last one (with optimizer and RNG state, for resuming) always. With a weight average (``ema``) the
+    checkpoints' model is the average; the last one also holds the training weights."""
     with open(run_dir / "metrics.jsonl", "a") as log:
         log.write(json.dumps(state["record"]) + "\n")
-    if is_best:
-        save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
-    save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state())
+    live = ema.live_tensors() if ema is not None else None
+    with ema.applied() if ema is not None else contextlib.nullcontext():
+        if is_best:
+            save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
+        save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state(), live)
 
 
 def _epoch_line(record: dict, schedule: Schedule, config) -> str:
@@ -273,6 +278,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     set_finite_check(model, False)  # 8-bit inputs; the loss and parameters are checked each epoch (_check_finite)
     model = _ranked_batchnorm(model, config, context.enabled and device.type == "cuda")
     optimizer = _optimizer(config, model, device)
+    ema = WeightEMA(model, config.train.ema_decay) if config.train.ema_decay > 0 else None
     if config.data.batch_size % context.world_size:
         raise ValueError(f"data.batch_size={config.data.batch_size} must be divisible by {context.world_size} ranks")
     loader = build_train_batches(config, datasets.train, context, progress)
@@ -291,6 +297,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         tensors, meta = read_checkpoint(run_dir / LAST)
         state = resume_state(run_dir / LAST, tensors, meta)
         restore(tensors, model, optimizer, source=run_dir / LAST)
+        if ema is not None:
+            ema.resume(tensors)
         start_epoch, step, best_miou = state["epoch"] + 1, state["step"], state["best_miou"]
         schedule = _resumed_schedule(state, requested, run_dir / LAST)
         torch.set_rng_state(tensors["rng"])
@@ -331,7 +339,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
                                                        zip(datasets.train.classes, class_weights.tolist())))
     training_step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), schedule.epochs * steps_per_epoch,
                                  amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph,
-                                 config.train.micro_batch, teacher, class_weights)
+                                 config.train.micro_batch, teacher, class_weights, ema)
     wrapped, wrapped_phase = model, None
     epoch = start_epoch
     while epoch < schedule.epochs:  # a while loop: the time budget may shorten the schedule after the first epoch
@@ -359,7 +367,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             "images_per_s": steps_per_epoch * config.data.batch_size / elapsed, "epoch_time_s": elapsed,
         }
         if (epoch + 1) % config.train.eval_every == 0 or epoch == schedule.epochs - 1:
-            record.update(_validate(model, datasets, config, context, amp, progress))
+            with ema.applied() if ema is not None else contextlib.nullcontext():
+                record.update(_validate(model, datasets, config, context, amp, progress))
         record["wall_s"] = time.perf_counter() - run_started  # this process's time so far, setup and evaluation included
         record.update(model.camera.summary())
         score = record.get("selection_miou", record.get("val_miou", -1.0))
@@ -369,10 +378,12 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             state = {"epoch": epoch, "step": step, "best_miou": best_miou, "num_classes": num_classes,
                      "class_names": list(datasets.train.classes), "record": record, "environment": versions,
                      "schedule": {**schedule.to_dict(), "requested": [requested.epochs, requested.warmup_epochs]}}
-            _write_epoch(run_dir, model, optimizer, config, state, is_best)
+            _write_epoch(run_dir, model, optimizer, config, state, is_best, ema)
             print(_epoch_line(record, schedule, config), flush=True)
         context.barrier()
         epoch += 1
+    if ema is not None:  # training is over: the model is the average from here on (evaluation, plots, return)
+        ema.apply_for_good()
     if context.is_main:
         final_evaluation(run_dir, model, datasets, config, schedule.epochs - 1, num_classes, device, amp, progress)
     if context.is_main and config.train.plots:

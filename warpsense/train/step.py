@@ -47,12 +47,13 @@ class TrainingStep:
             network distils with weight ``loss_config.distill_weight`` (`distillation_loss`); it runs inside the
             step (compiled and captured with it) and is never part of the trained model.
         class_weights: [K] weights of the OHEM term's pixels by class (loss.class_balance), on the device.
+        ema: a `warpsense.train.ema.WeightEMA` updated after every optimizer step (inside the captured step).
     """
 
     def __init__(self, loss_config, optimizer: torch.optim.Optimizer, camera_params: list, total_steps: int,
                  amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False,
                  micro_batch: int = 0, teacher: torch.nn.Module | None = None,
-                 class_weights: torch.Tensor | None = None):
+                 class_weights: torch.Tensor | None = None, ema=None):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
         if cuda_graph and compile_mode in SELF_CAPTURING_COMPILE_MODES:
@@ -67,6 +68,7 @@ class TrainingStep:
         self.micro_batch = micro_batch
         self.teacher = teacher if loss_config.distill_weight > 0 else None
         self.class_weights = class_weights
+        self.ema = ema
         self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
         self.compiled = compile_mode != "off"
         self.forward_loss = self._forward_loss if not self.compiled else \
@@ -152,6 +154,8 @@ class TrainingStep:
             if trainable:
                 torch.nn.utils.clip_grad_norm_(trainable, self.camera_grad_clip)
         self.optimizer.step()
+        if self.ema is not None:
+            self.ema.update()
         self._accumulate(loss.detach(), parts)
 
     @staticmethod
