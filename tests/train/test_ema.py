@@ -12,6 +12,16 @@ def _model():
     return nn.Sequential(nn.Linear(3, 2), nn.BatchNorm1d(2))
 
 
+def _stepped():
+    """A model and its average (decay 0.9) after one update that followed a change of the weights."""
+    model = _model()
+    ema = WeightEMA(model, 0.9)
+    with torch.no_grad():
+        model[0].weight.add_(1.0)
+    ema.update()
+    return model, ema
+
+
 def test_update_follows_the_warmed_up_recurrence():
     model = _model()
     ema = WeightEMA(model, 0.5)
@@ -28,11 +38,7 @@ def test_update_follows_the_warmed_up_recurrence():
 
 
 def test_applied_swaps_in_place_and_restores():
-    model = _model()
-    ema = WeightEMA(model, 0.9)
-    with torch.no_grad():
-        model[0].weight.add_(1.0)
-    ema.update()
+    model, ema = _stepped()
     storage = model[0].weight.data_ptr()
     own = model[0].weight.detach().clone()
     with ema.applied():
@@ -42,11 +48,7 @@ def test_applied_swaps_in_place_and_restores():
 
 
 def test_resume_takes_the_checkpoints_average_and_training_weights():
-    model = _model()
-    ema = WeightEMA(model, 0.9)
-    with torch.no_grad():
-        model[0].weight.add_(1.0)
-    ema.update()
+    model, ema = _stepped()
     live = ema.live_tensors()
     with ema.applied():
         averaged = {f"model.{k}": v.clone() for k, v in model.state_dict().items()}
