@@ -239,6 +239,11 @@ def test_throughput_is_recorded_with_the_sampled_gpu_busy_fraction(tmp_path, mon
     assert entry["cells_per_hour"] == pytest.approx(len(cells) * 3600 / entry["seconds"])
     assert entry["gpu_busy_fraction"] == pytest.approx([0.8, 0.4])
     assert "cells/hour; GPU busy 80%, 40%" in capsys.readouterr().out
+    from warpsense.study.report import render_text, study_record
+
+    record = study_record(tmp_path)
+    assert record["throughput"] == entries
+    assert "2 GPU(s) x 1" in render_text(record) and "GPU busy 80%, 40%" in render_text(record)
 
 
 def test_gpu_busy_reads_nvidia_smi_and_tolerates_its_absence(monkeypatch):

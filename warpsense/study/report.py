@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from warpsense.study.plan import Plan, PlanError
-from warpsense.study.runner import PLAN_RECORD, evaluation_path
+from warpsense.study.runner import PLAN_RECORD, THROUGHPUT, evaluation_path
 from warpsense.study.statistics import LEVEL, bootstrap_difference, distinguishable, paired_difference, t_interval
 
 NOT_DISTINGUISHABLE = "not distinguishable"
@@ -104,8 +104,10 @@ def study_record(study_dir: str | Path, resamples: int = 2000) -> dict:
     if not evaluations:
         raise PlanError(f"{study_dir}: no finished cell yet ({len(missing)} cells planned, none evaluated)")
     splits = list(dict.fromkeys(split for e in evaluations.values() for split in e["splits"]))
+    throughput_path = study_dir / THROUGHPUT
+    throughput = json.loads(throughput_path.read_text()) if throughput_path.is_file() else []
     return {"study": plan["name"], "directory": str(study_dir), "reference": plan["reference"], "level": LEVEL,
-            "plan": plan, "cells": cells, "missing": missing,
+            "plan": plan, "cells": cells, "missing": missing, "throughput": throughput,
             "splits": {split: _split_record(plan, evaluations, split, resamples) for split in splits}}
 
 
@@ -155,6 +157,14 @@ def render_text(record: dict) -> str:
             boot = f"[{bootstrap['low']:+.4f}, {bootstrap['high']:+.4f}]" if bootstrap else "-"
             lines.append(f"  {comparison['light']:>8s}  {comparison['camera']:<{width}s}  "
                          f"{_interval(comparison['paired'], signed=True)} | {boot}  {comparison['verdict']}")
+    if record.get("throughput"):
+        lines.append("\nthroughput (each `study run`)")
+        for entry in record["throughput"]:
+            where = f"{len(entry['gpus'])} GPU(s) x {entry['per_gpu']}" if entry["gpus"] else "one process"
+            busy = entry.get("gpu_busy_fraction")
+            busy = f"; GPU busy {', '.join(f'{fraction:.0%}' for fraction in busy)}" if busy else ""
+            lines.append(f"  {entry['cells_finished']} cell(s) in {entry['seconds']:.0f} s on {where}: "
+                         f"{entry['cells_per_hour']:.1f} cells/hour{busy}")
     lines.append("\nlearned cameras (final epoch)")
     for cell in record["cells"]:
         scores = ", ".join(f"{split} {value:.4f}" for split, value in cell["miou"].items())
