@@ -118,3 +118,29 @@ def test_design_plot_draws_what_was_learned_and_nothing_else(tmp_path, figures):
     assert axes[2].get_title() == "CFA: RGGB -> RCCB"
     fixed = [{"epoch": e, "cfa_layout": "RGGB", "exposure_gain": 1.0} for e in range(3)]
     assert not plots.plot_design(fixed, tmp_path / "nothing.png") and not (tmp_path / "nothing.png").exists()
+
+
+def test_predictions_plot_takes_an_evaluation_set_kept_on_the_device(tmp_path):
+    """The run keeps its evaluation set on the GPU (DecodedDataset): the plot moves each frame to the host before
+    drawing it (a CUDA tensor has no .numpy(); stood in for here by a tensor type whose .numpy() refuses)."""
+    from warpsense.config import load_config
+    from warpsense.data import StreetScenes
+    from warpsense.system import build_system
+    from warpsense.train.plots import plot_predictions
+
+    class OnDevice(torch.Tensor):
+        def numpy(self, *args, **kwargs):
+            raise TypeError("can't convert a device tensor to numpy: use .cpu() first")
+
+        def cpu(self, *args, **kwargs):
+            return self.as_subclass(torch.Tensor)
+
+    class DeviceScenes(StreetScenes):
+        def __getitem__(self, index):
+            image, label = super().__getitem__(index)
+            return image.as_subclass(OnDevice), label.as_subclass(OnDevice)
+
+    dataset = DeviceScenes(2, 32, 48, seed=1)
+    model = build_system(load_config(None, ["model.width=4"]), len(dataset.classes))
+    plot_predictions(model, dataset, "cpu", tmp_path / "predictions.png", count=2)
+    assert (tmp_path / "predictions.png").stat().st_size > 0

@@ -109,8 +109,9 @@ def plot_predictions(model, dataset, device, path: Path, count: int = 4) -> None
     figure, axes = plt.subplots(len(rows), 4, figsize=(12, 2.6 * len(rows) + 0.6), squeeze=False)
     num_classes = model.network.head.out_channels
     for row, index in enumerate(rows):
-        image, label = dataset[index]
+        image, label = dataset[index]  # on the device when the run keeps its evaluation set there
         logits, sensed = model(image[None].to(device))
+        image, label = image.cpu(), label.cpu()
         prediction = logits.argmax(dim=1)[0].cpu().numpy()
         panels = [image.permute(1, 2, 0).numpy(), sensed[0].float().cpu().clamp(0, 1).permute(1, 2, 0).numpy().squeeze(),
                   colorize(prediction, num_classes), colorize(label.numpy(), num_classes)]
