@@ -1,4 +1,4 @@
-"""Photon budget stage: the sensor stated physically, from a scene light level to ADC units .
+"""Photon budget stage: the sensor stated physically, from a scene light level to ADC units.
 
 A pixel behind filter phi (transmittance per band, `warpsense.camera.cfa.FILTERS`) that sees linear radiance L (the
 scene's, times the optics' relative throughput: (2 / N)^2 t / 10 ms, `warpsense.camera.optics`) collects

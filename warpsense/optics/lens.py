@@ -354,8 +354,9 @@ class Lens(nn.Module):
         is sized for ``grid_f_number`` (default: ``f_number`` when a float, else the file's), which must be <= every
         F# rendered on it; the pupil in use is a fraction grid_F# / F# of the grid's.
 
-        The pupil FFT is computed in ``dtype`` (float32: complex64 transforms, about twice as fast as float64 and
-        accurate to ~1e-6 of the energy, far below the K-window and grid errors; gradchecks use float64). Its size
+        The pupil FFT is computed in ``dtype`` (float32: complex64 transforms, about twice as fast as float64 on a CPU
+        (on a GPU the rendering is latency-bound and gains nothing) and accurate to ~1e-6 of the energy, far below
+        the K-window and grid errors; gradchecks use float64). Its size
         is rounded up to a 5-smooth number (`fast_fft_size`) by sampling the pupil slightly more finely, which
         keeps the image-plane spacing lambda F# / Q exact: sizes such as 239 (prime) or 265 (5 x 53) would run
         through Bluestein's algorithm at several times the cost."""

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from warpsense.study.plan import Plan, PlanError
-from warpsense.study.runner import PLAN_RECORD, THROUGHPUT, evaluation_path
+from warpsense.study.runner import PLAN_RECORD, THROUGHPUT, evaluation_path, throughput_line
 from warpsense.study.statistics import LEVEL, bootstrap_difference, distinguishable, paired_difference, t_interval
 
 NOT_DISTINGUISHABLE = "not distinguishable"
@@ -159,12 +159,7 @@ def render_text(record: dict) -> str:
                          f"{_interval(comparison['paired'], signed=True)} | {boot}  {comparison['verdict']}")
     if record.get("throughput"):
         lines.append("\nthroughput (each `study run`)")
-        for entry in record["throughput"]:
-            where = f"{len(entry['gpus'])} GPU(s) x {entry['per_gpu']}" if entry["gpus"] else "one process"
-            busy = entry.get("gpu_busy_fraction")
-            busy = f"; GPU busy {', '.join(f'{fraction:.0%}' for fraction in busy)}" if busy else ""
-            lines.append(f"  {entry['cells_finished']} cell(s) in {entry['seconds']:.0f} s on {where}: "
-                         f"{entry['cells_per_hour']:.1f} cells/hour{busy}")
+        lines += [f"  {throughput_line(entry)}" for entry in record["throughput"]]
     lines.append("\nlearned cameras (final epoch)")
     for cell in record["cells"]:
         scores = ", ".join(f"{split} {value:.4f}" for split, value in cell["miou"].items())

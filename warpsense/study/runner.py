@@ -83,11 +83,17 @@ def record_throughput(out: Path, finished: int, seconds: float, gpus: list[str] 
     path = Path(out) / THROUGHPUT
     history = json.loads(path.read_text()) if path.is_file() else []
     write_json(path, history + [entry])
-    where = f"{len(gpus)} GPU(s) x {per_gpu}" if gpus else "this process"
-    busy_text = f"; GPU busy {', '.join(f'{fraction:.0%}' for fraction in busy)}" if busy else ""
-    print(f"study: {finished} cell(s) in {seconds:.0f} s on {where}: {entry['cells_per_hour']:.1f} cells/hour"
-          f"{busy_text}", flush=True)
+    print(f"study: {throughput_line(entry)}", flush=True)
     return entry
+
+
+def throughput_line(entry: dict) -> str:
+    """One `THROUGHPUT` entry in words (the run's last line, and the report's)."""
+    where = f"{len(entry['gpus'])} GPU(s) x {entry['per_gpu']}" if entry["gpus"] else "one process"
+    busy = entry.get("gpu_busy_fraction")
+    busy_text = f"; GPU busy {', '.join(f'{fraction:.0%}' for fraction in busy)}" if busy else ""
+    return (f"{entry['cells_finished']} cell(s) in {entry['seconds']:.0f} s on {where}: "
+            f"{entry['cells_per_hour']:.1f} cells/hour{busy_text}")
 
 
 def run_dir(out: Path, cell: Cell) -> Path:
@@ -179,7 +185,8 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
         return 0
     numbering = {cell: cells.index(cell) + 1 for cell in pending}
     started = time.perf_counter()
-    with BusySampler(list((sample_gpus if sample_gpus is not None else gpus) or []) if record else []) as sampler:
+    sampled = list(sample_gpus if sample_gpus is not None else gpus or []) if record else []
+    with BusySampler(sampled) as sampler:
         if gpus:
             failed = _pool(plan, out, pending, numbering, total, gpus, per_gpu)
         else:

@@ -7,6 +7,7 @@ from pathlib import Path
 import torch
 
 from warpsense.camera import Camera
+from warpsense.camera.camera import STAGES
 from warpsense.camera.isp import FixedISP
 from warpsense.config import ConfigError, config_from_dict
 from warpsense.models import build_model
@@ -22,8 +23,8 @@ def check_config(config, source: str = "config") -> None:
     except ValueError as error:
         raise ConfigError(str(error)) from None
     if config.model.input == "srgb":
-        on = [section for section in ("optics", "exposure", "cfa", "photons", "noise", "quantize", "isp")
-              if getattr(config, section).enabled]
+        sections = [stage.config_section for stage in STAGES.values()] + ["isp"]
+        on = [section for section in sections if getattr(config, section).enabled]
         if on:
             raise ConfigError(f"{source}: model.input = \"srgb\" reads the clean frame without a camera; disable "
                               f"{', '.join(f'{section}.enabled' for section in on)}")

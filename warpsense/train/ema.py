@@ -9,6 +9,11 @@ from collections.abc import Iterator
 import torch
 
 
+def averaged(ema: "WeightEMA | None"):
+    """A context in which the model holds ``ema``'s averaged weights (`WeightEMA.applied`); a no-op without one."""
+    return ema.applied() if ema is not None else contextlib.nullcontext()
+
+
 class WeightEMA:
     """Averages every floating-point parameter and buffer of ``model`` (camera, network, BatchNorm statistics):
     after update n, shadow = d_n shadow + (1 - d_n) live with d_n = min(decay, (1 + n) / (10 + n)), so the early,

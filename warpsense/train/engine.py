@@ -3,7 +3,6 @@ camera gradients, CFA temperature annealing, AdamW + cosine schedule, checkpoint
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import json
 import shutil
@@ -25,7 +24,7 @@ from warpsense.models import count_parameters
 from warpsense.system import build_system, check_config, load_teacher
 from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
 from warpsense.train.distributed import DistributedContext, wrap_data_parallel
-from warpsense.train.ema import WeightEMA
+from warpsense.train.ema import WeightEMA, averaged
 from warpsense.train.evaluate import evaluate
 from warpsense.train.losses import class_balance_weights
 from warpsense.train.run_dir import LAST, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
@@ -254,7 +253,7 @@ def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: 
     with open(run_dir / "metrics.jsonl", "a") as log:
         log.write(json.dumps(state["record"]) + "\n")
     live = ema.live_tensors() if ema is not None else None
-    with ema.applied() if ema is not None else contextlib.nullcontext():
+    with averaged(ema):
         if is_best:
             save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
         save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state(), live)
@@ -333,7 +332,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     class_weights = None
     if config.loss.class_balance > 0:
         class_weights = class_balance_weights(_label_counts(loader, datasets.train, num_classes, device),
-                                              config.loss.class_balance).to(device)
+                                              config.loss.class_balance)
         if context.is_main:
             print("class weights (OHEM): " + ", ".join(f"{name} {weight:.2f}" for name, weight in
                                                        zip(datasets.train.classes, class_weights.tolist())))
@@ -367,7 +366,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             "images_per_s": steps_per_epoch * config.data.batch_size / elapsed, "epoch_time_s": elapsed,
         }
         if (epoch + 1) % config.train.eval_every == 0 or epoch == schedule.epochs - 1:
-            with ema.applied() if ema is not None else contextlib.nullcontext():
+            with averaged(ema):
                 record.update(_validate(model, datasets, config, context, amp, progress))
         record["wall_s"] = time.perf_counter() - run_started  # this process's time so far, setup and evaluation included
         record.update(model.camera.summary())
