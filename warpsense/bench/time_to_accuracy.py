@@ -100,8 +100,12 @@ def run_time_to_accuracy_suite(device: str, quick: bool, camvid_root: str | None
         raise ValueError("--suite time-to-accuracy needs --camvid ROOT (the CamVid folder with train.txt and val.txt)")
     with tempfile.TemporaryDirectory(prefix="warpsense-tta-") as output_dir:
         config = suite_config(camvid_root, device, quick, output_dir)
-        curves = {"warpsense recipe": recipe_curve(config),
-                  "torch_baseline": baseline_curve(config, torch.device(device))}
+        curves = {}
+        for method, trainer in (("warpsense recipe", lambda: recipe_curve(config)),
+                                ("torch_baseline", lambda: baseline_curve(config, torch.device(device)))):
+            curves[method] = trainer()
+            # each curve as soon as it exists: a run stopped during the second method keeps the first
+            print(f"time-to-accuracy {method}: " + json.dumps(curves[method]), flush=True)
     baseline_final = curves["torch_baseline"][-1]["val_miou"]
     records = []
     print(f"time-to-accuracy {'method':>17s} {'final val':>9s} {'end s':>8s} "
