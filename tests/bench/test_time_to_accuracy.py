@@ -28,6 +28,8 @@ def test_quick_cpu_suite_on_camvid(shared_data, tmp_path, capsys):
         curve = record["curve"]
         assert [point["epoch"] for point in curve] == [0, 1]  # quick: 2 epochs, validated every epoch
         assert 0 < curve[0]["wall_s"] < curve[1]["wall_s"] == record["wall_s"]
+        # the start: setup, then the first epoch, both before the first validation ends
+        assert 0 < record["setup_s"] < record["setup_s"] + record["first_epoch_s"] < curve[0]["wall_s"]
         assert 0 <= record["final_val_miou"] == curve[-1]["val_miou"] <= 1
         assert set(record["time_to"]) == {f"{level:.2f}" for level in LEVELS}
     baseline = records[1]

@@ -47,6 +47,10 @@ def test_train_then_eval_cli_on_scenes(tmp_path, capsys):
     run = train(config, progress=False)
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert [r["phase"] for r in records] == ["warmup", "joint"] and "val_miou" in records[-1]
+    # the process's setup before its first step, once: data within it, the first epoch's end after both
+    first = records[0]
+    assert 0 < first["setup_data_s"] <= first["setup_s"] < first["setup_s"] + first["epoch_time_s"] <= first["wall_s"]
+    assert "setup_s" not in records[1]
     best_epoch = max(records, key=lambda r: r["val_miou"])["epoch"]  # the first of equal scores is kept
     summary = capsys.readouterr().out.strip().splitlines()[-3:]
     assert summary[0] == f"done: {run}"
@@ -124,6 +128,7 @@ def test_resume_continues_interrupted_run(tmp_path, extra):
     resumed = train(load_config(None, base + ["run.name=cut"]), resume=True, progress=False)
     got = [json.loads(line) for line in (resumed / "metrics.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in got] == [0, 1, 2]
+    assert ["setup_s" in r for r in got] == [True, False, True]  # each process's first epoch
     for a, b in zip(got, expected):
         assert a["train_loss"] == pytest.approx(b["train_loss"], rel=1e-5)
         assert a["val_miou"] == pytest.approx(b["val_miou"], abs=1e-6)

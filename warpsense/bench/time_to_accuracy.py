@@ -8,7 +8,8 @@ against the plain-torch baseline of the train suite, in one run on one device.
   trained by a plain eager loop (no compile, no CUDA graph), as a user's script would be.
 
 Records: one per method with its curve (epoch, wall_s, val mIoU), its final val, the time to each level in
-``LEVELS`` (None if never reached) and the time to the baseline's final val. ``--quick`` trains 2 epochs on 8
+``LEVELS`` (None if never reached), the time to the baseline's final val, and where the start went: ``setup_s``
+(until the first step) and ``first_epoch_s`` (the first epoch, with any compile or graph capture). ``--quick`` trains 2 epochs on 8
 images at a small crop (CI time on a CPU).
 """
 
@@ -55,8 +56,9 @@ def time_to(curve: list[dict], level: float) -> float | None:
     return next((point["wall_s"] for point in curve if point["val_miou"] >= level), None)
 
 
-def baseline_curve(config, device: torch.device) -> list[dict]:
-    """Train the plain-torch baseline under ``config``'s data, network, loss and schedule; its validation curve."""
+def baseline_curve(config, device: torch.device) -> tuple[list[dict], dict]:
+    """Train the plain-torch baseline under ``config``'s data, network, loss and schedule; its validation curve and
+    start times."""
     started = time.perf_counter()
     torch.manual_seed(config.run.seed)
     train_set = build_dataset(config.data, config.data.train_split, train=True, seed=config.run.seed)
@@ -74,24 +76,32 @@ def baseline_curve(config, device: torch.device) -> list[dict]:
     amp = config.train.amp and device.type == "cuda"
     total = config.train.epochs * steps
     step = TrainingStep(config.loss, optimizer, [], total, amp)
-    curve, index = [], 0
+    curve, index, start = [], 0, {"setup_s": time.perf_counter() - started}
     for epoch in range(config.train.epochs):
         batches.set_epoch(epoch)
         model.train()
+        epoch_started = time.perf_counter()
         for _, (images, labels) in zip(range(steps), batches):
             step(model, images.to(device), labels.to(device), index, joint=True)
             index += 1
+        if epoch == 0:
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            start["first_epoch_s"] = time.perf_counter() - epoch_started
         if (epoch + 1) % config.train.eval_every == 0 or epoch == config.train.epochs - 1:
             metrics = evaluate(model, val_set, device, max(1, config.data.batch_size // 2), amp=amp)
             curve.append({"epoch": epoch, "wall_s": time.perf_counter() - started, "val_miou": metrics["miou"]})
-    return curve
+    return curve, start
 
 
-def recipe_curve(config) -> list[dict]:
-    """Train the recipe with `warpsense train`'s engine; its validation curve from the run's metrics."""
+def recipe_curve(config) -> tuple[list[dict], dict]:
+    """Train the recipe with `warpsense train`'s engine; its validation curve and start times from the run's
+    metrics."""
     run = train(config, progress=False)
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    return [{"epoch": r["epoch"], "wall_s": r["wall_s"], "val_miou": r["val_miou"]} for r in records if "val_miou" in r]
+    start = {"setup_s": records[0]["setup_s"], "first_epoch_s": records[0]["epoch_time_s"]}
+    return [{"epoch": r["epoch"], "wall_s": r["wall_s"], "val_miou": r["val_miou"]} for r in records
+            if "val_miou" in r], start
 
 
 def run_time_to_accuracy_suite(device: str, quick: bool, camvid_root: str | None, metadata: dict) -> list[dict]:
@@ -100,28 +110,31 @@ def run_time_to_accuracy_suite(device: str, quick: bool, camvid_root: str | None
         raise ValueError("--suite time-to-accuracy needs --camvid ROOT (the CamVid folder with train.txt and val.txt)")
     with tempfile.TemporaryDirectory(prefix="warpsense-tta-") as output_dir:
         config = suite_config(camvid_root, device, quick, output_dir)
-        curves = {}
+        curves, starts = {}, {}
         for method, trainer in (("warpsense recipe", lambda: recipe_curve(config)),
                                 ("torch_baseline", lambda: baseline_curve(config, torch.device(device)))):
-            curves[method] = trainer()
+            curves[method], starts[method] = trainer()
             # each curve as soon as it exists: a run stopped during the second method keeps the first
-            print(f"time-to-accuracy {method}: " + json.dumps(curves[method]), flush=True)
+            print(f"time-to-accuracy {method}: " + json.dumps({**starts[method], "curve": curves[method]}), flush=True)
     baseline_final = curves["torch_baseline"][-1]["val_miou"]
     records = []
     print(f"time-to-accuracy {'method':>17s} {'final val':>9s} {'end s':>8s} "
-          + " ".join(f"{'to ' + format(level, '.2f'):>8s}" for level in LEVELS) + f" {'to baseline':>11s}", flush=True)
+          + " ".join(f"{'to ' + format(level, '.2f'):>8s}" for level in LEVELS)
+          + f" {'to baseline':>11s} {'setup s':>8s} {'epoch 1 s':>9s}", flush=True)
     for method, curve in curves.items():
         record = {"suite": "time-to-accuracy", "method": method, "device": device,
                   "device_name": metadata.get("device_name"), "epochs": config.train.epochs,
                   "images": [config.data.batch_size, 3, config.data.crop_height, config.data.crop_width],
                   "curve": curve, "final_val_miou": curve[-1]["val_miou"], "wall_s": curve[-1]["wall_s"],
+                  **starts[method],
                   "time_to": {f"{level:.2f}": time_to(curve, level) for level in LEVELS},
                   "time_to_baseline_final": time_to(curve, baseline_final)}
         records.append(record)
         cells = " ".join(f"{value:8.1f}" if value is not None else f"{'-':>8s}" for value in record["time_to"].values())
         reached = record["time_to_baseline_final"]
         print(f"time-to-accuracy {method:>17s} {record['final_val_miou']:9.4f} {record['wall_s']:8.1f} {cells} "
-              f"{format(reached, '11.1f') if reached is not None else format('-', '>11s')}", flush=True)
+              f"{format(reached, '11.1f') if reached is not None else format('-', '>11s')} "
+              f"{record['setup_s']:8.1f} {record['first_epoch_s']:9.1f}", flush=True)
     return records
 
 

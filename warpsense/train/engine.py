@@ -289,6 +289,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     steps_per_epoch = min(len(loader), config.train.max_steps_per_epoch or len(loader))
     if steps_per_epoch == 0:
         raise ValueError(f"training set of {len(datasets.train)} images gives no batch of {config.data.batch_size}")
+    data_s = time.perf_counter() - run_started  # datasets, the training batches, decoding onto the device
     amp = config.train.amp and device.type == "cuda"
 
     requested = schedule = Schedule.from_config(config.train)
@@ -341,6 +342,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
                                  config.train.micro_batch, teacher, class_weights, ema)
     wrapped, wrapped_phase = model, None
     epoch = start_epoch
+    # where a run's time goes before its first step (the first epoch's own time includes the compile / graph capture)
+    setup = {"setup_s": time.perf_counter() - run_started, "setup_data_s": data_s}
     while epoch < schedule.epochs:  # a while loop: the time budget may shorten the schedule after the first epoch
         joint = schedule.is_joint(epoch)
         model.camera.on_epoch(schedule, epoch)  # the joint phase trains the camera; the CFA anneals
@@ -364,6 +367,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             "epoch": epoch, "step": step, "phase": schedule.phase(epoch),
             "lr": float(optimizer.param_groups[0]["lr"]), **statistics,
             "images_per_s": steps_per_epoch * config.data.batch_size / elapsed, "epoch_time_s": elapsed,
+            **(setup if epoch == start_epoch else {}),
         }
         if (epoch + 1) % config.train.eval_every == 0 or epoch == schedule.epochs - 1:
             with averaged(ema):
