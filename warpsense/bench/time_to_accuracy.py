@@ -9,8 +9,8 @@ against the plain-torch baseline of the train suite, in one run on one device.
 
 Records: one per method with its curve (epoch, wall_s, val mIoU), its final val, the time to each level in
 ``LEVELS`` (None if never reached), the time to the baseline's final val, and where the start went: ``setup_s``
-(until the first step) and ``first_epoch_s`` (the first epoch, with any compile or graph capture). ``--quick`` trains 2 epochs on 8
-images at a small crop (CI time on a CPU).
+(until the first step) and ``first_epoch_s`` (the first epoch, with any compile or graph capture). ``--quick``
+trains 2 epochs on 8 images at a small crop (CI time on a CPU).
 """
 
 from __future__ import annotations
