@@ -5,6 +5,7 @@ import json
 import shlex
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.reliability.conftest import assert_clean_failure
@@ -12,6 +13,7 @@ from warpsense.cli import main
 from warpsense.resources import CONFIG_DIR
 from warpsense.study import load_plan, render_text, run_cells, study_record
 from warpsense.study.plan import PlanError
+from warpsense.study.report import precision_recall
 from warpsense.train import engine
 
 FAST = ["train.epochs=2", "data.scenes_train=16", "data.scenes_val=4", "train.eval_every=2"]
@@ -75,12 +77,21 @@ def test_smoke_study_runs_resumes_skips_failures_and_reports(tmp_path, monkeypat
     rccb_group = val["groups"][1]
     assert rccb_group["miou"]["mean"] == pytest.approx(
         sum(e["splits"]["val"]["miou"] for e in evaluations.values()) / 2)
+    # per-class precision and recall: each seed's pixels summed over the split's images, then the mean over seeds
+    counts = {seed: np.array(e["splits"]["val"]["image_counts"], dtype=np.float64).sum(0)
+              for seed, e in evaluations.items()}
+    for k, name in enumerate(evaluations[0]["class_names"]):
+        for key, column in (("per_class_precision", 1), ("per_class_recall", 2)):
+            seen = [c[k, 0] / (c[k, 0] + c[k, column]) for c in counts.values() if c[k, 0] + c[k, column] > 0]
+            interval = rccb_group[key][name]
+            assert (interval is None) if not seen else interval["mean"] == pytest.approx(np.mean(seen))
     comparison = val["comparisons"][0]
     assert comparison["camera"] == "rccb" and comparison["reference"] == "rggb"
     assert comparison["paired"]["seeds"] == [0, 1]
     assert comparison["verdict"] in ("better", "worse", "not distinguishable")
     text = render_text(record)  # the console text is rendered from the record
     assert f"{rccb_group['miou']['mean']:.4f}" in text and "missing: broken/night/0, broken/night/1" in text
+    assert "[val] per class, % means over seeds: IoU (precision/recall)" in text and "night/rccb" in text
     assert record["cells"][0]["learned_camera"]["cfa_layout"] == "RGGB"
 
     json_out, plot_out = tmp_path / "report.json", tmp_path / "report.png"
@@ -165,6 +176,16 @@ def test_scene_lights_set_the_photon_budget_and_the_operating_point():
     from warpsense.study.plan import Plan
 
     assert Plan.from_dict(json.loads(json.dumps(plan.to_dict()))) == plan  # as the report reads plan.json
+
+
+def test_precision_recall_from_per_image_counts():
+    """Counts [N, K, 3] = (TP, FP, FN) per image and class: pixels are summed over images first; a class never
+    predicted has no precision, a class absent has no recall."""
+    counts = [[[3, 1, 0], [0, 0, 2], [0, 4, 0]],
+              [[1, 1, 4], [0, 0, 1], [0, 0, 0]]]
+    precision, recall = precision_recall(counts)
+    assert precision == [pytest.approx(4 / 6), None, 0.0]
+    assert recall == [pytest.approx(4 / 8), 0.0, None]
 
 
 def test_report_names_the_learned_design():

@@ -1,6 +1,6 @@
-"""The report of a study directory: per camera and light level, mean mIoU and per-class IoU with 95% intervals over
-seeds; the paired difference to the reference camera (seed by seed) and an image-level bootstrap interval; the
-learned camera of every run. The console text and the JSON are rendered from one record (`study_record`)."""
+"""The report of a study directory: per camera and light level, mean mIoU and per-class IoU, precision and recall
+with 95% intervals over seeds; the paired difference to the reference camera (seed by seed) and an image-level
+bootstrap interval; the learned camera of every run. The console text and the JSON are rendered from one record (`study_record`)."""
 
 from __future__ import annotations
 
@@ -40,6 +40,26 @@ def _verdict(paired: dict, bootstrap: dict | None) -> str:
     return NOT_DISTINGUISHABLE
 
 
+def precision_recall(image_counts) -> tuple[list[float | None], list[float | None]]:
+    """Per-class pixel precision TP / (TP + FP) and recall TP / (TP + FN) over a split, from an evaluation's
+    per-image counts [N, K, 3] (TP, FP, FN); None where a class was never predicted (precision) or is absent
+    (recall)."""
+    tp, fp, fn = np.asarray(image_counts, dtype=np.float64).reshape(-1, np.shape(image_counts)[-2], 3).sum(0).T
+    precision = [float(t / (t + f)) if t + f > 0 else None for t, f in zip(tp, fp)]
+    recall = [float(t / (t + f)) if t + f > 0 else None for t, f in zip(tp, fn)]
+    return precision, recall
+
+
+def _per_class(runs: dict, classes: list[str], values) -> dict:
+    """Per class: the t interval over seeds of ``values(run)[k]`` (seeds where it is None left out)."""
+    per_seed = [values(run) for run in runs.values()]
+    intervals = {}
+    for k, name in enumerate(classes):
+        present = [v[k] for v in per_seed if v[k] is not None]
+        intervals[name] = t_interval(present) if present else None
+    return intervals
+
+
 def _split_record(plan: dict, evaluations: dict, split: str, resamples: int) -> dict:
     classes = next(iter(evaluations.values()))["class_names"]
     groups, comparisons = [], []
@@ -52,12 +72,14 @@ def _split_record(plan: dict, evaluations: dict, split: str, resamples: int) -> 
             if not runs:
                 continue
             by_camera[camera["name"]] = runs
-            per_class = {}
-            for name in classes:
-                values = [run["per_class_iou"][name] for run in runs.values() if run["per_class_iou"][name] is not None]
-                per_class[name] = t_interval(values) if values else None
             groups.append({"camera": camera["name"], "light": light["name"], "seeds": sorted(runs),
-                           "miou": t_interval([run["miou"] for run in runs.values()]), "per_class_iou": per_class})
+                           "miou": t_interval([run["miou"] for run in runs.values()]),
+                           "per_class_iou": _per_class(runs, classes,
+                                                       lambda run: [run["per_class_iou"][name] for name in classes]),
+                           "per_class_precision": _per_class(runs, classes,
+                                                             lambda run: precision_recall(run["image_counts"])[0]),
+                           "per_class_recall": _per_class(runs, classes,
+                                                          lambda run: precision_recall(run["image_counts"])[1])})
         reference = by_camera.get(plan["reference"])
         if reference is None:
             continue
@@ -136,6 +158,26 @@ def _learned(camera: dict) -> str:
     return "; ".join(parts) or "fixed"
 
 
+def _percent(interval: dict | None) -> str:
+    return "-" if interval is None else f"{100 * interval['mean']:.1f}"
+
+
+def _per_class_lines(split: str, part: dict) -> list[str]:
+    """One row per class, one column per light/camera group: IoU (precision / recall), % means over seeds."""
+    groups = part["groups"]
+    classes = list(groups[0]["per_class_iou"])
+    cells = [[f"{_percent(g['per_class_iou'][name])} ({_percent(g['per_class_precision'][name])}/"
+              f"{_percent(g['per_class_recall'][name])})" for g in groups] for name in classes]
+    heads = [f"{g['light']}/{g['camera']}" for g in groups]
+    widths = [max(len(head), *(len(row[i]) for row in cells)) for i, head in enumerate(heads)]
+    name_width = max(len(name) for name in classes)
+    lines = [f"[{split}] per class, % means over seeds: IoU (precision/recall)",
+             f"  {'':<{name_width}s}  " + "  ".join(f"{h:>{w}s}" for h, w in zip(heads, widths))]
+    lines += [f"  {name:<{name_width}s}  " + "  ".join(f"{c:>{w}s}" for c, w in zip(row, widths))
+              for name, row in zip(classes, cells)]
+    return lines
+
+
 def render_text(record: dict) -> str:
     """The console report (every number comes from ``record``)."""
     level = f"{record['level']:.0%}"
@@ -157,6 +199,7 @@ def render_text(record: dict) -> str:
             boot = f"[{bootstrap['low']:+.4f}, {bootstrap['high']:+.4f}]" if bootstrap else "-"
             lines.append(f"  {comparison['light']:>8s}  {comparison['camera']:<{width}s}  "
                          f"{_interval(comparison['paired'], signed=True)} | {boot}  {comparison['verdict']}")
+        lines += _per_class_lines(split, part)
     if record.get("throughput"):
         lines.append("\nthroughput (each `study run`)")
         lines += [f"  {throughput_line(entry)}" for entry in record["throughput"]]
