@@ -1,5 +1,6 @@
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -88,6 +89,12 @@ def test_train_on_real_camvid_crops(shared_data, tmp_path):
     val = evaluation["splits"]["val"]
     assert val["miou"] == pytest.approx(record["val_miou"]) and val["num_images"] == 2
     assert len(val["image_counts"]) == 2 and len(val["image_counts"][0]) == len(evaluation["class_names"])
+    # the confusion matrix (rows: label, columns: prediction) holds the same pixels as the per-image counts
+    confusion, counts = np.array(val["confusion"]), np.array(val["image_counts"]).sum(0)
+    assert confusion.shape == (len(evaluation["class_names"]),) * 2 and confusion.sum() > 0
+    np.testing.assert_array_equal(np.diag(confusion), counts[:, 0])
+    np.testing.assert_array_equal(confusion.sum(0) - np.diag(confusion), counts[:, 1])
+    np.testing.assert_array_equal(confusion.sum(1) - np.diag(confusion), counts[:, 2])
     # model selection on a held-out sequence (0006R0) stays an option, reported beside val
     held = train(with_overrides(config, ["data.holdout_prefix=0006R0", "run.name=held"]), progress=False)
     record = json.loads((held / "metrics.jsonl").read_text().splitlines()[-1])

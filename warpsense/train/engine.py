@@ -403,8 +403,9 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
 def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, epoch: int, num_classes: int, device,
                      amp: bool, progress: bool = False) -> dict:
     """Judge the model as training left it (the final epoch) on every labelled split (`evaluation_splits`) and write
-    `EVALUATION`: per split mIoU, pixel accuracy, per-class IoU and each image's per-class (TP, FP, FN) pixel counts
-    (what `warpsense study report` resamples), with the camera's learned state; ``epoch``: the plan's last (0-based).
+    `EVALUATION`: per split mIoU, pixel accuracy, per-class IoU, each image's per-class (TP, FP, FN) pixel counts
+    (what `warpsense study report` resamples) and the split's confusion matrix (which class the errors went to),
+    with the camera's learned state; ``epoch``: the plan's last (0-based).
     Returns the record."""
     record = {"epoch": epoch,
               "class_names": list(datasets.train.classes), "num_classes": num_classes,
@@ -415,6 +416,7 @@ def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, epoch: i
         metrics = evaluate(model, dataset, device, max(1, config.data.batch_size // 2),
                            class_names=datasets.train.classes, amp=amp, progress=progress, per_image=True)
         metrics["image_counts"] = metrics["image_counts"].tolist()
+        metrics["confusion"] = metrics["confusion"].tolist()
         record["splits"][split] = metrics
     write_json(run_dir / EVALUATION, record)
     return record
