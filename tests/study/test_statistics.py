@@ -68,6 +68,10 @@ def test_per_image_counts_agree_with_the_confusion_matrix():
             p, t = prediction[image][valid] == k, target[image][valid] == k
             assert counts[image, k].tolist() == [int((p & t).sum()), int((p & ~t).sum()), int((~p & t).sum())]
     assert miou_from_counts(counts.sum(0)) == pytest.approx(matrix.compute()["miou"])
+    # the reported confusion counts (rows: label, columns: prediction), by hand over the valid pixels
+    valid = target != 255
+    expected = [[int(((target == a) & (prediction == b) & valid).sum()) for b in range(4)] for a in range(4)]
+    assert matrix.compute()["confusion"] == expected
 
 
 def test_bootstrap_difference():

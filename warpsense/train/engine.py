@@ -416,7 +416,6 @@ def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, epoch: i
         metrics = evaluate(model, dataset, device, max(1, config.data.batch_size // 2),
                            class_names=datasets.train.classes, amp=amp, progress=progress, per_image=True)
         metrics["image_counts"] = metrics["image_counts"].tolist()
-        metrics["confusion"] = metrics["confusion"].tolist()
         record["splits"][split] = metrics
     write_json(run_dir / EVALUATION, record)
     return record

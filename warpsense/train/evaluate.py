@@ -19,8 +19,8 @@ def evaluate(model, dataset, device, batch_size: int = 4, context=None, class_na
     With a distributed ``context`` each rank takes every world_size-th image and the confusion matrices are summed.
     ``blur_sigma`` > 0 adds a Gaussian blur (pixels) to the radiance before the camera (robustness sweep).
     ``flip``: CFA-phase-preserving horizontal-flip test-time augmentation (`SensingModel.probabilities`).
-    ``per_image``: also return "image_counts", int64 [N, K, 3] per-image (TP, FP, FN) pixels per class, and
-    "confusion", int64 [K, K] pixels (rows: label, columns: prediction) (not with a distributed context).
+    ``per_image``: also return "image_counts", int64 [N, K, 3] per-image (TP, FP, FN) pixels per class (not with
+    a distributed context).
     """
     if per_image and context is not None and context.enabled:
         raise ValueError("evaluate: per_image counts are gathered on one process (no distributed context)")
@@ -48,7 +48,6 @@ def evaluate(model, dataset, device, batch_size: int = 4, context=None, class_na
     metrics = confusion.compute(class_names)
     if per_image:
         metrics["image_counts"] = confusion.per_image_counts()
-        metrics["confusion"] = confusion.matrix.cpu()
     return metrics
 
 

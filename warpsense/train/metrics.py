@@ -46,7 +46,8 @@ class ConfusionMatrix:
         return torch.cat(self._image_counts).cpu()
 
     def compute(self, class_names=None) -> dict:
-        """mIoU over classes present in the labels or predictions, per-class IoU (NaN when absent), pixel accuracy."""
+        """mIoU over classes present in the labels or predictions, per-class IoU (None when absent), pixel accuracy,
+        and the confusion counts ("confusion", [K][K] ints, rows: label, columns: prediction)."""
         matrix = self.matrix.double().cpu()
         true_positive = matrix.diag()
         union = matrix.sum(0) + matrix.sum(1) - true_positive
@@ -58,4 +59,5 @@ class ConfusionMatrix:
             "per_class_iou": {name: (None if torch.isnan(v) else float(v)) for name, v in zip(names, iou)},
             "pixel_accuracy": float(true_positive.sum() / matrix.sum().clamp_min(1)),
             "num_images": self.images,
+            "confusion": self.matrix.cpu().tolist(),
         }
