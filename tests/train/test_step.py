@@ -158,8 +158,8 @@ def test_cuda_graph_steps_match_eager_steps(recipe_extras):
     ``recipe_extras``, class-weighted OHEM and the weight average updated inside the step. The network is
     a small deterministic one (DSUNet's upsampling backward uses atomics, so two of its eager runs differ already),
     cuDNN is set deterministic and the lens renders in float64, so the two runs agree to rounding. (With the
-    float32 rendering the two differed by 2e-4 relative in one camera parameter on the H100: Adam divides by the
-    root of near-zero lens gradients, which makes float32 rounding visible.)"""
+    float32 rendering the two differed by 2e-4 relative in one camera parameter on the H100, most likely because
+    Adam divides by the root of near-zero lens gradients, which makes float32 rounding visible.)"""
     torch.backends.cudnn.deterministic, deterministic = True, torch.backends.cudnn.deterministic
     try:
         config = load_config("camvid_codesign", ["optics.render_precision=float64"])
