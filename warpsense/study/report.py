@@ -44,15 +44,14 @@ def precision_recall(image_counts) -> tuple[list[float | None], list[float | Non
     """Per-class pixel precision TP / (TP + FP) and recall TP / (TP + FN) over a split, from an evaluation's
     per-image counts [N, K, 3] (TP, FP, FN); None where a class was never predicted (precision) or is absent
     (recall)."""
-    tp, fp, fn = np.asarray(image_counts, dtype=np.float64).reshape(-1, np.shape(image_counts)[-2], 3).sum(0).T
+    tp, fp, fn = np.asarray(image_counts, dtype=np.float64).sum(0).T
     precision = [float(t / (t + f)) if t + f > 0 else None for t, f in zip(tp, fp)]
     recall = [float(t / (t + f)) if t + f > 0 else None for t, f in zip(tp, fn)]
     return precision, recall
 
 
-def _per_class(runs: dict, classes: list[str], values) -> dict:
-    """Per class: the t interval over seeds of ``values(run)[k]`` (seeds where it is None left out)."""
-    per_seed = [values(run) for run in runs.values()]
+def _per_class(per_seed: list[list[float | None]], classes: list[str]) -> dict:
+    """Per class: the t interval over seeds of each seed's value ``per_seed[seed][k]`` (None left out)."""
     intervals = {}
     for k, name in enumerate(classes):
         present = [v[k] for v in per_seed if v[k] is not None]
@@ -72,14 +71,13 @@ def _split_record(plan: dict, evaluations: dict, split: str, resamples: int) -> 
             if not runs:
                 continue
             by_camera[camera["name"]] = runs
+            iou = [[run["per_class_iou"][name] for name in classes] for run in runs.values()]
+            precision, recall = zip(*(precision_recall(run["image_counts"]) for run in runs.values()))
             groups.append({"camera": camera["name"], "light": light["name"], "seeds": sorted(runs),
                            "miou": t_interval([run["miou"] for run in runs.values()]),
-                           "per_class_iou": _per_class(runs, classes,
-                                                       lambda run: [run["per_class_iou"][name] for name in classes]),
-                           "per_class_precision": _per_class(runs, classes,
-                                                             lambda run: precision_recall(run["image_counts"])[0]),
-                           "per_class_recall": _per_class(runs, classes,
-                                                          lambda run: precision_recall(run["image_counts"])[1])})
+                           "per_class_iou": _per_class(iou, classes),
+                           "per_class_precision": _per_class(precision, classes),
+                           "per_class_recall": _per_class(recall, classes)})
         reference = by_camera.get(plan["reference"])
         if reference is None:
             continue

@@ -48,7 +48,8 @@ class ConfusionMatrix:
     def compute(self, class_names=None) -> dict:
         """mIoU over classes present in the labels or predictions, per-class IoU (None when absent), pixel accuracy,
         and the confusion counts ("confusion", [K][K] ints, rows: label, columns: prediction)."""
-        matrix = self.matrix.double().cpu()
+        counts = self.matrix.cpu()  # one copy to the host
+        matrix = counts.double()
         true_positive = matrix.diag()
         union = matrix.sum(0) + matrix.sum(1) - true_positive
         iou = torch.where(union > 0, true_positive / union.clamp_min(1), torch.full_like(union, float("nan")))
@@ -59,5 +60,5 @@ class ConfusionMatrix:
             "per_class_iou": {name: (None if torch.isnan(v) else float(v)) for name, v in zip(names, iou)},
             "pixel_accuracy": float(true_positive.sum() / matrix.sum().clamp_min(1)),
             "num_images": self.images,
-            "confusion": self.matrix.cpu().tolist(),
+            "confusion": counts.tolist(),
         }
