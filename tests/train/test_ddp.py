@@ -1,7 +1,9 @@
 """torch DDP on CPU (gloo, 2 ranks) on the embedded scenes, against a single-process run with the same global batch."""
 
+import faulthandler
 import os
 import socket
+import time
 
 import pytest
 import torch
@@ -18,6 +20,9 @@ OVERRIDES = ["data.scenes_train=16", "data.scenes_val=4", "data.batch_size=4", "
 # the Lovasz sort. Measured worst element 1.7e-2 (2026-11-22, CPU) after 8 AdamW steps of lr 2e-3, i.e. about the
 # size of one step's update at most; 5e-2 leaves room for BLAS differences between machines.
 TOLERANCE = 5e-2
+# a rank that outlives this (the run takes ~20 s on 2 cores) is stuck: it prints its stack and the test fails
+# instead of holding CI until its time limit
+HANG_SECONDS = 300
 
 
 def _free_port() -> int:
@@ -27,17 +32,26 @@ def _free_port() -> int:
 
 
 def _worker(rank, world_size, port, output_dir, result_dir):
+    faulthandler.dump_traceback_later(HANG_SECONDS, exit=True)  # to stderr, then exit 1: join sees a failed rank
     os.environ.update({"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "RANK": str(rank),
                        "WORLD_SIZE": str(world_size), "LOCAL_RANK": str(rank)})
     torch.set_num_threads(1)
     config = load_config(None, OVERRIDES + [f"run.output_dir={output_dir}", "run.device=cpu"])
     _, model = train(config, progress=False, return_model=True)
     torch.save({k: v.detach().clone() for k, v in model.state_dict().items()}, os.path.join(result_dir, f"rank{rank}.pt"))
+    faulthandler.cancel_dump_traceback_later()
 
 
 @pytest.mark.slow
 def test_two_rank_gloo_matches_single_process(tmp_path):
-    mp.spawn(_worker, args=(2, _free_port(), str(tmp_path / "ddp"), str(tmp_path)), nprocs=2, join=True)
+    ranks = mp.start_processes(_worker, args=(2, _free_port(), str(tmp_path / "ddp"), str(tmp_path)), nprocs=2,
+                               join=False, start_method="spawn")
+    deadline = time.monotonic() + HANG_SECONDS + 60
+    while not ranks.join(timeout=5):  # raises ProcessRaisedException / ProcessExitedException if a rank fails
+        if time.monotonic() > deadline:
+            for process in ranks.processes:
+                process.kill()
+            pytest.fail(f"a DDP rank did not finish within {HANG_SECONDS + 60} s")
     rank0 = torch.load(tmp_path / "rank0.pt")
     rank1 = torch.load(tmp_path / "rank1.pt")
     for name in rank0:

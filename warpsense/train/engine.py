@@ -395,6 +395,9 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         write_run_plots(run_dir, model, datasets.val, device)
     if context.is_main:
         print(run_summary(run_dir, config))
+    # the DDP wrapper's reducer holds the process group: freed after destroy_process_group, gloo's destructor can
+    # deadlock (seen on CPU, 1 run in ~3), so it goes first
+    del wrapped
     context.barrier()
     context.close()
     return (run_dir, model) if return_model else run_dir
