@@ -54,6 +54,9 @@ MODEL_INPUTS = ("sensor", "srgb")
 MODEL_NAMES = ("dsunet", "packunet")
 """Segmentation networks (`warpsense.models.MODELS`)."""
 
+MODEL_CONTEXTS = ("none", "pyramid")
+"""Context modules at the networks' 1/16 bottleneck (`warpsense.models.dsunet.CONTEXTS`)."""
+
 LIGHT_LEVELS = {"night": 70.0, "dusk": 700.0, "day": 7000.0}
 """Named scene light levels of the photon budget (`warpsense.camera.photons`): the electrons a mid-grey patch (18%
 linear reflectance) gives a clear pixel of the reference pixel (3 um pitch, quantum efficiency 0.6) at f/2 in 10 ms.

@@ -22,6 +22,7 @@ from warpsense.choices import (
     DATASETS,
     DEVICES,
     LIGHT_LEVELS,
+    MODEL_CONTEXTS,
     MODEL_INPUTS,
     MODEL_NAMES,
     ON_DEVICE_MODES,
@@ -172,6 +173,7 @@ class ISPConfig:
 class ModelConfig:
     name: str = _field("dsunet", choices=MODEL_NAMES)
     width: int = _field(16, minimum=1, maximum=512)
+    context: str = _field("none", choices=MODEL_CONTEXTS)
     num_classes: int = _field(0, minimum=0, maximum=1024)
     channels_last: bool = True
     input: str = _field("sensor", choices=MODEL_INPUTS)

@@ -1,19 +1,78 @@
-"""DSUNet: shapes, the channels-last layout against the contiguous one, and the bf16 decoder path."""
+"""DSUNet: shapes, the channels-last layout against the contiguous one, the bf16 decoder path, and the bottleneck
+context module (pyramid pooling)."""
 
 import pytest
 import torch
 
 from warpsense.models import DSUNet, build_model, count_parameters
+from warpsense.models.dsunet import PyramidPooling, build_context
 
 
+@pytest.mark.parametrize("context", ["none", "pyramid"])
 @pytest.mark.parametrize("in_channels, height, width", [(1, 32, 48), (1, 37, 45), (3, 30, 50)])
-def test_cardinality(in_channels, height, width):
-    logits = DSUNet(in_channels=in_channels, num_classes=5, width=8)(torch.rand(2, in_channels, height, width))
+def test_cardinality(in_channels, height, width, context):
+    """Also where the 1/16 map (2 x 3) is smaller than the pyramid's finest bins (4 x 4)."""
+    logits = DSUNet(in_channels=in_channels, num_classes=5, width=8, context=context)(
+        torch.rand(2, in_channels, height, width))
     assert logits.shape == (2, 5, height, width)
 
 
 def test_parameter_budget():
     assert count_parameters(build_model("dsunet", in_channels=1, num_classes=11, width=16)) < 500_000
+    # the camvid presets' width with the context module stays inside the 0.5M budget of the recipe issue
+    assert count_parameters(build_model("dsunet", in_channels=1, num_classes=11, width=24, context="pyramid")) < 500_000
+
+
+def test_exception_unknown_context():
+    with pytest.raises(KeyError, match="none, pyramid"):
+        build_context("aspp", 16)
+
+
+@pytest.mark.parametrize("name", ["dsunet", "packunet"])
+def test_feature_context_starts_as_the_network_without_it(name):
+    """The pyramid's last BN scale starts at 0: with the other weights shared, the network with the module gives the
+    network without it, in training and in evaluation; and the module's parameters do receive gradients."""
+    torch.manual_seed(0)
+    plain = build_model(name, in_channels=1, num_classes=4, width=8).double()
+    pooled = build_model(name, in_channels=1, num_classes=4, width=8, context="pyramid").double()
+    missing, unexpected = pooled.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and missing and all(key.startswith("context.") for key in missing)
+    image = torch.rand(2, 1, 40, 56, dtype=torch.float64)
+    for mode in (True, False):
+        plain.train(mode), pooled.train(mode)
+        torch.testing.assert_close(pooled(image), plain(image), rtol=0, atol=0)
+    pooled.train()
+    pooled(image).square().sum().backward()
+    assert pooled.context.norm.weight.grad.abs().max() > 0
+
+
+def test_feature_pyramid_on_a_constant_map_is_its_matrix_form():
+    """On a spatially constant map every pooled region holds the map's value, and upsampling a constant is the
+    constant: the module reduces to matrix products on the channel vector (an independent reference, with BN in
+    evaluation form); and one pixel changed reaches every output through the 1 x 1 bin."""
+    torch.manual_seed(1)
+    module = PyramidPooling(8).double().eval()
+    torch.nn.init.normal_(module.norm.weight)
+    module.norm.running_mean.normal_()
+    module.norm.running_var.uniform_(0.5, 2.0)
+    value = torch.randn(8, dtype=torch.float64)
+    out = module(value.view(1, 8, 1, 1).expand(1, 8, 6, 10).contiguous())
+    branches = torch.cat([torch.relu(b.weight[:, :, 0, 0] @ value + b.bias) for b in module.branches])
+    fused = module.fuse.weight[:, :, 0, 0] @ branches
+    norm = module.norm
+    expected = value + (fused - norm.running_mean) / torch.sqrt(norm.running_var + norm.eps) * norm.weight + norm.bias
+    torch.testing.assert_close(out, expected.view(1, 8, 1, 1).expand(1, 8, 6, 10))
+    changed = value.view(1, 8, 1, 1).expand(1, 8, 6, 10).clone()
+    changed[0, :, 0, 0] += 1.0
+    assert ((module(changed) - out).abs().sum(dim=1) > 0).all()
+
+
+def test_gradcheck_pyramid():
+    torch.manual_seed(2)
+    module = PyramidPooling(4).double()
+    torch.nn.init.normal_(module.norm.weight)
+    x = torch.rand(2, 4, 5, 7, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(module, (x,))
 
 
 def test_exception_unknown_model():
@@ -24,10 +83,11 @@ def test_exception_unknown_model():
 @pytest.mark.parametrize("name", ["dsunet", "packunet"])
 def test_feature_channels_last_matches_contiguous(name):
     """Same weights, same input, float64: NHWC gives the NCHW logits and parameter gradients up to rounding (both
-    registered networks)."""
+    registered networks, with the context module, its BN scale moved off 0)."""
     torch.manual_seed(0)
-    contiguous, channels_last = (build_model(name, in_channels=1, num_classes=4, width=8, channels_last=layout).double()
-                                 for layout in (False, True))
+    contiguous, channels_last = (build_model(name, in_channels=1, num_classes=4, width=8, channels_last=layout,
+                                             context="pyramid").double() for layout in (False, True))
+    torch.nn.init.normal_(contiguous.context.norm.weight)
     channels_last.load_state_dict(contiguous.state_dict())
     assert next(channels_last.parameters()).is_contiguous(memory_format=torch.channels_last)
     image = torch.rand(2, 1, 35, 50, dtype=torch.float64)

@@ -101,6 +101,16 @@ def test_smoke_study_runs_resumes_skips_failures_and_reports(tmp_path, monkeypat
     assert plot_out.stat().st_size > 10_000
 
 
+@pytest.mark.parametrize("name", sorted(p.stem for p in (CONFIG_DIR / "studies").glob("*.toml")))
+def test_every_shipped_plan_resolves_each_cell(name, tmp_path):
+    """load_plan resolves every cell's config (presets, overrides, light); the cells are distinct runs."""
+    plan = load_plan(name)
+    cells = plan.cells()
+    assert len({cell.run_name for cell in cells}) == len(cells) == len(plan.seeds) * sum(
+        len(light.cameras or plan.cameras) for light in plan.lights)
+    assert {plan.config(cell, tmp_path).run.seed for cell in cells} == set(plan.seeds)
+
+
 def test_plan_only_prints_one_command_per_cell(tmp_path, capsys):
     assert main(["study", "run", "smoke", "--out", str(tmp_path / "s"), "--plan-only", "--set", "train.epochs=3"]) == 0
     commands = capsys.readouterr().out.strip().splitlines()

@@ -40,6 +40,44 @@ class SeparableBlock(nn.Module):
         return x + y if self.residual else y
 
 
+class PyramidPooling(nn.Module):
+    """Scene context at the bottleneck: the features average-pooled over 1 x 1, 2 x 2 and 4 x 4 regions of the whole
+    image, each reduced by a 1x1 convolution, upsampled back and added through a 1x1 convolution + BN (pyramid
+    pooling, Zhao et al. 2017, PSPNet, which motivates it by the same kind of error: an object's class decided by
+    the scene around it, e.g. a car against a facade).
+
+    The block is residual and its last BN scale starts at 0, so a network with it starts as the one without. The
+    pooled branches carry no BN: a 1 x 1 pooled map with a batch of one has no batch statistics. ``channels`` C:
+    [B, C, h, w] -> [B, C, h, w]; three C -> C/4 branches and a 3C/4 -> C fusion, about 1.5 C^2 parameters (56k at
+    C = 192).
+    """
+
+    BINS = (1, 2, 4)
+
+    def __init__(self, channels: int):
+        super().__init__()
+        reduced = max(4, channels // 4)
+        self.branches = nn.ModuleList(nn.Conv2d(channels, reduced, 1) for _ in self.BINS)
+        self.fuse = nn.Conv2d(reduced * len(self.BINS), channels, 1, bias=False)
+        self.norm = nn.BatchNorm2d(channels)
+        nn.init.zeros_(self.norm.weight)
+
+    def forward(self, x):
+        pooled = [DSUNet._up(F.relu(branch(F.adaptive_avg_pool2d(x, bins))), x)
+                  for bins, branch in zip(self.BINS, self.branches)]
+        return x + self.norm(self.fuse(torch.cat(pooled, dim=1)))
+
+
+CONTEXTS = {"none": nn.Identity, "pyramid": PyramidPooling}
+"""Bottleneck context modules (`warpsense.choices.MODEL_CONTEXTS`): name -> constructor taking the channels."""
+
+
+def build_context(name: str, channels: int) -> nn.Module:
+    if name not in CONTEXTS:
+        raise KeyError(f"unknown context {name!r}; valid contexts: {', '.join(sorted(CONTEXTS))}")
+    return CONTEXTS[name]() if name == "none" else CONTEXTS[name](channels)
+
+
 class Stage(nn.Sequential):
     def __init__(self, in_channels: int, out_channels: int, depth: int, stride: int):
         blocks = [SeparableBlock(in_channels, out_channels, stride)]
@@ -54,7 +92,8 @@ class DSUNet(nn.Module):
     neighbourhood, so thin structures keep full-resolution detail) and, in parallel, as a T x T pixel-unshuffle
     (the CFA tile's sites as channels) concatenated at half resolution. Encoder: 1, 1/2, 1/4, 1/8, 1/16 with widths
     w, 2w, 4w, 6w, 8w; decoder: bilinear upsampling + skip concatenation + separable blocks; head at full
-    resolution. width=16 gives 0.18M parameters, width=24 0.40M (the camvid presets).
+    resolution. width=16 gives 0.18M parameters, width=24 0.40M (the camvid presets). ``context`` adds a module
+    at 1/16 (`CONTEXTS`; "pyramid": +56k parameters at width 24); "none" adds nothing.
 
     ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 it doubles the training speed (batch
     norm and depthwise convolutions have fast NHWC kernels; their NCHW bf16 backward is slow). The output is the
@@ -62,7 +101,7 @@ class DSUNet(nn.Module):
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 16, tile: int = 2,
-                 channels_last: bool = False):
+                 channels_last: bool = False, context: str = "none"):
         super().__init__()
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
         w = width
@@ -76,6 +115,7 @@ class DSUNet(nn.Module):
         self.enc3 = Stage(2 * w, 4 * w, 2, 2)
         self.enc4 = Stage(4 * w, 6 * w, 3, 2)
         self.enc5 = Stage(6 * w, 8 * w, 3, 2)
+        self.context = build_context(context, 8 * w)
         self.dec4 = Stage(8 * w + 6 * w, 6 * w, 1, 1)
         self.dec3 = Stage(6 * w + 4 * w, 4 * w, 1, 1)
         self.dec2 = Stage(4 * w + 2 * w, 2 * w, 1, 1)
@@ -99,7 +139,7 @@ class DSUNet(nn.Module):
         s1, s2 = self.encode_high(raw)
         s3 = self.enc3(s2)
         s4 = self.enc4(s3)
-        s5 = self.enc5(s4)
+        s5 = self.context(self.enc5(s4))
         d4 = self.dec4(torch.cat([self._up(s5, s4), s4], dim=1))
         d3 = self.dec3(torch.cat([self._up(d4, s3), s3], dim=1))
         d2 = self.dec2(torch.cat([self._up(d3, s2), s2], dim=1))

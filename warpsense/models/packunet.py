@@ -8,7 +8,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from warpsense.models.dsunet import DSUNet, SeparableBlock, Stage
+from warpsense.models.dsunet import DSUNet, SeparableBlock, Stage, build_context
 
 
 class ConvBlock(nn.Module):
@@ -43,12 +43,13 @@ class PackUNet(DSUNet):
         and the head at full resolution: a dense 3x3 over the upsampled features and the detail path, then 1x1.
 
     width=22 gives 0.45M parameters for 11 classes (budget 0.5M; width=24 gives 0.54M). ``tile`` is accepted for the registry's common
-    signature: the packing is 2 x 2 whatever the CFA tile (the detail path sees larger tiles whole). The padding,
+    signature: the packing is 2 x 2 whatever the CFA tile (the detail path sees larger tiles whole). ``context``:
+    as `DSUNet`'s. The padding,
     the 1/4-1/16 stages' order and the decoder's upsampling and skips are `DSUNet`'s (`encode_high` differs).
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 22, tile: int = 2,
-                 channels_last: bool = True):
+                 channels_last: bool = True, context: str = "none"):
         nn.Module.__init__(self)  # its own layers: DSUNet's constructor would build the separable ones
         del tile
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
@@ -60,6 +61,7 @@ class PackUNet(DSUNet):
         self.enc3 = nn.Sequential(ConvBlock(2 * w, 4 * w, stride=2), SeparableBlock(4 * w, 4 * w))
         self.enc4 = Stage(4 * w, 6 * w, 3, 2)
         self.enc5 = Stage(6 * w, 8 * w, 3, 2)
+        self.context = build_context(context, 8 * w)
         self.dec4 = Stage(8 * w + 6 * w, 6 * w, 1, 1)
         self.dec3 = Stage(6 * w + 4 * w, 4 * w, 1, 1)
         self.dec2 = ConvBlock(4 * w + 2 * w, 2 * w)

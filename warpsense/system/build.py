@@ -45,7 +45,7 @@ def build_system(config, num_classes: int) -> SensingModel:
     srgb = config.model.input == "srgb"
     network = build_model(config.model.name, in_channels=3 if isp is not None or srgb else 1,
                           num_classes=config.model.num_classes or num_classes, width=config.model.width,
-                          tile=camera.tile, channels_last=config.model.channels_last)
+                          tile=camera.tile, channels_last=config.model.channels_last, context=config.model.context)
     return SensingModel(camera, network, isp, unprocess_input=config.data.unprocess, srgb_input=srgb)
 
 
