@@ -238,3 +238,22 @@ def test_weight_average_is_what_is_evaluated_and_saved(tmp_path):
     val = build_dataset(config.data, "val", train=False)
     recorded = json.loads((run / "evaluation.json").read_text())["splits"]["val"]["miou"]
     assert evaluate(model, val, "cpu", batch_size=2)["miou"] == pytest.approx(recorded, abs=1e-9)
+
+
+def test_context_module_trains_and_its_checkpoint_loads(tmp_path):
+    """model.context = pyramid: the module trains (its BN scale leaves 0), the checkpoint's config rebuilds it, and
+    the loaded model reproduces the run's recorded val mIoU."""
+    from warpsense.models.dsunet import PyramidPooling
+    from warpsense.system import load_system
+    from warpsense.train.evaluate import evaluate
+
+    config = load_config(None, TINY + ["train.epochs=2", "train.warmup_epochs=1", f"run.output_dir={tmp_path}",
+                                       "model.context=pyramid"])
+    run = train(config, progress=False)
+    model, loaded_config, _ = load_system(run / "checkpoint_last.safetensors", "cpu")
+    assert loaded_config.model.context == "pyramid"
+    assert isinstance(model.network.context, PyramidPooling)
+    assert model.network.context.norm.weight.abs().max() > 0
+    val = build_dataset(config.data, "val", train=False)
+    recorded = json.loads((run / "evaluation.json").read_text())["splits"]["val"]["miou"]
+    assert evaluate(model, val, "cpu", batch_size=2)["miou"] == pytest.approx(recorded, abs=1e-9)

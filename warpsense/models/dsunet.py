@@ -68,14 +68,16 @@ class PyramidPooling(nn.Module):
         return x + self.norm(self.fuse(torch.cat(pooled, dim=1)))
 
 
-CONTEXTS = {"none": nn.Identity, "pyramid": PyramidPooling}
+CONTEXTS = {"none": lambda channels: nn.Identity(), "pyramid": PyramidPooling}
 """Bottleneck context modules (`warpsense.choices.MODEL_CONTEXTS`): name -> constructor taking the channels."""
 
 
 def build_context(name: str, channels: int) -> nn.Module:
+    """The context module ``name`` for a [B, channels, h, w] bottleneck; unknown names raise a KeyError listing
+    the valid ones."""
     if name not in CONTEXTS:
         raise KeyError(f"unknown context {name!r}; valid contexts: {', '.join(sorted(CONTEXTS))}")
-    return CONTEXTS[name]() if name == "none" else CONTEXTS[name](channels)
+    return CONTEXTS[name](channels)
 
 
 class Stage(nn.Sequential):

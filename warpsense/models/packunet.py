@@ -43,9 +43,9 @@ class PackUNet(DSUNet):
         and the head at full resolution: a dense 3x3 over the upsampled features and the detail path, then 1x1.
 
     width=22 gives 0.45M parameters for 11 classes (budget 0.5M; width=24 gives 0.54M). ``tile`` is accepted for the registry's common
-    signature: the packing is 2 x 2 whatever the CFA tile (the detail path sees larger tiles whole). ``context``:
-    as `DSUNet`'s. The padding,
-    the 1/4-1/16 stages' order and the decoder's upsampling and skips are `DSUNet`'s (`encode_high` differs).
+    signature: the packing is 2 x 2 whatever the CFA tile (the detail path sees larger tiles whole). The padding,
+    the 1/4-1/16 stages' order, the ``context`` module at 1/16 and the decoder's upsampling and skips are
+    `DSUNet`'s (`encode_high` differs).
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 22, tile: int = 2,
