@@ -50,7 +50,6 @@ from warpsense.ops.reference import (
     quantize_reference,
 )
 
-SCENES = ("white_noise", "camvid", "hdr")
 POINTWISE_FLOOR = 1e-12  # of max |r|: below it a reference value counts as zero in the pointwise relative error
 QUANTIZER_BITS = (8, 10, 12, 14, 16, 20, 24)
 LENS_NAME = "phone_80deg"
