@@ -61,6 +61,7 @@ class RunConfig:
     output_dir: str = "runs"
     seed: int = _field(0, minimum=0)
     device: str = _field("auto", choices=DEVICES)
+    deterministic: bool = False
 
 
 @dataclass

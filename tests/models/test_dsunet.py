@@ -114,3 +114,38 @@ def test_feature_decoder_stays_bfloat16_under_autocast():
     assert upsampled.dtype == torch.bfloat16
     reference = torch.nn.functional.interpolate(low.float(), size=(8, 12), mode="bilinear", align_corners=False)
     torch.testing.assert_close(upsampled.float(), reference, rtol=1e-2, atol=1e-2)
+
+
+@pytest.mark.parametrize("name", ["dsunet", "packunet"])
+def test_feature_deterministic_mode_takes_the_deterministic_resampling(name, monkeypatch):
+    """Under torch's deterministic algorithms (run.deterministic) the networks resize and pool through
+    warpsense.models.resample, not through torch's ops whose CUDA backward adds atomically, with the same logits
+    and gradients (float64)."""
+    torch.manual_seed(3)
+    network = build_model(name, in_channels=1, num_classes=4, width=8, context="pyramid").double()
+    torch.nn.init.normal_(network.context.norm.weight)
+    image = torch.rand(2, 1, 40, 56, dtype=torch.float64)
+    target = torch.randn(2, 4, 40, 56, dtype=torch.float64)
+
+    def logits_and_gradients():
+        network.zero_grad()
+        logits = network(image)
+        (logits * target).sum().backward()
+        return logits.detach(), [p.grad.clone() for p in network.parameters()]
+
+    reference_logits, reference_grads = logits_and_gradients()
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a nondeterministic torch op was used in deterministic mode")
+
+    monkeypatch.setattr(torch.nn.functional, "interpolate", refuse)
+    monkeypatch.setattr(torch.nn.functional, "adaptive_avg_pool2d", refuse)
+    previous = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True)
+    try:
+        logits, grads = logits_and_gradients()
+    finally:
+        torch.use_deterministic_algorithms(previous)
+    torch.testing.assert_close(logits, reference_logits, rtol=1e-10, atol=1e-12)
+    for grad, reference in zip(grads, reference_grads):
+        torch.testing.assert_close(grad, reference, rtol=1e-9, atol=1e-11)

@@ -1,4 +1,5 @@
 import json
+import os
 
 import numpy as np
 import pytest
@@ -257,3 +258,28 @@ def test_context_module_trains_and_its_checkpoint_loads(tmp_path):
     val = build_dataset(config.data, "val", train=False)
     recorded = json.loads((run / "evaluation.json").read_text())["splits"]["val"]["miou"]
     assert evaluate(model, val, "cpu", batch_size=2)["miou"] == pytest.approx(recorded, abs=1e-9)
+
+
+def test_run_deterministic_switches_torch_for_the_run_only(tmp_path, monkeypatch):
+    """run.deterministic: the epochs run under torch's deterministic algorithms (warn-only) with cuDNN's
+    deterministic convolutions and the cuBLAS workspace setting; the caller's settings come back afterwards."""
+    from warpsense.train import engine
+
+    seen = []
+    run_epoch = engine._run_epoch
+
+    def recording(*args, **kwargs):
+        seen.append((torch.are_deterministic_algorithms_enabled(),
+                     torch.is_deterministic_algorithms_warn_only_enabled(), torch.backends.cudnn.deterministic,
+                     torch.backends.cudnn.benchmark, "CUBLAS_WORKSPACE_CONFIG" in os.environ))
+        return run_epoch(*args, **kwargs)
+
+    monkeypatch.setattr(engine, "_run_epoch", recording)
+    monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG", raising=False)
+    before = (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic)
+    config = load_config(None, TINY + ["train.epochs=1", "train.warmup_epochs=0", f"run.output_dir={tmp_path}",
+                                       "run.deterministic=true"])
+    train(config, progress=False)
+    assert seen == [(True, True, True, False, True)]
+    assert (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic) == before
+    assert json.loads((tmp_path / "default" / "config.json").read_text())["run"]["deterministic"] is True

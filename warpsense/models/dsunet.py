@@ -6,6 +6,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from warpsense.models.resample import adaptive_avg_pool, resize_bilinear
+
 
 class SqueezeExcitation(nn.Module):
     """Channel attention (Hu et al. 2018): global pool -> bottleneck MLP -> sigmoid gate."""
@@ -63,8 +65,8 @@ class PyramidPooling(nn.Module):
         nn.init.zeros_(self.norm.weight)
 
     def forward(self, x):
-        pooled = [DSUNet._up(F.relu(branch(F.adaptive_avg_pool2d(x, bins))), x)
-                  for bins, branch in zip(self.BINS, self.branches)]
+        pool = adaptive_avg_pool if torch.are_deterministic_algorithms_enabled() else F.adaptive_avg_pool2d
+        pooled = [DSUNet._up(F.relu(branch(pool(x, bins))), x) for bins, branch in zip(self.BINS, self.branches)]
         return x + self.norm(self.fuse(torch.cat(pooled, dim=1)))
 
 
@@ -99,7 +101,8 @@ class DSUNet(nn.Module):
 
     ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 it doubles the training speed (batch
     norm and depthwise convolutions have fast NHWC kernels; their NCHW bf16 backward is slow). The output is the
-    same up to float rounding.
+    same up to float rounding. While torch's deterministic algorithms are on (``run.deterministic``), the
+    upsampling and pooling take the forms in `warpsense.models.resample`, whose CUDA backward is deterministic.
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 16, tile: int = 2,
@@ -130,6 +133,8 @@ class DSUNet(nn.Module):
         # autocast runs bilinear upsampling in float32, and the float32 result then promotes the skip concatenation
         # and the next block's input: upsample in the activations' own dtype instead
         with torch.autocast(x.device.type, enabled=False):
+            if torch.are_deterministic_algorithms_enabled():  # run.deterministic: torch's backward adds atomically
+                return resize_bilinear(x, like.shape[-2:])
             return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
 
     def forward(self, raw: torch.Tensor) -> torch.Tensor:

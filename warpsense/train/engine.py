@@ -27,6 +27,7 @@ from warpsense.train.distributed import DistributedContext, wrap_data_parallel
 from warpsense.train.ema import WeightEMA, averaged
 from warpsense.train.evaluate import evaluate
 from warpsense.train.losses import class_balance_weights
+from warpsense.train.reproducibility import deterministic_algorithms
 from warpsense.train.run_dir import LAST, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
 from warpsense.train.schedule import Schedule
 from warpsense.train.step import TrainingStep
@@ -168,7 +169,8 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
         run_dir.mkdir(parents=True, exist_ok=True)
         lock.acquire()
     try:
-        return _train(config, run_dir, bool(resume), context, progress, return_model)
+        with deterministic_algorithms(config.run.deterministic):
+            return _train(config, run_dir, bool(resume), context, progress, return_model)
     except KeyboardInterrupt:
         _discard_unfinished(run_dir, created)
         raise TrainingInterrupted(run_dir) from None
