@@ -6,7 +6,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from warpsense.models.resample import adaptive_avg_pool, resize_bilinear
+from warpsense.models.resample import adaptive_pool, resize
 
 
 class SqueezeExcitation(nn.Module):
@@ -65,8 +65,7 @@ class PyramidPooling(nn.Module):
         nn.init.zeros_(self.norm.weight)
 
     def forward(self, x):
-        pool = adaptive_avg_pool if torch.are_deterministic_algorithms_enabled() else F.adaptive_avg_pool2d
-        pooled = [DSUNet._up(F.relu(branch(pool(x, bins))), x) for bins, branch in zip(self.BINS, self.branches)]
+        pooled = [DSUNet._up(F.relu(branch(adaptive_pool(x, bins))), x) for bins, branch in zip(self.BINS, self.branches)]
         return x + self.norm(self.fuse(torch.cat(pooled, dim=1)))
 
 
@@ -133,9 +132,7 @@ class DSUNet(nn.Module):
         # autocast runs bilinear upsampling in float32, and the float32 result then promotes the skip concatenation
         # and the next block's input: upsample in the activations' own dtype instead
         with torch.autocast(x.device.type, enabled=False):
-            if torch.are_deterministic_algorithms_enabled():  # run.deterministic: torch's backward adds atomically
-                return resize_bilinear(x, like.shape[-2:])
-            return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
+            return resize(x, like.shape[-2:])
 
     def forward(self, raw: torch.Tensor) -> torch.Tensor:
         height, width = raw.shape[-2:]

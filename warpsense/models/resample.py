@@ -2,8 +2,9 @@
 
 `torch.nn.functional.interpolate` (bilinear) and `adaptive_avg_pool2d` differentiate on CUDA with atomic adds, so
 two runs with the same seed drift apart (torch's deterministic mode refuses or only warns about them). These give
-the same values from slices and small matrix products, whose gradients are sums in a fixed order. The networks use
-them while `torch.are_deterministic_algorithms_enabled()` (`run.deterministic`), and torch's own ops otherwise.
+the same values from slices and small matrix products, whose gradients are sums in a fixed order. The networks call
+`resize` and `adaptive_pool`, which take these forms while `torch.are_deterministic_algorithms_enabled()`
+(`run.deterministic`) and torch's own ops otherwise.
 
 Conventions are torch's: bilinear with ``align_corners=False`` (source coordinate (o + 0.5) in / out - 0.5, clamped
 at 0, neighbours clamped at the edge) and adaptive pooling windows [floor(i in / n), ceil((i + 1) in / n)).
@@ -14,19 +15,23 @@ from __future__ import annotations
 import functools
 
 import torch
+from torch.nn import functional as F
+
+
+def _double(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """Bilinear x2 along ``dim`` (``align_corners=False``): output 2i takes 3/4 of input i and 1/4 of input i - 1,
+    output 2i + 1 takes 3/4 of i and 1/4 of i + 1 (edges repeated)."""
+    dim %= x.ndim
+    size = x.shape[dim]
+    before = torch.cat([x.narrow(dim, 0, 1), x.narrow(dim, 0, size - 1)], dim=dim)
+    after = torch.cat([x.narrow(dim, 1, size - 1), x.narrow(dim, size - 1, 1)], dim=dim)
+    # [..., n, 2, ...] -> [..., 2n, ...]: the even and odd outputs interleaved
+    return torch.stack([0.75 * x + 0.25 * before, 0.75 * x + 0.25 * after], dim=dim + 1).flatten(dim, dim + 1)
 
 
 def upsample2x(x: torch.Tensor) -> torch.Tensor:
-    """[..., h, w] -> [..., 2h, 2w], bilinear (``align_corners=False``): output 2i takes 3/4 of input i and 1/4 of
-    input i - 1, output 2i + 1 takes 3/4 of i and 1/4 of i + 1 (edges repeated)."""
-    rows = x.shape[-2]
-    before = torch.cat([x[..., :1, :], x[..., : rows - 1, :]], dim=-2)
-    after = torch.cat([x[..., 1:, :], x[..., rows - 1 :, :]], dim=-2)
-    x = torch.stack([0.75 * x + 0.25 * before, 0.75 * x + 0.25 * after], dim=-2).flatten(-3, -2)  # [.., 2h, w]
-    cols = x.shape[-1]
-    before = torch.cat([x[..., :1], x[..., : cols - 1]], dim=-1)
-    after = torch.cat([x[..., 1:], x[..., cols - 1 :]], dim=-1)
-    return torch.stack([0.75 * x + 0.25 * before, 0.75 * x + 0.25 * after], dim=-1).flatten(-2, -1)
+    """[..., h, w] -> [..., 2h, 2w], bilinear (``align_corners=False``), one axis after the other."""
+    return _double(_double(x, -2), -1)
 
 
 @functools.lru_cache(maxsize=64)
@@ -74,3 +79,19 @@ def adaptive_avg_pool(x: torch.Tensor, bins: int) -> torch.Tensor:
     height, width = x.shape[-2:]
     return _separable(x, _pooling_matrix(bins, height, x.dtype, x.device),
                       _pooling_matrix(bins, width, x.dtype, x.device))
+
+
+def resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Bilinear resize of [B, C, h, w] ``x`` to ``size``: `resize_bilinear` under torch's deterministic algorithms,
+    else torch's own (faster) op."""
+    if torch.are_deterministic_algorithms_enabled():
+        return resize_bilinear(x, size)
+    return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+
+
+def adaptive_pool(x: torch.Tensor, bins: int) -> torch.Tensor:
+    """Adaptive average pooling of [B, C, h, w] ``x`` to bins x bins: `adaptive_avg_pool` under torch's
+    deterministic algorithms, else torch's own op."""
+    if torch.are_deterministic_algorithms_enabled():
+        return adaptive_avg_pool(x, bins)
+    return F.adaptive_avg_pool2d(x, bins)
