@@ -65,7 +65,8 @@ class PyramidPooling(nn.Module):
         nn.init.zeros_(self.norm.weight)
 
     def forward(self, x):
-        pooled = [DSUNet._up(F.relu(branch(adaptive_pool(x, bins))), x) for bins, branch in zip(self.BINS, self.branches)]
+        pooled = [DSUNet._up(F.relu(branch(adaptive_pool(x, bins))), x)
+                  for bins, branch in zip(self.BINS, self.branches)]
         return x + self.norm(self.fuse(torch.cat(pooled, dim=1)))
 
 
