@@ -75,14 +75,15 @@ def source_axis(size: int, nodes: int, radius: int, extra: int, dtype=torch.floa
 def _source_tables(image: torch.Tensor, grid_y: int, grid_x: int, radius: int):
     height, width = image.shape[-2:]
     rows = source_axis(height, grid_y, radius, kernels.ROWS - 1, image.dtype, image.device)
-    cols = source_axis(width, grid_x, radius, 0, image.dtype, image.device)
+    cols = source_axis(width, grid_x, radius, kernels.COLS - 1, image.dtype, image.device)
     return rows, cols
 
 
 def _padded_source(image: torch.Tensor, radius: int) -> torch.Tensor:
-    """[B, C, H, W] -> [B*C, H + 2r + ROWS - 1, W + 2r], edge-replicated (the kernels' clamp-to-edge borders)."""
+    """[B, C, H, W] -> [B*C, H + 2r + ROWS - 1, W + 2r + COLS - 1], edge-replicated (the kernels' clamp-to-edge
+    borders)."""
     batch, channels = image.shape[:2]
-    padded = F.pad(image, (radius, radius, radius, radius + kernels.ROWS - 1), mode="replicate")
+    padded = F.pad(image, (radius, radius + kernels.COLS - 1, radius, radius + kernels.ROWS - 1), mode="replicate")
     return padded.reshape(batch * channels, *padded.shape[-2:])
 
 
@@ -170,7 +171,7 @@ def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_
     radius = cells.shape[2] // 2
     rows, cols = _source_tables(image, grid_y, grid_x, radius)
     out = torch.empty_like(image)
-    launch(kernels.psf_forward, (batch * channels, -(-height // kernels.ROWS), width),
+    launch(kernels.psf_forward, (batch * channels, -(-height // kernels.ROWS), -(-width // kernels.COLS)),
            [_padded_source(image, radius), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1],
             out.view(batch * channels, height, width)], image.device)
     return out
