@@ -9,7 +9,8 @@ against the plain-torch baseline of the train suite, in one run on one device.
 
 Records: one per method with its curve (epoch, wall_s, val mIoU), its final val, the time to each level in
 ``LEVELS`` (None if never reached), the time to the baseline's final val, and where the start went: ``setup_s``
-(until the first step) and ``first_epoch_s`` (the first epoch, with any compile or graph capture). ``--quick``
+(until the first step) and ``first_epoch_s`` (the first epoch, with any compile or graph capture), and
+``network_parameters`` (equal for both: the same network). ``--quick``
 trains 2 epochs on 8 images at a small crop (CI time on a CPU).
 """
 
@@ -27,11 +28,12 @@ from warpsense.camera.camera import set_finite_check
 from warpsense.config import load_config
 from warpsense.data import build_dataset
 from warpsense.data.on_device import DecodedDataset
-from warpsense.models import build_model
-from warpsense.system import SensingModel
+from warpsense.models import build_model, count_parameters
+from warpsense.system import SensingModel, load_system
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.engine import build_train_batches, train
 from warpsense.train.evaluate import evaluate
+from warpsense.train.run_dir import LAST
 from warpsense.train.step import TrainingStep
 
 LEVELS = (0.5, 0.6, 0.65)
@@ -69,14 +71,16 @@ def baseline_curve(config, device: torch.device) -> tuple[list[dict], dict]:
     batches = build_train_batches(config, train_set, context, progress=False)
     steps = min(len(batches), config.train.max_steps_per_epoch or len(batches))
     network = build_model(config.model.name, in_channels=1, num_classes=len(train_set.classes),
-                          width=config.model.width, tile=2, channels_last=config.model.channels_last)
+                          width=config.model.width, tile=2, channels_last=config.model.channels_last,
+                          context=config.model.context)
     model = SensingModel(BaselineCamera(), network).to(device).train()
     set_finite_check(model, False)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.train.lr, weight_decay=config.train.weight_decay)
     amp = config.train.amp and device.type == "cuda"
     total = config.train.epochs * steps
     step = TrainingStep(config.loss, optimizer, [], total, amp)
-    curve, index, start = [], 0, {"setup_s": time.perf_counter() - started}
+    curve, index = [], 0
+    start = {"setup_s": time.perf_counter() - started, "network_parameters": count_parameters(network)}
     for epoch in range(config.train.epochs):
         batches.set_epoch(epoch)
         model.train()
@@ -99,7 +103,9 @@ def recipe_curve(config) -> tuple[list[dict], dict]:
     metrics."""
     run = train(config, progress=False)
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    start = {"setup_s": records[0]["setup_s"], "first_epoch_s": records[0]["epoch_time_s"]}
+    network = load_system(run / LAST, "cpu")[0].network
+    start = {"setup_s": records[0]["setup_s"], "first_epoch_s": records[0]["epoch_time_s"],
+             "network_parameters": count_parameters(network)}
     return [{"epoch": r["epoch"], "wall_s": r["wall_s"], "val_miou": r["val_miou"]} for r in records
             if "val_miou" in r], start
 
