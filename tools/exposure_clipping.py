@@ -1,0 +1,85 @@
+"""What a higher exposure gain clips: per class, the share of a split's pixels whose noise-free RAW value reaches the
+white level, at each gain (the physics behind configs/studies/camvid_exposure.toml).
+
+    python tools/exposure_clipping.py [--preset camvid_codesign] [--data-root ../shared/data/camvid]
+        [--split val] [--gains 1,2,3] [--limit N] [--json OUT]
+
+The preset's camera runs with its exposure held at each gain, the optics, noise and quantization off (a pixel
+clips when gain x CFA response x radiance >= 1, the white level of the quantizer), on the dataset's frames turned
+into radiance as training does. At gain a the shot-noise SNR of an unclipped pixel grows by sqrt(a) (noise variance
+shot * R + read^2 at signal R); this says what that costs. Prints one line per gain; ``--json`` writes them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import numpy as np
+import torch
+
+from warpsense.config import load_config
+from warpsense.data import build_dataset
+from warpsense.system import build_system
+
+GAIN_MIN, GAIN_RANGE = 0.25, 3.75  # exposure gain a(g) = 0.25 + 3.75 sigmoid(g) (configs/default.toml, [exposure])
+
+
+def gain_logit(gain: float) -> float:
+    """The ``exposure.gain_logit`` whose gain is ``gain`` (inside (0.25, 4.0))."""
+    if not GAIN_MIN < gain < GAIN_MIN + GAIN_RANGE:
+        raise ValueError(f"--gains: {gain} is outside the exposure stage's range (0.25, 4.0)")
+    share = (gain - GAIN_MIN) / GAIN_RANGE
+    return math.log(share / (1 - share))
+
+
+def clipped_shares(preset: str, data_root: str, split: str, gains: list[float], limit: int = 0) -> list[dict]:
+    """Per gain: the clipped share of all labelled pixels and of each class's, in [0, 1]."""
+    records = []
+    for gain in gains:
+        config = load_config(preset, [f"data.root={data_root}", "optics.enabled=false", "noise.enabled=false",
+                                      "quantize.enabled=false", f"exposure.gain_logit={gain_logit(gain)}",
+                                      "train.cuda_graph=false"])
+        dataset = build_dataset(config.data, split, train=False, seed=0)
+        model = build_system(config, len(dataset.classes)).eval()
+        classes = len(dataset.classes)
+        clipped, total = np.zeros(classes), np.zeros(classes)
+        with torch.no_grad():
+            for index in range(min(limit or len(dataset), len(dataset))):
+                image, label = dataset[index][:2]
+                raw = model.camera(model.radiance(image[None]), torch.tensor([index]))[0, 0].numpy()
+                label = label.numpy()
+                known = label < classes  # the void label is left out
+                total += np.bincount(label[known], minlength=classes)
+                clipped += np.bincount(label[known & (raw >= 1.0)], minlength=classes)
+        records.append({"gain": gain, "all": float(clipped.sum() / total.sum()),
+                        "classes": {name: float(clipped[c] / total[c]) if total[c] else None
+                                    for c, name in enumerate(dataset.classes)}})
+    return records
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="camvid_codesign")
+    parser.add_argument("--data-root", default="../shared/data/camvid")
+    parser.add_argument("--split", default="val")
+    parser.add_argument("--gains", default="1,2,3", help="comma-separated exposure gains (default: %(default)s)")
+    parser.add_argument("--limit", type=int, default=0, help="the first N frames only (0: all)")
+    parser.add_argument("--json", metavar="OUT")
+    args = parser.parse_args(argv)
+    try:
+        gains = [float(text) for text in args.gains.split(",")]
+    except ValueError:
+        parser.error(f"--gains: expected numbers separated by commas, got {args.gains!r}")
+    records = clipped_shares(args.preset, args.data_root, args.split, gains, args.limit)
+    for record in records:
+        shares = ", ".join(f"{name} {100 * share:.1f}" for name, share in record["classes"].items() if share is not None)
+        print(f"gain {record['gain']:g}: {100 * record['all']:.1f}% of labelled pixels clipped; per class %: {shares}")
+    if args.json:
+        with open(args.json, "w") as handle:
+            json.dump(records, handle, indent=1)
+
+
+if __name__ == "__main__":
+    main()
