@@ -13,7 +13,7 @@ from warpsense.cli import main
 from warpsense.resources import CONFIG_DIR
 from warpsense.study import load_plan, render_text, run_cells, study_record
 from warpsense.study.plan import PlanError
-from warpsense.study.report import precision_recall
+from warpsense.study.report import precision_recall, run_seconds
 from warpsense.train import engine
 
 FAST = ["train.epochs=2", "data.scenes_train=16", "data.scenes_val=4", "train.eval_every=2"]
@@ -75,6 +75,11 @@ def test_smoke_study_runs_resumes_skips_failures_and_reports(tmp_path, monkeypat
     evaluations = {seed: json.loads((out / "runs" / f"rccb.night.seed{seed}" / "evaluation.json").read_text())
                    for seed in (0, 1)}
     rccb_group = val["groups"][1]
+    # wall time: the interrupted process's and the resuming one's, each at its last epoch
+    rccb_cells = [c for c in record["cells"] if c["camera"] == "rccb"]
+    assert rccb_cells[0]["run_s"] == pytest.approx(rccb[0]["wall_s"] + rccb[1]["wall_s"])
+    assert rccb_group["run_s"] == pytest.approx(np.mean([c["run_s"] for c in rccb_cells]))
+    assert rccb_group["timed_runs"] == 2
     assert rccb_group["miou"]["mean"] == pytest.approx(
         sum(e["splits"]["val"]["miou"] for e in evaluations.values()) / 2)
     # per-class precision and recall: each seed's pixels summed over the split's images, then the mean over seeds
@@ -91,6 +96,7 @@ def test_smoke_study_runs_resumes_skips_failures_and_reports(tmp_path, monkeypat
     assert comparison["verdict"] in ("better", "worse", "not distinguishable")
     text = render_text(record)  # the console text is rendered from the record
     assert f"{rccb_group['miou']['mean']:.4f}" in text and "missing: broken/night/0, broken/night/1" in text
+    assert f"seeds 0,1  {rccb_group['run_s']:.0f} s/run" in text
     assert "[val] per class, % means over seeds: IoU (precision/recall)" in text and "night/rccb" in text
     assert record["cells"][0]["learned_camera"]["cfa_layout"] == "RGGB"
 
@@ -196,6 +202,17 @@ def test_precision_recall_from_per_image_counts():
     precision, recall = precision_recall(counts)
     assert precision == [pytest.approx(4 / 6), None, 0.0]
     assert recall == [pytest.approx(4 / 8), 0.0, None]
+
+
+def test_run_seconds_adds_the_processes_of_a_resumed_run(tmp_path):
+    metrics = tmp_path / "metrics.jsonl"
+    assert run_seconds(metrics) is None  # no log
+    records = [{"epoch": 0, "setup_s": 2.0, "wall_s": 10.0}, {"epoch": 1, "wall_s": 20.0},  # process 1, then a kill
+               {"epoch": 2, "setup_s": 1.0, "wall_s": 5.0}, {"epoch": 3, "wall_s": 9.0}]  # process 2 resumes
+    metrics.write_text("".join(json.dumps(r) + "\n" for r in records) + "\n")
+    assert run_seconds(metrics) == 29.0
+    metrics.write_text(json.dumps({"epoch": 0, "setup_s": 1.0}) + "\n")  # a log from before wall_s was recorded
+    assert run_seconds(metrics) is None
 
 
 def test_report_names_the_learned_design():

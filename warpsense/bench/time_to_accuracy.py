@@ -33,7 +33,7 @@ from warpsense.system import SensingModel, load_system
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.engine import build_train_batches, train
 from warpsense.train.evaluate import evaluate
-from warpsense.train.run_dir import LAST
+from warpsense.train.run_dir import LAST, METRICS
 from warpsense.train.step import TrainingStep
 
 LEVELS = (0.5, 0.6, 0.65)
@@ -102,7 +102,7 @@ def recipe_curve(config) -> tuple[list[dict], dict]:
     """Train the recipe with `warpsense train`'s engine; its validation curve and start times from the run's
     metrics."""
     run = train(config, progress=False)
-    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    records = [json.loads(line) for line in (run / METRICS).read_text().splitlines()]
     network = load_system(run / LAST, "cpu")[0].network
     start = {"setup_s": records[0]["setup_s"], "first_epoch_s": records[0]["epoch_time_s"],
              "network_parameters": count_parameters(network)}

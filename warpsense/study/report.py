@@ -1,6 +1,7 @@
 """The report of a study directory: per camera and light level, mean mIoU and per-class IoU, precision and recall
 with 95% intervals over seeds; the paired difference to the reference camera (seed by seed) and an image-level
-bootstrap interval; the learned camera of every run. The console text and the JSON are rendered from one record (`study_record`)."""
+bootstrap interval; the learned camera and the wall time of every run. The console text and the JSON are rendered
+from one record (`study_record`)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import numpy as np
 from warpsense.study.plan import Plan, PlanError
 from warpsense.study.runner import PLAN_RECORD, THROUGHPUT, evaluation_path, throughput_line
 from warpsense.study.statistics import LEVEL, bootstrap_difference, distinguishable, paired_difference, t_interval
+from warpsense.train.run_dir import METRICS
 
 NOT_DISTINGUISHABLE = "not distinguishable"
 
@@ -50,6 +52,23 @@ def precision_recall(image_counts) -> tuple[list[float | None], list[float | Non
     return precision, recall
 
 
+def run_seconds(metrics_path: Path) -> float | None:
+    """A run's wall seconds from its ``metrics.jsonl``: each process's ``wall_s`` at its last epoch (setup,
+    training and evaluation), summed over the processes of a resumed run (a record with ``setup_s`` starts one); None
+    without records. The work an interrupted process did after its last epoch is not counted."""
+    if not metrics_path.is_file():
+        return None
+    total, last = 0.0, None
+    for line in metrics_path.read_text().splitlines():
+        if not line.strip():
+            continue
+        record = json.loads(line)
+        if "setup_s" in record and last is not None:
+            total += last
+        last = record.get("wall_s", last)
+    return None if last is None else total + last
+
+
 def _per_class(per_seed: list[list[float | None]], classes: list[str]) -> dict:
     """Per class: the t interval over seeds of each seed's value ``per_seed[seed][k]`` (None left out)."""
     intervals = {}
@@ -59,7 +78,7 @@ def _per_class(per_seed: list[list[float | None]], classes: list[str]) -> dict:
     return intervals
 
 
-def _split_record(plan: dict, evaluations: dict, split: str, resamples: int) -> dict:
+def _split_record(plan: dict, evaluations: dict, run_s: dict, split: str, resamples: int) -> dict:
     classes = next(iter(evaluations.values()))["class_names"]
     groups, comparisons = [], []
     for light in plan["lights"]:
@@ -73,7 +92,9 @@ def _split_record(plan: dict, evaluations: dict, split: str, resamples: int) -> 
             by_camera[camera["name"]] = runs
             iou = [[run["per_class_iou"][name] for name in classes] for run in runs.values()]
             precision, recall = zip(*(precision_recall(run["image_counts"]) for run in runs.values()))
+            seconds = [s for s in (run_s[(camera["name"], light["name"], seed)] for seed in runs) if s is not None]
             groups.append({"camera": camera["name"], "light": light["name"], "seeds": sorted(runs),
+                           "run_s": float(np.mean(seconds)) if seconds else None, "timed_runs": len(seconds),
                            "miou": t_interval([run["miou"] for run in runs.values()]),
                            "per_class_iou": _per_class(iou, classes),
                            "per_class_precision": _per_class(precision, classes),
@@ -106,7 +127,7 @@ def study_record(study_dir: str | Path, resamples: int = 2000) -> dict:
     that it is missing), and per split the groups and comparisons."""
     study_dir = Path(study_dir)
     plan = _read_plan(study_dir)
-    evaluations, cells, missing = {}, [], []
+    evaluations, run_s, cells, missing = {}, {}, [], []
     for cell in Plan.from_dict(plan).cells():
         path = evaluation_path(study_dir, cell)
         if not path.is_file():
@@ -117,8 +138,10 @@ def study_record(study_dir: str | Path, resamples: int = 2000) -> dict:
         except (OSError, json.JSONDecodeError) as error:
             raise PlanError(f"{path}: unreadable: {error}") from None
         evaluations[(cell.camera, cell.light, cell.seed)] = evaluation
+        run_s[(cell.camera, cell.light, cell.seed)] = run_seconds(path.parent / METRICS)
         cells.append({"cell": cell.id, "camera": cell.camera, "light": cell.light, "seed": cell.seed,
                       "epoch": evaluation["epoch"], "network_parameters": evaluation["network_parameters"],
+                      "run_s": run_s[(cell.camera, cell.light, cell.seed)],
                       "miou": {split: m["miou"] for split, m in evaluation["splits"].items()},
                       "learned_camera": evaluation["camera"]})
     if not evaluations:
@@ -128,7 +151,7 @@ def study_record(study_dir: str | Path, resamples: int = 2000) -> dict:
     throughput = json.loads(throughput_path.read_text()) if throughput_path.is_file() else []
     return {"study": plan["name"], "directory": str(study_dir), "reference": plan["reference"], "level": LEVEL,
             "plan": plan, "cells": cells, "missing": missing, "throughput": throughput,
-            "splits": {split: _split_record(plan, evaluations, split, resamples) for split in splits}}
+            "splits": {split: _split_record(plan, evaluations, run_s, split, resamples) for split in splits}}
 
 
 def _interval(record: dict | None, signed: bool = False) -> str:
@@ -187,8 +210,10 @@ def render_text(record: dict) -> str:
         lines.append(f"\n[{split}] mIoU, mean over seeds [{level} t interval]")
         width = max(len(g["camera"]) for g in part["groups"])
         for group in part["groups"]:
+            seconds = "" if group["run_s"] is None else f"  {group['run_s']:.0f} s/run" + (
+                "" if group["timed_runs"] == len(group["seeds"]) else f" ({group['timed_runs']} timed)")
             lines.append(f"  {group['light']:>8s}  {group['camera']:<{width}s}  {_interval(group['miou'])}  "
-                         f"seeds {','.join(map(str, group['seeds']))}")
+                         f"seeds {','.join(map(str, group['seeds']))}{seconds}")
         if part["comparisons"]:
             lines.append(f"[{split}] difference to the reference camera {record['reference']!r}: paired over seeds "
                          f"[{level} t] | image bootstrap [{level}]")

@@ -28,7 +28,7 @@ from warpsense.train.ema import WeightEMA, averaged
 from warpsense.train.evaluate import evaluate
 from warpsense.train.losses import class_balance_weights
 from warpsense.train.reproducibility import deterministic_algorithms
-from warpsense.train.run_dir import LAST, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
+from warpsense.train.run_dir import LAST, METRICS, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
 from warpsense.train.schedule import Schedule
 from warpsense.train.step import TrainingStep
 
@@ -252,7 +252,7 @@ def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: 
     """Append the epoch's record to metrics.jsonl, then write the checkpoints: the best one when the epoch scored
     best, and the last one (with optimizer and RNG state, for resuming) always. With a weight average (``ema``) the
     checkpoints' model is the average; the last one also holds the training weights."""
-    with open(run_dir / "metrics.jsonl", "a") as log:
+    with open(run_dir / METRICS, "a") as log:
         log.write(json.dumps(state["record"]) + "\n")
     live = ema.live_tensors() if ema is not None else None
     with averaged(ema):
@@ -304,7 +304,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         start_epoch, step, best_miou = state["epoch"] + 1, state["step"], state["best_miou"]
         schedule = _resumed_schedule(state, requested, run_dir / LAST)
         torch.set_rng_state(tensors["rng"])
-        history = read_metrics(run_dir / "metrics.jsonl", state["epoch"])
+        history = read_metrics(run_dir / METRICS, state["epoch"])
         if context.is_main:
             print(f"resuming {run_dir} from epoch {start_epoch + 1}/{schedule.epochs}")
     else:
@@ -319,7 +319,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         config.save(saved)
         versions = environment()
         write_json(run_dir / "environment.json", versions)
-        (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in history))
+        (run_dir / METRICS).write_text("".join(json.dumps(r) + "\n" for r in history))
         print(f"run directory: {run_dir}")
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
               f"{sum(p.numel() for p in model.camera.learnable_parameters()):,}; device: {device}; ranks: {context.world_size}")

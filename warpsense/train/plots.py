@@ -13,6 +13,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from warpsense.data.labels import colorize  # noqa: E402
+from warpsense.train.run_dir import METRICS  # noqa: E402
 
 
 def plot_curves(records: list[dict], path: Path) -> None:
@@ -155,7 +156,7 @@ def plot_sweep(rows: list[dict], path: str | Path, title: str = "") -> None:
 
 
 def write_run_plots(run_dir: Path, model, val_set, device) -> None:
-    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
+    records = [json.loads(line) for line in (run_dir / METRICS).read_text().splitlines() if line.strip()]
     if records:
         plot_curves(records, run_dir / "curves.png")
         plot_design(records, run_dir / "design.png")

@@ -11,6 +11,7 @@ from pathlib import Path
 from warpsense.config import Config, ConfigError, config_from_dict
 
 LAST = "checkpoint_last.safetensors"
+METRICS = "metrics.jsonl"  # one JSON record per epoch
 LOCK = "train.lock"
 # keys a resumed run may change without asking: where the run is found and which device it runs on
 RELOCATABLE_KEYS = ("run.output_dir", "run.name", "run.device")
