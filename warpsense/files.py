@@ -67,21 +67,35 @@ def check_output_folder(path: str | Path, what: str) -> None:
         raise ValueError(f"{what} {path}: {existing} is not a writable folder")
 
 
+def _git(*arguments: str, cwd: Path) -> str | None:
+    """git's stdout in ``cwd``, or None when git is missing, fails or times out."""
+    try:
+        result = subprocess.run(["git", *arguments], cwd=cwd, capture_output=True, text=True, timeout=5)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    # outside a repository git prints its argument back on stdout: only trust a successful answer
+    return result.stdout if result.returncode == 0 else None
+
+
+def source_state(source: Path) -> tuple[str | None, bool | None]:
+    """(commit, dirty) of the git checkout holding ``source``: the HEAD commit, and whether tracked files differ
+    from it (a run from an edited tree is not that commit's run); (None, None) outside a checkout."""
+    commit = (_git("rev-parse", "HEAD", cwd=source) or "").strip() or None
+    if commit is None:
+        return None, None
+    changes = _git("status", "--porcelain", "--untracked-files=no", cwd=source)
+    return commit, None if changes is None else bool(changes.strip())
+
+
 def environment() -> dict:
     """What produced a run or checkpoint: warpsense, torch, Warp and Python versions, the device, and the git
-    commit of the source tree (None outside a git checkout)."""
+    commit of the source tree with whether its tracked files were edited (None outside a git checkout)."""
     import torch
     import warp
 
     from warpsense import __version__
 
-    try:
-        result = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
-                                capture_output=True, text=True, timeout=5)
-        # outside a repository git prints its argument back on stdout: only trust a successful answer
-        commit = (result.stdout.strip() or None) if result.returncode == 0 else None
-    except (OSError, subprocess.SubprocessError):
-        commit = None
+    commit, dirty = source_state(Path(__file__).resolve().parent)
     return {"warpsense": __version__, "torch": torch.__version__, "warp": warp.config.version,
-            "python": platform.python_version(), "git_commit": commit,
+            "python": platform.python_version(), "git_commit": commit, "git_dirty": dirty,
             "cuda_device": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
