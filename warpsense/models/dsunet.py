@@ -96,7 +96,7 @@ class DSUNet(nn.Module):
     neighbourhood, so thin structures keep full-resolution detail) and, in parallel, as a T x T pixel-unshuffle
     (the CFA tile's sites as channels) concatenated at half resolution. Encoder: 1, 1/2, 1/4, 1/8, 1/16 with widths
     w, 2w, 4w, 6w, 8w; decoder: bilinear upsampling + skip concatenation + separable blocks; head at full
-    resolution. width=16 gives 0.18M parameters, width=24 0.40M (the camvid presets). ``context`` adds a module
+    resolution. width=16 gives 0.18M parameters, width=24 0.40M (0.455M with the camvid presets' context). ``context`` adds a module
     at 1/16 (`CONTEXTS`; "pyramid": +56k parameters at width 24); "none" adds nothing.
 
     ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 it doubles the training speed (batch
