@@ -14,24 +14,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 
 import numpy as np
 import torch
 
 from warpsense.config import load_config
 from warpsense.data import build_dataset
+from warpsense.ops.exposure import exposure_logit
 from warpsense.system import build_system
-
-GAIN_MIN, GAIN_RANGE = 0.25, 3.75  # exposure gain a(g) = 0.25 + 3.75 sigmoid(g) (configs/default.toml, [exposure])
-
-
-def gain_logit(gain: float) -> float:
-    """The ``exposure.gain_logit`` whose gain is ``gain`` (inside (0.25, 4.0))."""
-    if not GAIN_MIN < gain < GAIN_MIN + GAIN_RANGE:
-        raise ValueError(f"--gains: {gain} is outside the exposure stage's range (0.25, 4.0)")
-    share = (gain - GAIN_MIN) / GAIN_RANGE
-    return math.log(share / (1 - share))
 
 
 def clipped_shares(preset: str, data_root: str, split: str, gains: list[float], limit: int = 0) -> list[dict]:
@@ -39,7 +29,7 @@ def clipped_shares(preset: str, data_root: str, split: str, gains: list[float], 
     records = []
     for gain in gains:
         config = load_config(preset, [f"data.root={data_root}", "optics.enabled=false", "noise.enabled=false",
-                                      "quantize.enabled=false", f"exposure.gain_logit={gain_logit(gain)}",
+                                      "quantize.enabled=false", f"exposure.gain_logit={exposure_logit(gain)}",
                                       "train.cuda_graph=false"])
         dataset = build_dataset(config.data, split, train=False, seed=0)
         model = build_system(config, len(dataset.classes)).eval()
@@ -70,8 +60,10 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     try:
         gains = [float(text) for text in args.gains.split(",")]
-    except ValueError:
-        parser.error(f"--gains: expected numbers separated by commas, got {args.gains!r}")
+        for gain in gains:
+            exposure_logit(gain)
+    except ValueError as error:
+        parser.error(f"--gains {args.gains!r}: {error}")
     records = clipped_shares(args.preset, args.data_root, args.split, gains, args.limit)
     for record in records:
         shares = ", ".join(f"{name} {100 * share:.1f}" for name, share in record["classes"].items() if share is not None)

@@ -7,6 +7,8 @@ functional below is plain torch for use without a CFA.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from warpsense.ops.arguments import check_same_device, check_tensor
@@ -19,6 +21,16 @@ def exposure_gain(gain_logit: torch.Tensor) -> torch.Tensor:
     """a(g) in [0.25, 4] for a logit g of any shape."""
     check_tensor("exposure_gain", "gain_logit", gain_logit)
     return GAIN_MIN + GAIN_RANGE * torch.sigmoid(gain_logit)
+
+
+def exposure_logit(gain: float) -> float:
+    """The logit g whose gain a(g) is ``gain`` (the inverse of `exposure_gain`, for configs: ``exposure.gain_logit``);
+    ``gain`` must lie strictly inside (0.25, 4)."""
+    share = (gain - GAIN_MIN) / GAIN_RANGE
+    if not 0 < share < 1:
+        raise ValueError(f"exposure gain {gain} is outside the exposure stage's range ({GAIN_MIN}, "
+                         f"{GAIN_MIN + GAIN_RANGE})")
+    return math.log(share / (1 - share))
 
 
 def exposure(image: torch.Tensor, gain_logit: torch.Tensor) -> torch.Tensor:
