@@ -175,6 +175,7 @@ class ModelConfig:
     name: str = _field("dsunet", choices=MODEL_NAMES)
     width: int = _field(16, minimum=1, maximum=512)
     context: str = _field("none", choices=MODEL_CONTEXTS)
+    squeeze: bool = True
     num_classes: int = _field(0, minimum=0, maximum=1024)
     channels_last: bool = True
     input: str = _field("sensor", choices=MODEL_INPUTS)

@@ -1,11 +1,12 @@
-"""DSUNet: shapes, the channels-last layout against the contiguous one, the bf16 decoder path, and the bottleneck
-context module (pyramid pooling)."""
+"""DSUNet: shapes, the channels-last layout against the contiguous one, the bf16 decoder path, the bottleneck
+context module (pyramid pooling), the networks without squeeze-and-excitation, and the network a config builds."""
 
 import pytest
 import torch
 
-from warpsense.models import DSUNet, build_model, count_parameters
-from warpsense.models.dsunet import PyramidPooling, build_context
+from warpsense.config import load_config
+from warpsense.models import DSUNet, build_model, count_parameters, network_from_config
+from warpsense.models.dsunet import PyramidPooling, SeparableBlock, SqueezeExcitation, build_context
 
 
 @pytest.mark.parametrize("context", ["none", "pyramid"])
@@ -149,3 +150,31 @@ def test_feature_deterministic_mode_takes_the_deterministic_resampling(name, mon
     torch.testing.assert_close(logits, reference_logits, rtol=1e-10, atol=1e-12)
     for grad, reference in zip(grads, reference_grads):
         torch.testing.assert_close(grad, reference, rtol=1e-9, atol=1e-11)
+
+
+@pytest.mark.parametrize("name", ["dsunet", "packunet"])
+def test_feature_without_squeeze_is_the_network_with_its_se_gates_removed(name):
+    """``squeeze=False`` builds the same network minus every squeeze-and-excitation: with the shared weights copied
+    and each SE of the full network replaced by the identity, the two give the same logits."""
+    torch.manual_seed(0)
+    full = build_model(name, in_channels=1, num_classes=4, width=8).double().eval()
+    lean = build_model(name, in_channels=1, num_classes=4, width=8, squeeze=False).double().eval()
+    assert not any(isinstance(m, SqueezeExcitation) for m in lean.modules())
+    missing, unexpected = lean.load_state_dict(full.state_dict(), strict=False)
+    assert not missing and unexpected and all(".squeeze." in key for key in unexpected)
+    se_parameters = sum(p.numel() for m in full.modules() if isinstance(m, SqueezeExcitation) for p in m.parameters())
+    assert count_parameters(lean) == count_parameters(full) - se_parameters > 0
+    for module in full.modules():
+        if isinstance(module, SeparableBlock):
+            module.squeeze = torch.nn.Identity()
+    image = torch.rand(2, 1, 40, 56, dtype=torch.float64)
+    torch.testing.assert_close(lean(image), full(image), rtol=0, atol=0)
+
+
+def test_module_network_from_config_takes_every_model_key():
+    config = load_config(None, ["model.width=8", "model.context=pyramid", "model.squeeze=false",
+                                "model.channels_last=false", "model.num_classes=5"])
+    network = network_from_config(config.model, in_channels=1, num_classes=11, tile=2)
+    expected = DSUNet(in_channels=1, num_classes=5, width=8, context="pyramid", squeeze=False)
+    assert [name for name, _ in network.named_parameters()] == [name for name, _ in expected.named_parameters()]
+    assert network.memory_format == torch.contiguous_format and network.head.out_channels == 5

@@ -28,7 +28,7 @@ from warpsense.camera.camera import set_finite_check
 from warpsense.config import load_config
 from warpsense.data import build_dataset
 from warpsense.data.on_device import DecodedDataset
-from warpsense.models import build_model, count_parameters
+from warpsense.models import count_parameters, network_from_config
 from warpsense.system import SensingModel, load_system
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.engine import build_train_batches, train
@@ -70,9 +70,7 @@ def baseline_curve(config, device: torch.device) -> tuple[list[dict], dict]:
     context = DistributedContext(device=device)
     batches = build_train_batches(config, train_set, context, progress=False)
     steps = min(len(batches), config.train.max_steps_per_epoch or len(batches))
-    network = build_model(config.model.name, in_channels=1, num_classes=len(train_set.classes),
-                          width=config.model.width, tile=2, channels_last=config.model.channels_last,
-                          context=config.model.context)
+    network = network_from_config(config.model, 1, len(train_set.classes), tile=2)
     model = SensingModel(BaselineCamera(), network).to(device).train()
     set_finite_check(model, False)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.train.lr, weight_decay=config.train.weight_decay)

@@ -15,8 +15,18 @@ def build_model(name: str, **kwargs):
     return MODELS[name](**kwargs)
 
 
+def network_from_config(model_config, in_channels: int, num_classes: int, tile: int):
+    """The network a config's ``[model]`` section describes (every key that shapes it), for ``in_channels`` inputs
+    and ``num_classes`` outputs (``model.num_classes`` wins when set); the one place a config becomes a network, so
+    every caller builds the same one."""
+    return build_model(model_config.name, in_channels=in_channels,
+                       num_classes=model_config.num_classes or num_classes, width=model_config.width, tile=tile,
+                       channels_last=model_config.channels_last, context=model_config.context,
+                       squeeze=model_config.squeeze)
+
+
 def count_parameters(model) -> int:
     return sum(p.numel() for p in model.parameters())
 
 
-__all__ = ["DSUNet", "PackUNet", "MODELS", "build_model", "count_parameters"]
+__all__ = ["DSUNet", "PackUNet", "MODELS", "build_model", "count_parameters", "network_from_config"]

@@ -45,11 +45,11 @@ class PackUNet(DSUNet):
     width=22 gives 0.45M parameters for 11 classes (budget 0.5M; width=24 gives 0.54M). ``tile`` is accepted for the registry's common
     signature: the packing is 2 x 2 whatever the CFA tile (the detail path sees larger tiles whole). The padding,
     the 1/4-1/16 stages' order, the ``context`` module at 1/16 and the decoder's upsampling and skips are
-    `DSUNet`'s (`encode_high` differs).
+    `DSUNet`'s (`encode_high` differs), and so is ``squeeze`` (False: the separable blocks without SE).
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 22, tile: int = 2,
-                 channels_last: bool = True, context: str = "none"):
+                 channels_last: bool = True, context: str = "none", squeeze: bool = True):
         nn.Module.__init__(self)  # its own layers: DSUNet's constructor would build the separable ones
         del tile
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
@@ -58,12 +58,12 @@ class PackUNet(DSUNet):
         self.down = ConvBlock(w, 2 * w, stride=2)
         self.join = ConvBlock(2 * w + 4 * in_channels, 2 * w)
         self.enc2 = ConvBlock(2 * w, 2 * w)
-        self.enc3 = nn.Sequential(ConvBlock(2 * w, 4 * w, stride=2), SeparableBlock(4 * w, 4 * w))
-        self.enc4 = Stage(4 * w, 6 * w, 3, 2)
-        self.enc5 = Stage(6 * w, 8 * w, 3, 2)
+        self.enc3 = nn.Sequential(ConvBlock(2 * w, 4 * w, stride=2), SeparableBlock(4 * w, 4 * w, squeeze=squeeze))
+        self.enc4 = Stage(4 * w, 6 * w, 3, 2, squeeze)
+        self.enc5 = Stage(6 * w, 8 * w, 3, 2, squeeze)
         self.context = build_context(context, 8 * w)
-        self.dec4 = Stage(8 * w + 6 * w, 6 * w, 1, 1)
-        self.dec3 = Stage(6 * w + 4 * w, 4 * w, 1, 1)
+        self.dec4 = Stage(8 * w + 6 * w, 6 * w, 1, 1, squeeze)
+        self.dec3 = Stage(6 * w + 4 * w, 4 * w, 1, 1, squeeze)
         self.dec2 = ConvBlock(4 * w + 2 * w, 2 * w)
         self.dec1 = ConvBlock(2 * w + w, w)
         self.head = nn.Conv2d(w, num_classes, 1)

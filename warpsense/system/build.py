@@ -10,7 +10,7 @@ from warpsense.camera import Camera
 from warpsense.camera.camera import STAGES
 from warpsense.camera.isp import FixedISP
 from warpsense.config import ConfigError, config_from_dict
-from warpsense.models import build_model
+from warpsense.models import network_from_config
 from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore
 from warpsense.system.model import SensingModel
 
@@ -43,9 +43,7 @@ def build_system(config, num_classes: int) -> SensingModel:
             raise ValueError("isp.enabled needs a CFA (cfa.enabled = true)")
         isp = FixedISP(letters, config.isp.gamma)
     srgb = config.model.input == "srgb"
-    network = build_model(config.model.name, in_channels=3 if isp is not None or srgb else 1,
-                          num_classes=config.model.num_classes or num_classes, width=config.model.width,
-                          tile=camera.tile, channels_last=config.model.channels_last, context=config.model.context)
+    network = network_from_config(config.model, 3 if isp is not None or srgb else 1, num_classes, camera.tile)
     return SensingModel(camera, network, isp, unprocess_input=config.data.unprocess, srgb_input=srgb)
 
 
