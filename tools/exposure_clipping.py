@@ -25,28 +25,28 @@ from warpsense.system import build_system
 
 
 def clipped_shares(preset: str, data_root: str, split: str, gains: list[float], limit: int = 0) -> list[dict]:
-    """Per gain: the clipped share of all labelled pixels and of each class's, in [0, 1]."""
-    records = []
-    for gain in gains:
-        config = load_config(preset, [f"data.root={data_root}", "optics.enabled=false", "noise.enabled=false",
-                                      "quantize.enabled=false", f"exposure.gain_logit={exposure_logit(gain)}",
-                                      "train.cuda_graph=false"])
-        dataset = build_dataset(config.data, split, train=False, seed=0)
-        model = build_system(config, len(dataset.classes)).eval()
-        classes = len(dataset.classes)
-        clipped, total = np.zeros(classes), np.zeros(classes)
-        with torch.no_grad():
-            for index in range(min(limit or len(dataset), len(dataset))):
-                image, label = dataset[index][:2]
-                raw = model.camera(model.radiance(image[None]), torch.tensor([index]))[0, 0].numpy()
-                label = label.numpy()
-                known = label < classes  # the void label is left out
-                total += np.bincount(label[known], minlength=classes)
-                clipped += np.bincount(label[known & (raw >= 1.0)], minlength=classes)
-        records.append({"gain": gain, "all": float(clipped.sum() / total.sum()),
-                        "classes": {name: float(clipped[c] / total[c]) if total[c] else None
-                                    for c, name in enumerate(dataset.classes)}})
-    return records
+    """Per gain: the clipped share of all labelled pixels and of each class's, in [0, 1]. Each frame is read once
+    and seen by the camera at every gain."""
+    configs = [load_config(preset, [f"data.root={data_root}", "optics.enabled=false", "noise.enabled=false",
+                                     "quantize.enabled=false", f"exposure.gain_logit={exposure_logit(gain)}",
+                                     "train.cuda_graph=false"]) for gain in gains]
+    dataset = build_dataset(configs[0].data, split, train=False, seed=0)
+    classes = len(dataset.classes)
+    models = [build_system(config, classes).eval() for config in configs]
+    clipped, total = np.zeros((len(gains), classes)), np.zeros(classes)
+    with torch.no_grad():
+        for index in range(min(limit or len(dataset), len(dataset))):
+            image, label = dataset[index][:2]
+            label = label.numpy()
+            known = label < classes  # the void label is left out
+            total += np.bincount(label[known], minlength=classes)
+            radiance = models[0].radiance(image[None])  # the same for every gain: only the exposure differs
+            for row, model in enumerate(models):
+                raw = model.camera(radiance, torch.tensor([index]))[0, 0].numpy()
+                clipped[row] += np.bincount(label[known & (raw >= 1.0)], minlength=classes)
+    return [{"gain": gain, "all": float(shares.sum() / total.sum()),
+             "classes": {name: float(shares[c] / total[c]) if total[c] else None for c, name in enumerate(dataset.classes)}}
+            for gain, shares in zip(gains, clipped)]
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -78,6 +78,14 @@ def test_extend_trains_more_epochs_of_a_finished_run_and_keeps_the_old_config(tm
         assert message in err and len(err.strip().splitlines()) == 1
 
 
+def test_metrics_up_to_an_epoch_or_all_and_a_torn_last_line_dropped(tmp_path):
+    path = tmp_path / "metrics.jsonl"
+    path.write_text('{"epoch": 0}\n{"epoch": 1}\n\n{"epoch": 2}\n{"epo')
+    assert [r["epoch"] for r in read_metrics(path, 1)] == [0, 1]
+    assert [r["epoch"] for r in read_metrics(path)] == [0, 1, 2]
+    assert read_metrics(tmp_path / "none.jsonl") == []
+
+
 def test_torn_metrics_line_in_the_middle_is_an_error(tmp_path):
     path = tmp_path / "metrics.jsonl"
     path.write_text('{"epoch": 0}\n{"epo\n{"epoch": 1}\n')

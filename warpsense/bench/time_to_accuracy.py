@@ -29,11 +29,11 @@ from warpsense.config import load_config
 from warpsense.data import build_dataset
 from warpsense.data.on_device import DecodedDataset
 from warpsense.models import count_parameters, network_from_config
-from warpsense.system import SensingModel, load_system
+from warpsense.system import SensingModel
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.engine import build_train_batches, train
 from warpsense.train.evaluate import evaluate
-from warpsense.train.run_dir import LAST, METRICS
+from warpsense.train.run_dir import METRICS, read_metrics
 from warpsense.train.step import TrainingStep
 
 LEVELS = (0.5, 0.6, 0.65)
@@ -99,11 +99,10 @@ def baseline_curve(config, device: torch.device) -> tuple[list[dict], dict]:
 def recipe_curve(config) -> tuple[list[dict], dict]:
     """Train the recipe with `warpsense train`'s engine; its validation curve and start times from the run's
     metrics."""
-    run = train(config, progress=False)
-    records = [json.loads(line) for line in (run / METRICS).read_text().splitlines()]
-    network = load_system(run / LAST, "cpu")[0].network
+    run, model = train(config, progress=False, return_model=True)
+    records = read_metrics(run / METRICS)
     start = {"setup_s": records[0]["setup_s"], "first_epoch_s": records[0]["epoch_time_s"],
-             "network_parameters": count_parameters(network)}
+             "network_parameters": count_parameters(model.network)}
     return [{"epoch": r["epoch"], "wall_s": r["wall_s"], "val_miou": r["val_miou"]} for r in records
             if "val_miou" in r], start
 

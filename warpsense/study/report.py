@@ -13,7 +13,7 @@ import numpy as np
 from warpsense.study.plan import Plan, PlanError
 from warpsense.study.runner import PLAN_RECORD, THROUGHPUT, evaluation_path, throughput_line
 from warpsense.study.statistics import LEVEL, bootstrap_difference, distinguishable, paired_difference, t_interval
-from warpsense.train.run_dir import METRICS
+from warpsense.train.run_dir import METRICS, read_metrics
 
 NOT_DISTINGUISHABLE = "not distinguishable"
 
@@ -56,13 +56,8 @@ def run_seconds(metrics_path: Path) -> float | None:
     """A run's wall seconds from its ``metrics.jsonl``: each process's ``wall_s`` at its last epoch (setup,
     training and evaluation), summed over the processes of a resumed run (a record with ``setup_s`` starts one); None
     without records. The work an interrupted process did after its last epoch is not counted."""
-    if not metrics_path.is_file():
-        return None
     total, last = 0.0, None
-    for line in metrics_path.read_text().splitlines():
-        if not line.strip():
-            continue
-        record = json.loads(line)
+    for record in read_metrics(metrics_path):
         if "setup_s" in record and last is not None:
             total += last
         last = record.get("wall_s", last)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import matplotlib
@@ -13,7 +12,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from warpsense.data.labels import colorize  # noqa: E402
-from warpsense.train.run_dir import METRICS  # noqa: E402
+from warpsense.train.run_dir import METRICS, read_metrics  # noqa: E402
 
 
 def plot_curves(records: list[dict], path: Path) -> None:
@@ -156,7 +155,7 @@ def plot_sweep(rows: list[dict], path: str | Path, title: str = "") -> None:
 
 
 def write_run_plots(run_dir: Path, model, val_set, device) -> None:
-    records = [json.loads(line) for line in (run_dir / METRICS).read_text().splitlines() if line.strip()]
+    records = read_metrics(run_dir / METRICS)
     if records:
         plot_curves(records, run_dir / "curves.png")
         plot_design(records, run_dir / "design.png")

@@ -82,9 +82,9 @@ def resumed_config(run_dir: Path, requested: Config | None, allow_change: bool =
     return requested
 
 
-def read_metrics(path: Path, up_to_epoch: int) -> list[dict]:
-    """The records of metrics.jsonl up to ``up_to_epoch``; a torn (unparsable) last line, left by a kill while it was
-    written, is dropped. A torn line elsewhere is an error naming the file and line."""
+def read_metrics(path: Path, up_to_epoch: int | None = None) -> list[dict]:
+    """The records of metrics.jsonl up to ``up_to_epoch`` (None: all of them); a torn (unparsable) last line, left by
+    a kill while it was written, is dropped. A torn line elsewhere is an error naming the file and line."""
     if not path.exists():
         return []
     lines = [line for line in path.read_text().splitlines() if line.strip()]
@@ -96,6 +96,8 @@ def read_metrics(path: Path, up_to_epoch: int) -> list[dict]:
             if number == len(lines):
                 break
             raise ValueError(f"{path}:{number}: not a JSON record") from None
+    if up_to_epoch is None:
+        return [r for r in records if isinstance(r, dict)]
     return [r for r in records if isinstance(r, dict) and r.get("epoch", up_to_epoch + 1) <= up_to_epoch]
 
 
