@@ -25,7 +25,8 @@ def test_config_choices_are_the_shared_tuples():
         "run.device": choices.DEVICES, "data.dataset": choices.DATASETS, "data.on_device": choices.ON_DEVICE_MODES,
         "optics.method": choices.PSF_METHODS, "optics.render_precision": choices.RENDER_PRECISIONS, "cfa.pattern": tuple(choices.CFA_LAYOUTS),
         "cfa.mode": choices.CFA_MODES, "quantize.mode": choices.QUANTIZE_MODES, "train.compile": choices.COMPILE_MODES,
-        "model.name": choices.MODEL_NAMES, "model.context": choices.MODEL_CONTEXTS, "model.input": choices.MODEL_INPUTS, "photons.light": tuple(choices.LIGHT_LEVELS),
+        "model.name": choices.MODEL_NAMES, "model.context": choices.MODEL_CONTEXTS, "model.input": choices.MODEL_INPUTS,
+        "loss.distill_mode": choices.DISTILL_MODES, "photons.light": tuple(choices.LIGHT_LEVELS),
     }
 
 
@@ -37,6 +38,9 @@ def test_registries_implement_exactly_the_named_choices():
     from warpsense.models.dsunet import CONTEXTS
 
     assert set(CONTEXTS) == set(choices.MODEL_CONTEXTS)
+    from warpsense.train.losses import DISTILLATION
+
+    assert set(DISTILLATION) == set(choices.DISTILL_MODES)
     for pattern in choices.CFA_LAYOUTS:
         assert len(layout_letters(pattern, 2)) == 2
     for mode in choices.CFA_MODES:

@@ -21,6 +21,7 @@ from warpsense.choices import (
     COMPILE_MODES,
     DATASETS,
     DEVICES,
+    DISTILL_MODES,
     LIGHT_LEVELS,
     MODEL_CONTEXTS,
     MODEL_INPUTS,
@@ -191,6 +192,7 @@ class LossConfig:
     teacher: str = ""
     distill_weight: float = _field(0.0, minimum=0)
     distill_temperature: float = _field(1.0, minimum=0, exclusive=True)
+    distill_mode: str = _field("pixel", choices=DISTILL_MODES)
 
 
 @dataclass

@@ -331,7 +331,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         teacher = load_teacher(config.loss.teacher, num_classes, device)
         if context.is_main:
             print(f"distilling {config.loss.teacher} ({count_parameters(teacher.network):,} parameters), weight "
-                  f"{config.loss.distill_weight}, T = {config.loss.distill_temperature}")
+                  f"{config.loss.distill_weight}, T = {config.loss.distill_temperature}, {config.loss.distill_mode}-wise")
     class_weights = None
     if config.loss.class_balance > 0:
         class_weights = class_balance_weights(_label_counts(loader, datasets.train, num_classes, device),

@@ -104,19 +104,54 @@ def edge_aware_smoothness(logits: torch.Tensor, guide: torch.Tensor, sigma: floa
     return 0.5 * ((wx * dx_p).mean() + (wy * dy_p).mean())
 
 
-def distillation_loss(student: torch.Tensor, teacher: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
+def pixel_distillation(student: torch.Tensor, teacher: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
     """Pixel-wise knowledge distillation (Hinton et al. 2015; per pixel as in Liu et al., CVPR 2019): the mean over
-    pixels of T^2 KL(softmax(teacher / T) || softmax(student / T)). The T^2 keeps its gradients' scale independent
-    of T. Every pixel counts, labelled or not: the teacher has an answer for void pixels too.
+    pixels of T^2 KL(softmax(teacher / T) || softmax(student / T)), the softmax over the classes. The T^2 keeps its
+    gradients' scale independent of T. Every pixel counts, labelled or not: the teacher has an answer for void
+    pixels too.
 
     Args:
         student: [B, K, H, W] logits being trained; teacher: [B, K, H, W] logits (no gradient flows into them).
         temperature: T > 0.
     """
-    log_student = torch.log_softmax(student.float() / temperature, dim=1)
-    log_teacher = torch.log_softmax(teacher.detach().float() / temperature, dim=1)
-    kl = (log_teacher.exp() * (log_teacher - log_student)).sum(dim=1)
-    return temperature**2 * kl.mean()
+    return _kl_over(student, teacher, temperature, dim=1).mean()
+
+
+def channel_distillation(student: torch.Tensor, teacher: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
+    """Channel-wise knowledge distillation (Shu, Liu, Gao, Yan, Shen, ICCV 2021): each class's logit map becomes a
+    distribution over the image's pixels, softmax(map / T), and the student's matches the teacher's: the mean over
+    images and classes of T^2 KL(teacher || student). Where pixel-wise distillation weighs every pixel alike, this
+    one attends to the pixels where each class's evidence is strongest, so a small object counts as much for its
+    class as a large region. OpenMMLab's mmrazor reproduces it on Cityscapes logits with T = 1 and weight 5
+    (PSPNet-R18 student 74.87 -> 75.54 mIoU).
+
+    Args:
+        student: [B, K, H, W] logits being trained; teacher: [B, K, H, W] logits (no gradient flows into them).
+        temperature: T > 0.
+    """
+    return _kl_over(student.flatten(2), teacher.flatten(2), temperature, dim=2).mean()
+
+
+def _kl_over(student: torch.Tensor, teacher: torch.Tensor, temperature: float, dim: int) -> torch.Tensor:
+    """T^2 KL(softmax(teacher / T) || softmax(student / T)) with both softmaxes along ``dim`` (float32 or wider)."""
+    dtype = torch.promote_types(student.dtype, torch.float32)
+    log_student = torch.log_softmax(student.to(dtype) / temperature, dim=dim)
+    log_teacher = torch.log_softmax(teacher.detach().to(dtype) / temperature, dim=dim)
+    return temperature**2 * (log_teacher.exp() * (log_teacher - log_student)).sum(dim=dim)
+
+
+DISTILLATION = {"pixel": pixel_distillation, "channel": channel_distillation}
+"""The distillation terms by `loss.distill_mode` (names: `warpsense.choices.DISTILL_MODES`)."""
+
+
+def distillation_loss(student: torch.Tensor, teacher: torch.Tensor, temperature: float = 1.0,
+                      mode: str = "pixel") -> torch.Tensor:
+    """The distillation term of ``mode`` (`DISTILLATION`): ``student`` and ``teacher`` logits [B, K, H, W]."""
+    try:
+        term = DISTILLATION[mode]
+    except KeyError:
+        raise KeyError(f"unknown distillation mode {mode!r}; valid: {', '.join(DISTILLATION)}") from None
+    return term(student, teacher, temperature)
 
 
 def segmentation_loss(logits, target, guide, loss_config,

@@ -94,7 +94,8 @@ class TrainingStep:
         if self.teacher is not None:
             with torch.no_grad():
                 teacher_logits, _ = self.teacher(images, self.amp)
-            parts["distill"] = distillation_loss(logits, teacher_logits, self.loss_config.distill_temperature)
+            parts["distill"] = distillation_loss(logits, teacher_logits, self.loss_config.distill_temperature,
+                                                 self.loss_config.distill_mode)
             loss = loss + self.loss_config.distill_weight * parts["distill"].to(loss.dtype)
             parts["distill"] = parts["distill"].detach()
         return loss, parts
