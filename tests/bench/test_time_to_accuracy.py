@@ -32,6 +32,7 @@ def test_quick_cpu_suite_on_camvid(shared_data, tmp_path, capsys):
         assert 0 < record["setup_s"] < record["setup_s"] + record["first_epoch_s"] < curve[0]["wall_s"]
         assert 0 <= record["final_val_miou"] == curve[-1]["val_miou"] <= 1
         assert set(record["time_to"]) == {f"{level:.2f}" for level in LEVELS}
+    assert records[0]["capture_s"] == 0  # a CPU run captures no CUDA graph
     # the same network for both methods: the config's (the camvid presets' pyramid context included)
     assert records[0]["network_parameters"] == records[1]["network_parameters"] > 0
     baseline = records[1]

@@ -187,6 +187,8 @@ def test_cuda_graph_steps_match_eager_steps(recipe_extras):
                 step(model, images, labels, index, joint)
                 if index in (5, 11):
                     statistics.append(step.epoch_statistics(DistributedContext()))
+            # two phases captured (or none): their host time is reported once, then reset
+            assert (step.take_capture_seconds() > 0) == cuda_graph and step.take_capture_seconds() == 0
             averages = [tensor.clone() for tensor in ema.shadow] if ema is not None else []
             results.append(([p.detach().clone() for p in model.parameters()] + averages, statistics))
         (eager, eager_statistics), (graphed, graphed_statistics) = results

@@ -303,3 +303,17 @@ def test_deterministic_runs_repeat_bitwise_on_cuda(tmp_path):
     assert losses[0] == losses[1]
     for name in states[0]:
         assert torch.equal(states[0][name], states[1][name]), name
+
+
+@pytest.mark.cuda
+def test_captured_runs_report_their_capture_time_per_phase(tmp_path):
+    """With train.cuda_graph each phase's first epoch captures the step: its record carries capture_s (host
+    seconds, part of epoch_time_s); an epoch that replays does not."""
+    config = load_config(None, TINY + ["train.epochs=3", "train.warmup_epochs=1", f"run.output_dir={tmp_path}",
+                                       "run.device=cuda", "train.cuda_graph=true", "train.max_steps_per_epoch=4"])
+    run = train(config, progress=False)
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["phase"] for r in records] == ["warmup", "joint", "joint"]
+    for record in records[:2]:
+        assert 0 < record["capture_s"] < record["epoch_time_s"]
+    assert "capture_s" not in records[2]

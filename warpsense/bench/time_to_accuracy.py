@@ -9,8 +9,8 @@ against the plain-torch baseline of the train suite, in one run on one device.
 
 Records: one per method with its curve (epoch, wall_s, val mIoU), its final val, the time to each level in
 ``LEVELS`` (None if never reached), the time to the baseline's final val, and where the start went: ``setup_s``
-(until the first step) and ``first_epoch_s`` (the first epoch, with any compile or graph capture), and
-``network_parameters`` (equal for both: the same network). ``--quick``
+(until the first step), ``first_epoch_s`` (the first epoch, with any compile or graph capture) and, for the
+recipe, ``capture_s`` (its CUDA graph captures, both phases), and ``network_parameters`` (equal for both: the same network). ``--quick``
 trains 2 epochs on 8 images at a small crop (CI time on a CPU).
 """
 
@@ -102,6 +102,7 @@ def recipe_curve(config) -> tuple[list[dict], dict]:
     run, model = train(config, progress=False, return_model=True)
     records = read_metrics(run / METRICS)
     start = {"setup_s": records[0]["setup_s"], "first_epoch_s": records[0]["epoch_time_s"],
+             "capture_s": sum(r.get("capture_s", 0.0) for r in records),  # CUDA graphs, both phases
              "network_parameters": count_parameters(model.network)}
     return [{"epoch": r["epoch"], "wall_s": r["wall_s"], "val_miou": r["val_miou"]} for r in records
             if "val_miou" in r], start

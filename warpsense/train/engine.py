@@ -371,6 +371,9 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             "images_per_s": steps_per_epoch * config.data.batch_size / elapsed, "epoch_time_s": elapsed,
             **(setup if epoch == start_epoch else {}),
         }
+        capture_s = training_step.take_capture_seconds()
+        if capture_s:
+            record["capture_s"] = capture_s  # of this epoch's time: the CUDA graph capture of a new phase
         if (epoch + 1) % config.train.eval_every == 0 or epoch == schedule.epochs - 1:
             with averaged(ema):
                 record.update(_validate(model, datasets, config, context, amp, progress))

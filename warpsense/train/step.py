@@ -5,6 +5,7 @@ CUDA the whole step can be captured once per phase as a CUDA graph and replayed.
 from __future__ import annotations
 
 import math
+import time
 
 import torch
 
@@ -79,6 +80,7 @@ class TrainingStep:
         self.cuda_graph = cuda_graph
         # the phase and batch shape being captured, eager steps run for it so far, and its graph once recorded
         self._capture_key, self._eager_count, self._captured = None, 0, None
+        self._capture_seconds = 0.0
         if cuda_graph:
             device = optimizer.param_groups[0]["params"][0].device
             if device.type != "cuda":
@@ -174,13 +176,22 @@ class TrainingStep:
         self.optimizer.zero_grad(set_to_none=True)  # gradients are then allocated (and overwritten) by the graph
         graph = torch.cuda.CUDAGraph()
         torch.cuda.synchronize()
+        started = time.perf_counter()
         try:
             with torch.cuda.graph(graph):
                 self._forward_backward_update(model, static_images, static_labels, joint)
         except RuntimeError as error:  # a host read or synchronisation inside the step: name it, not the CUDA code
             raise RuntimeError(f"train.cuda_graph: the training step could not be captured ({first_line(error)}); "
                                "run with train.cuda_graph=false") from error
+        torch.cuda.synchronize()
+        self._capture_seconds += time.perf_counter() - started
         return _CapturedStep(graph, static_images, static_labels)
+
+    def take_capture_seconds(self) -> float:
+        """Host seconds spent capturing CUDA graphs since the last call (0 without train.cuda_graph): part of the
+        first epoch of each phase, reported apart so that a run's start-up time can be attributed."""
+        seconds, self._capture_seconds = self._capture_seconds, 0.0
+        return seconds
 
     @property
     def totals(self) -> dict[str, torch.Tensor]:
