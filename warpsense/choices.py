@@ -58,6 +58,10 @@ DISTILL_MODES = ("pixel", "channel")
 """How a student's logits match its teacher's (`warpsense.train.losses.DISTILLATION`): per pixel over the classes
 (Hinton et al. 2015), or per class over the image's pixels (channel-wise, Shu et al., ICCV 2021)."""
 
+MODEL_INPUT_TRANSFORMS = ("linear", "anscombe")
+"""What the network does to its input first (`warpsense.models.dsunet.INPUT_TRANSFORMS`): nothing, or the generalised
+Anscombe transform, which makes Poisson-Gaussian noise about equally strong at every signal level."""
+
 MODEL_CONTEXTS = ("none", "pyramid")
 """Context modules at the networks' 1/16 bottleneck (`warpsense.models.dsunet.CONTEXTS`)."""
 

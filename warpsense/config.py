@@ -24,6 +24,7 @@ from warpsense.choices import (
     DISTILL_MODES,
     LIGHT_LEVELS,
     MODEL_CONTEXTS,
+    MODEL_INPUT_TRANSFORMS,
     MODEL_INPUTS,
     MODEL_NAMES,
     ON_DEVICE_MODES,
@@ -180,6 +181,8 @@ class ModelConfig:
     num_classes: int = _field(0, minimum=0, maximum=1024)
     channels_last: bool = True
     input: str = _field("sensor", choices=MODEL_INPUTS)
+    input_transform: str = _field("linear", choices=MODEL_INPUT_TRANSFORMS)
+    anscombe_offset: float = _field(0.0059, minimum=0, exclusive=True)
 
 
 @dataclass

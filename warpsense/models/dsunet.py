@@ -74,6 +74,35 @@ CONTEXTS = {"none": lambda channels: nn.Identity(), "pyramid": PyramidPooling}
 """Bottleneck context modules (`warpsense.choices.MODEL_CONTEXTS`): name -> constructor taking the channels."""
 
 
+class Anscombe(nn.Module):
+    """The generalised Anscombe transform (Anscombe 1948; Starck, Murtagh and Bijaoui 1998) up to an affine map,
+    which the first convolution and its batch norm absorb: sqrt(max(x, 0) + offset). For a signal x with
+    Poisson-Gaussian noise of variance a x + s^2, offset = 3/8 a + s^2 / a makes the noise's standard deviation about
+    sqrt(a) / 2 at every level, so the network sees noise of one strength in the shadows and the highlights.
+    No parameters or buffers: a checkpoint's tensors are the same with and without it."""
+
+    def __init__(self, offset: float):
+        super().__init__()
+        self.offset = float(offset)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.sqrt(x.clamp_min(0) + self.offset)
+
+    def extra_repr(self) -> str:
+        return f"offset={self.offset}"
+
+
+INPUT_TRANSFORMS = {"linear": lambda offset: nn.Identity(), "anscombe": Anscombe}
+"""Input transforms (`warpsense.choices.MODEL_INPUT_TRANSFORMS`): name -> constructor taking the offset."""
+
+
+def build_input_transform(name: str, offset: float) -> nn.Module:
+    """The input transform ``name``; unknown names raise a KeyError listing the valid ones."""
+    if name not in INPUT_TRANSFORMS:
+        raise KeyError(f"unknown input transform {name!r}; valid: {', '.join(sorted(INPUT_TRANSFORMS))}")
+    return INPUT_TRANSFORMS[name](offset)
+
+
 def build_context(name: str, channels: int) -> nn.Module:
     """The context module ``name`` for a [B, channels, h, w] bottleneck; unknown names raise a KeyError listing
     the valid ones."""
@@ -99,7 +128,8 @@ class DSUNet(nn.Module):
     resolution. width=16 gives 0.18M parameters, width=24 0.40M (0.455M with the camvid presets' context).
     ``context`` adds a module at 1/16 (`CONTEXTS`; "pyramid": +56k parameters at width 24); "none" adds nothing.
     ``squeeze`` = False leaves out every block's squeeze-and-excitation (-117k parameters at width 24): a speed
-    candidate, since each SE adds a global pooling and a multiply over its block's output.
+    candidate, since each SE adds a global pooling and a multiply over its block's output. ``input_transform``
+    (`INPUT_TRANSFORMS`, with ``anscombe_offset``) is applied to the input first; "linear" leaves it as it is.
 
     ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 it doubles the training speed (batch
     norm and depthwise convolutions have fast NHWC kernels; their NCHW bf16 backward is slow). The output is the
@@ -108,9 +138,11 @@ class DSUNet(nn.Module):
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 16, tile: int = 2,
-                 channels_last: bool = False, context: str = "none", squeeze: bool = True):
+                 channels_last: bool = False, context: str = "none", squeeze: bool = True,
+                 input_transform: str = "linear", anscombe_offset: float = 0.0059):
         super().__init__()
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
+        self.input_transform = build_input_transform(input_transform, anscombe_offset)
         w = width
         self.tile = tile if in_channels == 1 and tile > 1 else 0
         self.stem = nn.Sequential(nn.Conv2d(in_channels, w, 3, 1, 1, bias=False), nn.BatchNorm2d(w), nn.ReLU(inplace=True))
@@ -142,7 +174,7 @@ class DSUNet(nn.Module):
         pad_h, pad_w = (-height) % 16, (-width) % 16
         if pad_h or pad_w:
             raw = F.pad(raw, (0, pad_w, 0, pad_h), mode="replicate")
-        raw = raw.contiguous(memory_format=self.memory_format)
+        raw = self.input_transform(raw.contiguous(memory_format=self.memory_format))
         s1, s2 = self.encode_high(raw)
         s3 = self.enc3(s2)
         s4 = self.enc4(s3)

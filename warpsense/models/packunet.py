@@ -8,7 +8,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from warpsense.models.dsunet import DSUNet, SeparableBlock, Stage, build_context
+from warpsense.models.dsunet import DSUNet, SeparableBlock, Stage, build_context, build_input_transform
 
 
 class ConvBlock(nn.Module):
@@ -45,14 +45,17 @@ class PackUNet(DSUNet):
     width=22 gives 0.45M parameters for 11 classes (budget 0.5M; width=24 gives 0.54M). ``tile`` is accepted for the registry's common
     signature: the packing is 2 x 2 whatever the CFA tile (the detail path sees larger tiles whole). The padding,
     the 1/4-1/16 stages' order, the ``context`` module at 1/16 and the decoder's upsampling and skips are
-    `DSUNet`'s (`encode_high` differs), and so is ``squeeze`` (False: the separable blocks without SE).
+    `DSUNet`'s (`encode_high` differs), and so are ``squeeze`` (False: the separable blocks without SE) and the
+    ``input_transform``.
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 22, tile: int = 2,
-                 channels_last: bool = True, context: str = "none", squeeze: bool = True):
+                 channels_last: bool = True, context: str = "none", squeeze: bool = True,
+                 input_transform: str = "linear", anscombe_offset: float = 0.0059):
         nn.Module.__init__(self)  # its own layers: DSUNet's constructor would build the separable ones
         del tile
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
+        self.input_transform = build_input_transform(input_transform, anscombe_offset)
         w = width
         self.detail = ConvBlock(in_channels, w)
         self.down = ConvBlock(w, 2 * w, stride=2)
