@@ -8,9 +8,9 @@ against the plain-torch baseline of the train suite, in one run on one device.
   trained by a plain eager loop (no compile, no CUDA graph), as a user's script would be.
 
 Records: one per method with its curve (epoch, wall_s, val mIoU), its final val, the time to each level in
-``LEVELS`` (None if never reached), the time to the baseline's final val, and where the start went: ``setup_s``
-(until the first step), ``first_epoch_s`` (the first epoch, with any compile or graph capture) and, for the
-recipe, ``capture_s`` (its CUDA graph captures, both phases), and ``network_parameters`` (equal for both: the same network). ``--quick``
+``LEVELS`` (None if never reached), the time to the baseline's final val, where the start went (``setup_s``, until
+the first step; ``first_epoch_s``, the first epoch with any compile or graph capture; for the recipe ``capture_s``,
+its CUDA graph captures in both phases) and ``network_parameters`` (equal for both: the same network). ``--quick``
 trains 2 epochs on 8 images at a small crop (CI time on a CPU).
 """
 
