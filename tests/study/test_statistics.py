@@ -35,6 +35,9 @@ def test_paired_difference_by_hand_and_verdict():
     camera = {0: 0.60, 1: 0.70, 2: 0.65, 7: 0.1}  # seed 7 has no partner: left out
     reference = {0: 0.50, 1: 0.65, 2: 0.60}
     result = paired_difference(camera, reference)
+    assert (result["higher"], result["lower"]) == (3, 0)
+    tie = paired_difference({0: 0.5, 1: 0.4, 2: 0.6}, {0: 0.5, 1: 0.5, 2: 0.5})
+    assert (tie["higher"], tie["lower"]) == (1, 1)  # a seed without a difference counts on neither side
     # differences 0.10, 0.05, 0.05: mean 1/15, sd sqrt(1/1200)
     half = T_975_2 * math.sqrt(1 / 1200) / math.sqrt(3)
     assert result["seeds"] == [0, 1, 2]

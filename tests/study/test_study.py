@@ -94,7 +94,14 @@ def test_smoke_study_runs_resumes_skips_failures_and_reports(tmp_path, monkeypat
     assert comparison["camera"] == "rccb" and comparison["reference"] == "rggb"
     assert comparison["paired"]["seeds"] == [0, 1]
     assert comparison["verdict"] in ("better", "worse", "not distinguishable")
+    reference = {seed: json.loads((out / "runs" / f"rggb.night.seed{seed}" / "evaluation.json").read_text())
+                 for seed in (0, 1)}
+    differences = [evaluations[s]["splits"]["val"]["miou"] - reference[s]["splits"]["val"]["miou"] for s in (0, 1)]
+    higher, lower = sum(d > 0 for d in differences), sum(d < 0 for d in differences)
+    assert (comparison["paired"]["higher"], comparison["paired"]["lower"]) == (higher, lower)
     text = render_text(record)  # the console text is rendered from the record
+    side = f", higher on {higher} of 2 seeds" if higher >= lower else f", lower on {lower} of 2 seeds"
+    assert f"{comparison['verdict']}{side}" in text
     assert f"{rccb_group['miou']['mean']:.4f}" in text and "missing: broken/night/0, broken/night/1" in text
     assert f"seeds 0,1  {rccb_group['run_s']:.0f} s/run" in text
     assert "[val] per class, % means over seeds: IoU (precision/recall)" in text and "night/rccb" in text

@@ -31,6 +31,14 @@ def _read_plan(study_dir: Path) -> dict:
         raise PlanError(f"{path}: unreadable: {error}") from None
 
 
+def _sign_count(paired: dict) -> str:
+    """", higher on 2 of 3 seeds" (the side most seeds took; nothing for reports written before the counts)."""
+    if "higher" not in paired:
+        return ""
+    side, count = ("higher", paired["higher"]) if paired["higher"] >= paired["lower"] else ("lower", paired["lower"])
+    return f", {side} on {count} of {len(paired['seeds'])} seeds"
+
+
 def _verdict(paired: dict, bootstrap: dict | None) -> str:
     """"better" / "worse" when the seed-paired interval and the image bootstrap interval both exclude 0 on the
     same side; otherwise not distinguishable."""
@@ -216,7 +224,8 @@ def render_text(record: dict) -> str:
             bootstrap = comparison["bootstrap"]
             boot = f"[{bootstrap['low']:+.4f}, {bootstrap['high']:+.4f}]" if bootstrap else "-"
             lines.append(f"  {comparison['light']:>8s}  {comparison['camera']:<{width}s}  "
-                         f"{_interval(comparison['paired'], signed=True)} | {boot}  {comparison['verdict']}")
+                         f"{_interval(comparison['paired'], signed=True)} | {boot}  {comparison['verdict']}"
+                         f"{_sign_count(comparison['paired'])}")
         lines += _per_class_lines(split, part)
     if record.get("throughput"):
         lines.append("\nthroughput (each `study run`)")

@@ -29,11 +29,14 @@ def t_interval(values, level: float = LEVEL) -> dict:
 
 def paired_difference(values: dict, reference: dict, level: float = LEVEL) -> dict:
     """Mean of ``values[k] - reference[k]`` over the keys (seeds) both have, with its t interval: the paired
-    comparison, which removes what a seed shares between the two runs (initialisation, data order)."""
+    comparison, which removes what a seed shares between the two runs (initialisation, data order). ``higher`` and
+    ``lower`` count the seeds on each side of 0 (a sign count that a wide interval hides)."""
     keys = sorted(set(values) & set(reference))
     if not keys:
         raise ValueError("paired_difference: no common seeds")
-    return {**t_interval([values[k] - reference[k] for k in keys], level), "seeds": keys}
+    differences = [values[k] - reference[k] for k in keys]
+    return {**t_interval(differences, level), "seeds": keys,
+            "higher": sum(d > 0 for d in differences), "lower": sum(d < 0 for d in differences)}
 
 
 def distinguishable(interval: dict) -> bool | None:
