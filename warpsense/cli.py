@@ -44,10 +44,21 @@ def _eval(args) -> int:
     return 0
 
 
+def _seed_list(text: str) -> tuple[int, ...]:
+    """"0,1,2" -> (0, 1, 2); argparse turns the ValueError into a one-line usage error."""
+    try:
+        seeds = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers such as 0,1,2, got {text!r}") from None
+    if len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"seeds must be distinct, got {text!r}")
+    return seeds
+
+
 def _bench(args) -> int:
     from warpsense.commands.bench import run_bench_command
 
-    return run_bench_command(args.device, args.suite, args.quick, args.json, args.plot, args.camvid)
+    return run_bench_command(args.device, args.suite, args.quick, args.json, args.plot, args.camvid, args.seeds)
 
 
 def _convert(args) -> int:
@@ -147,6 +158,9 @@ def build_parser() -> argparse.ArgumentParser:
                             "val mIoU against wall time (time-to-accuracy suite)")
     bench.add_argument("--camvid", metavar="ROOT", help="CamVid folder (with train.txt and val.txt): the accuracy "
                        "suite's real frames (without it that scene is left out); the time-to-accuracy suite's data")
+    bench.add_argument("--seeds", type=_seed_list, default=(0,), metavar="0,1,2",
+                       help="time-to-accuracy: train both methods with each seed and add means with 95%% intervals "
+                            "(default: 0)")
     bench.set_defaults(handler=_bench)
 
     convert = commands.add_parser("convert", help="convert raw captures (DNG, Bayer raws) to RAW tensors",

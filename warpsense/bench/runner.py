@@ -99,14 +99,17 @@ class Bench:
 
 
 def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = None, plot_out: str | None = None,
-              suite: str = "kernels", camvid_root: str | None = None) -> list[dict]:
+              suite: str = "kernels", camvid_root: str | None = None, seeds: tuple[int, ...] = (0,)) -> list[dict]:
     """Run a benchmark suite ("kernels": every op against its reference; "accuracy": error against run time,
     `warpsense.bench.accuracy`, with CamVid frames from ``camvid_root`` when given; "train": training step and
-    latency of the whole system against the plain-torch baseline; "all") and write the JSON / the accuracy plot."""
+    latency of the whole system against the plain-torch baseline; "all"; "time-to-accuracy", for each of ``seeds``)
+    and write the JSON / the accuracy plot."""
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda: no CUDA device available")
     if suite not in BENCH_SUITES:
         raise ValueError(f"--suite must be one of {BENCH_SUITES}, got {suite!r}")
+    if tuple(seeds) != (0,) and suite != "time-to-accuracy":
+        raise ValueError(f"--seeds repeats the time-to-accuracy suite's training runs; the {suite!r} suite has none")
     if plot_out and suite not in ("accuracy", "all", "time-to-accuracy"):
         raise ValueError(f"--plot draws the accuracy suite's error against run time or the time-to-accuracy curves: "
                          f"use --suite accuracy, all or time-to-accuracy, not {suite!r}")
@@ -124,7 +127,7 @@ def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = N
     if suite == "time-to-accuracy":
         from warpsense.bench.time_to_accuracy import plot_time_to_accuracy, run_time_to_accuracy_suite
 
-        records += run_time_to_accuracy_suite(device, quick, camvid_root, metadata)
+        records += run_time_to_accuracy_suite(device, quick, camvid_root, metadata, tuple(seeds))
         if plot_out:
             plot_time_to_accuracy(records, plot_out)
         plot_out = None

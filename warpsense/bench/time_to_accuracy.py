@@ -10,8 +10,10 @@ against the plain-torch baseline of the train suite, in one run on one device.
 Records: one per method with its curve (epoch, wall_s, val mIoU), its final val, the time to each level in
 ``LEVELS`` (None if never reached), the time to the baseline's final val, where the start went (``setup_s``, until
 the first step; ``first_epoch_s``, the first epoch with any compile or graph capture; for the recipe ``capture_s``,
-its CUDA graph captures in both phases) and ``network_parameters`` (equal for both: the same network). ``--quick``
-trains 2 epochs on 8 images at a small crop (CI time on a CPU).
+its CUDA graph captures in both phases) and ``network_parameters`` (equal for both: the same network). With
+several ``--seeds`` every seed trains both methods, and one summary record per method gives the final val, the end
+time and the time to the baseline's final val as means with 95% t intervals, the recipe's also paired by seed against
+the baseline. ``--quick`` trains 2 epochs on 8 images at a small crop (CI time on a CPU).
 """
 
 from __future__ import annotations
@@ -43,11 +45,12 @@ QUICK = ["data.max_train_images=8", "data.max_val_images=4", "data.batch_size=2"
          "data.crop_width=96", "train.epochs=2", "train.warmup_epochs=1", "train.eval_every=1", "model.width=8"]
 
 
-def suite_config(camvid_root: str, device: str, quick: bool, output_dir: str, eval_every: int = 5):
+def suite_config(camvid_root: str, device: str, quick: bool, output_dir: str, eval_every: int = 5, seed: int = 0):
     """The camvid_codesign preset on ``camvid_root`` with the training data on the device, validated every
-    ``eval_every`` epochs (``QUICK``: a tiny run); on a CPU without compile or CUDA graph."""
+    ``eval_every`` epochs, with ``run.seed`` = ``seed`` (``QUICK``: a tiny run); on a CPU without compile or CUDA
+    graph."""
     overrides = [f"data.root={camvid_root}", f"run.output_dir={output_dir}", "train.plots=false",
-                 f"train.eval_every={eval_every}", f"run.device={device}", "data.on_device=always"]
+                 f"train.eval_every={eval_every}", f"run.device={device}", "data.on_device=always", f"run.seed={seed}"]
     if device != "cuda":
         overrides += ["train.compile=off", "train.cuda_graph=false"]
     return load_config("camvid_codesign", overrides + (QUICK if quick else []))
@@ -108,25 +111,40 @@ def recipe_curve(config) -> tuple[list[dict], dict]:
             if "val_miou" in r], start
 
 
-def run_time_to_accuracy_suite(device: str, quick: bool, camvid_root: str | None, metadata: dict) -> list[dict]:
-    """Both methods' records (printed as a table as they finish)."""
+def run_time_to_accuracy_suite(device: str, quick: bool, camvid_root: str | None, metadata: dict,
+                               seeds: tuple[int, ...] = (0,)) -> list[dict]:
+    """Both methods' records for each seed (the recipe, then the baseline, with ``run.seed`` = seed; printed as a
+    table as they finish), and with several seeds one summary record per method (`summarise`)."""
     if not camvid_root:
         raise ValueError("--suite time-to-accuracy needs --camvid ROOT (the CamVid folder with train.txt and val.txt)")
-    with tempfile.TemporaryDirectory(prefix="warpsense-tta-") as output_dir:
-        config = suite_config(camvid_root, device, quick, output_dir)
-        curves, starts = {}, {}
-        for method, trainer in (("warpsense recipe", lambda: recipe_curve(config)),
-                                ("torch_baseline", lambda: baseline_curve(config, torch.device(device)))):
-            curves[method], starts[method] = trainer()
-            # each curve as soon as it exists: a run stopped during the second method keeps the first
-            print(f"time-to-accuracy {method}: " + json.dumps({**starts[method], "curve": curves[method]}), flush=True)
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ValueError(f"--seeds must name distinct seeds, got {list(seeds)}")
+    records = []
+    for seed in seeds:
+        with tempfile.TemporaryDirectory(prefix="warpsense-tta-") as output_dir:
+            config = suite_config(camvid_root, device, quick, output_dir, seed=seed)
+            curves, starts = {}, {}
+            for method, trainer in (("warpsense recipe", recipe_curve),
+                                    ("torch_baseline", lambda c: baseline_curve(c, torch.device(device)))):
+                curves[method], starts[method] = trainer(config)
+                # each curve as soon as it exists: a run stopped during the second method keeps the first
+                print(f"time-to-accuracy {method} seed {seed}: " + json.dumps({**starts[method], "curve": curves[method]}),
+                      flush=True)
+        records += _seed_records(curves, starts, config, device, metadata, seed)
+    if len(seeds) > 1:
+        records += summarise(records)
+    return records
+
+
+def _seed_records(curves: dict, starts: dict, config, device: str, metadata: dict, seed: int) -> list[dict]:
+    """One record per method of one seed, each timed to that seed's baseline final val; the table rows."""
     baseline_final = curves["torch_baseline"][-1]["val_miou"]
     records = []
-    print(f"time-to-accuracy {'method':>17s} {'final val':>9s} {'end s':>8s} "
+    print(f"time-to-accuracy {'method':>17s} {'seed':>4s} {'final val':>9s} {'end s':>8s} "
           + " ".join(f"{'to ' + format(level, '.2f'):>8s}" for level in LEVELS)
           + f" {'to baseline':>11s} {'setup s':>8s} {'epoch 1 s':>9s}", flush=True)
     for method, curve in curves.items():
-        record = {"suite": "time-to-accuracy", "method": method, "device": device,
+        record = {"suite": "time-to-accuracy", "method": method, "seed": seed, "device": device,
                   "device_name": metadata.get("device_name"), "epochs": config.train.epochs,
                   "images": [config.data.batch_size, 3, config.data.crop_height, config.data.crop_width],
                   "curve": curve, "final_val_miou": curve[-1]["val_miou"], "wall_s": curve[-1]["wall_s"],
@@ -136,10 +154,54 @@ def run_time_to_accuracy_suite(device: str, quick: bool, camvid_root: str | None
         records.append(record)
         cells = " ".join(f"{value:8.1f}" if value is not None else f"{'-':>8s}" for value in record["time_to"].values())
         reached = record["time_to_baseline_final"]
-        print(f"time-to-accuracy {method:>17s} {record['final_val_miou']:9.4f} {record['wall_s']:8.1f} {cells} "
-              f"{format(reached, '11.1f') if reached is not None else format('-', '>11s')} "
+        print(f"time-to-accuracy {method:>17s} {seed:4d} {record['final_val_miou']:9.4f} {record['wall_s']:8.1f} "
+              f"{cells} {format(reached, '11.1f') if reached is not None else format('-', '>11s')} "
               f"{record['setup_s']:8.1f} {record['first_epoch_s']:9.1f}", flush=True)
     return records
+
+
+SUMMARISED = ("final_val_miou", "wall_s", "time_to_baseline_final")
+"""The per-seed figures a summary gives as a mean with its 95% t interval."""
+
+
+def summarise(records: list[dict]) -> list[dict]:
+    """Per method over the seeds: the mean and 95% t interval of each of ``SUMMARISED`` (None where a seed never
+    reached its baseline's final val, with ``reached`` counting the seeds that did), and for the recipe the
+    seed-paired difference to the baseline (recipe minus baseline; `warpsense.study.statistics.paired_difference`).
+    Printed as a table."""
+    from warpsense.study.statistics import paired_difference, t_interval
+
+    by_method: dict[str, dict[int, dict]] = {}
+    for record in records:
+        by_method.setdefault(record["method"], {})[record["seed"]] = record
+    baseline = by_method["torch_baseline"]
+    summaries = []
+    print(f"time-to-accuracy summary over seeds {sorted(baseline)} (mean [95% t]; difference: recipe - baseline, "
+          "paired by seed)", flush=True)
+    for method, runs in by_method.items():
+        summary = {"suite": "time-to-accuracy", "method": method, "summary": True, "seeds": sorted(runs)}
+        for key in SUMMARISED:
+            values = {seed: run[key] for seed, run in runs.items()}
+            reached = {seed: value for seed, value in values.items() if value is not None}
+            summary[key] = t_interval(list(reached.values())) if len(reached) == len(values) else None
+            summary[f"{key}_reached"] = len(reached)
+            if method != "torch_baseline" and summary[key] is not None:
+                partner = {seed: baseline[seed][key] for seed in reached if baseline[seed][key] is not None}
+                summary[f"{key}_difference"] = paired_difference(reached, partner) if partner else None
+        summaries.append(summary)
+        print(f"time-to-accuracy {method:>17s} " + "  ".join(
+            f"{key} {_interval_text(summary[key])}" + (f" (difference {_interval_text(summary.get(key + '_difference'))})"
+                                                       if summary.get(key + "_difference") else "")
+            for key in SUMMARISED), flush=True)
+    return summaries
+
+
+def _interval_text(interval: dict | None) -> str:
+    if interval is None:
+        return "- (not every seed reached it)"
+    if interval["low"] is None:
+        return f"{interval['mean']:.4g}"
+    return f"{interval['mean']:.4g} [{interval['low']:.4g}, {interval['high']:.4g}]"
 
 
 def plot_time_to_accuracy(records: list[dict], path: str | Path) -> None:
@@ -150,11 +212,17 @@ def plot_time_to_accuracy(records: list[dict], path: str | Path) -> None:
     import matplotlib.pyplot as plt
 
     figure, axis = plt.subplots(figsize=(6, 4))
-    for record in records:
+    runs = [record for record in records if not record.get("summary")]
+    several = len({record.get("seed", 0) for record in runs}) > 1
+    colours = {}
+    for record in runs:
         curve = record["curve"]
-        axis.plot([p["wall_s"] for p in curve], [p["val_miou"] for p in curve], marker="o", label=record["method"])
+        colour = colours.setdefault(record["method"], f"C{len(colours)}")
+        label = f"{record['method']}, seed {record.get('seed', 0)}" if several else record["method"]
+        axis.plot([p["wall_s"] for p in curve], [p["val_miou"] for p in curve], marker="o", color=colour, label=label,
+                  alpha=0.8 if several else 1.0)
     axis.set_xlabel("wall time (s)"), axis.set_ylabel("val mIoU")
-    axis.set_title(f"time to accuracy, {records[0]['epochs']} epochs, {records[0].get('device_name') or records[0]['device']}",
+    axis.set_title(f"time to accuracy, {runs[0]['epochs']} epochs, {runs[0].get('device_name') or runs[0]['device']}",
                    fontsize=10)
     axis.legend()
     figure.tight_layout()

@@ -6,7 +6,7 @@ from warpsense.files import check_output_file
 
 
 def run_bench_command(device: str, suite: str, quick: bool, json_out: str | None, plot_out: str | None,
-                      camvid_root: str | None = None) -> int:
+                      camvid_root: str | None = None, seeds: tuple[int, ...] = (0,)) -> int:
     """Run the suite (`warpsense.bench.runner.run_bench`) after checking its inputs and where its outputs go."""
     from warpsense.bench.runner import run_bench
 
@@ -16,5 +16,6 @@ def run_bench_command(device: str, suite: str, quick: bool, json_out: str | None
         from warpsense.data.datasets import CamVid
 
         CamVid(camvid_root, "val", limit=1)
-    run_bench(device=device, quick=quick, json_out=json_out, plot_out=plot_out, suite=suite, camvid_root=camvid_root)
+    run_bench(device=device, quick=quick, json_out=json_out, plot_out=plot_out, suite=suite, camvid_root=camvid_root,
+              seeds=seeds)
     return 0
