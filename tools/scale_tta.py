@@ -7,8 +7,9 @@ resized by each scale (the CFA phase kept), averaged, against the capture alone.
 Each frame is captured once (the eval-mode camera: noise keyed by the frame's index), as `warpsense eval` does; each
 scale resizes that capture, not the scene: a mosaic with 2 x 2 tiles is packed into its four sites, each site
 plane resized bilinearly, and unpacked, so every pixel keeps its CFA site; an RGB capture (fixed ISP) is resized as
-it is. The network's logits at each scale are resized back to the frame and their softmax averaged over the set.
-Prints each set's mIoU; ``--json`` writes them. ``--limit N`` takes N frames spread over the split.
+it is (`warpsense.system.cfa_resize`). The network's logits at each scale are resized back to the frame and their
+softmax averaged over the set, as `warpsense eval --scale-tta` does for one set; this tool scores several sets from
+one pass. Prints each set's mIoU; ``--json`` writes them. ``--limit N`` takes N frames spread over the split.
 """
 
 from __future__ import annotations
@@ -20,22 +21,8 @@ import torch
 from torch.nn import functional as F
 
 from warpsense.data import build_dataset
-from warpsense.system import load_system
+from warpsense.system import cfa_resize, load_system
 from warpsense.train.metrics import ConfusionMatrix
-
-
-def cfa_resize(sensed: torch.Tensor, scale: float, tile: int) -> torch.Tensor:
-    """A capture [B, C, H, W] resized by ``scale`` (bilinear) so that every pixel keeps its CFA site: with 2 x 2
-    tiles the mosaic's four sites are resized as planes at half resolution (the output is 2 round(H s / 2) x
-    2 round(W s / 2)); with 1 x 1 (RGB) the capture is resized directly."""
-    if scale == 1.0:
-        return sensed
-    if tile not in (1, 2):
-        raise ValueError(f"scale test-time augmentation keeps the CFA phase only for 1x1 and 2x2 tiles, got {tile}x{tile}")
-    planes = F.pixel_unshuffle(sensed, tile) if tile == 2 else sensed
-    size = tuple(max(1, round(side * scale)) for side in planes.shape[-2:])
-    planes = F.interpolate(planes, size=size, mode="bilinear", align_corners=False)
-    return F.pixel_shuffle(planes, tile) if tile == 2 else planes
 
 
 @torch.no_grad()

@@ -40,7 +40,7 @@ def _eval(args) -> int:
     height, width = (int(part) for part in size)
     run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
              (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot, args.flip_tta,
-             progress=not args.no_progress)
+             progress=not args.no_progress, scales=args.scale_tta)
     return 0
 
 
@@ -53,6 +53,17 @@ def _seed_list(text: str) -> tuple[int, ...]:
     if len(set(seeds)) != len(seeds):
         raise argparse.ArgumentTypeError(f"seeds must be distinct, got {text!r}")
     return seeds
+
+
+def _scale_list(text: str) -> tuple[float, ...]:
+    """"0.75,1,1.25" -> (0.75, 1.0, 1.25); argparse turns the ValueError into a one-line usage error."""
+    try:
+        scales = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated scales such as 0.75,1,1.25, got {text!r}") from None
+    if any(not scale > 0 for scale in scales):
+        raise argparse.ArgumentTypeError(f"scales must be > 0, got {text!r}")
+    return scales
 
 
 def _bench(args) -> int:
@@ -132,6 +143,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--sweep", action="store_true", help="robustness sweeps: extra blur, noise scale, bit depth")
     evaluate.add_argument("--flip-tta", action="store_true",
                           help="average with the prediction on the mirrored capture (keeps the CFA phase)")
+    evaluate.add_argument("--scale-tta", type=_scale_list, default=(1.0,), metavar="0.75,1,1.25",
+                          help="average the predictions on the capture resized by each scale (keeps the CFA phase; "
+                               "default: 1, no resizing)")
     evaluate.add_argument("--plot", metavar="OUT.png", help="with --sweep: plot the sweeps")
     evaluate.add_argument("--latency", action="store_true", help="time sensor simulation + network and network alone (alone: no dataset, no mIoU; with --sweep: both)")
     evaluate.add_argument("--latency-size", default="192x640", metavar="HxW", help="input size for --latency (default: %(default)s)")

@@ -60,7 +60,8 @@ def measure_latency(model, device, height: int, width: int, batch: int, repeats:
 def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: str, json_out: str | None = None,
              sweep: bool = False, latency: bool = False, latency_size: tuple[int, int] = (192, 640),
              latency_batch: int = 1, device: str = "auto", batch_size: int = 4, limit: int = 0,
-             plot_out: str | None = None, flip: bool = False, progress: bool = True) -> dict:
+             plot_out: str | None = None, flip: bool = False, progress: bool = True,
+             scales: tuple[float, ...] = (1.0,)) -> dict:
     """The `warpsense eval` command as a function; returns the JSON payload. ``latency`` alone (without
     ``sweep``) only times the model: no dataset is read and no mIoU computed."""
     from warpsense.data import build_dataset
@@ -88,9 +89,10 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
     class_names = state.get("class_names") or list(dataset.classes)
     amp = torch_device.type == "cuda" and config.train.amp
     metrics = evaluate(model, dataset, torch_device, batch_size, class_names=class_names, amp=amp, progress=progress,
-                       flip=flip)
+                       flip=flip, scales=scales)
     payload = dict(metrics)
-    payload.update({"checkpoint": str(checkpoint), "dataset": data, "split": split, "flip_tta": flip})
+    payload.update({"checkpoint": str(checkpoint), "dataset": data, "split": split, "flip_tta": flip,
+                    "scale_tta": list(scales)})
     print(f"mIoU {metrics['miou']:.4f}  pixel accuracy {metrics['pixel_accuracy']:.4f}  images {metrics['num_images']}")
     for name, iou in metrics["per_class_iou"].items():
         print(f"  {name:>14s}  {'-' if iou is None else f'{iou:.4f}'}")

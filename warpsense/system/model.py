@@ -49,18 +49,52 @@ class SensingModel(nn.Module):
 
     @torch.no_grad()
     def probabilities(self, image: torch.Tensor, amp: bool = False, image_index: torch.Tensor | None = None,
-                      flip: bool = False) -> torch.Tensor:
-        """Class probabilities [B, K, H, W]; ``flip``: averaged with the prediction on the horizontally flipped
-        capture (test-time augmentation that keeps the CFA phase, `cfa_flip`: one capture, no second exposure)."""
+                      flip: bool = False, scales: tuple[float, ...] = (1.0,)) -> torch.Tensor:
+        """Class probabilities [B, K, H, W] of one capture. Test-time augmentation, all of it on that capture (no
+        second exposure): ``scales``: averaged over the capture resized by each scale (`cfa_resize`, the CFA phase
+        kept; each view's logits resized back bilinearly before the softmax); ``flip``: at every scale also the
+        horizontally mirrored capture (`cfa_flip`)."""
         logits, sensed = self(image, amp, image_index)
-        probabilities = torch.softmax(logits.float(), dim=1)
-        if flip:
-            tile = self.camera.tile if self.isp is None else 1
-            flipped, shift = cfa_flip(sensed, tile)
-            with torch.autocast(device_type=sensed.device.type, dtype=torch.bfloat16, enabled=amp):
-                flipped_logits = self.network(flipped)
-            probabilities = 0.5 * (probabilities + cfa_unflip(torch.softmax(flipped_logits.float(), dim=1), shift))
-        return probabilities
+        if not flip and tuple(scales) == (1.0,):
+            return torch.softmax(logits.float(), dim=1)
+        tile = self.camera.tile if self.isp is None else 1
+        height, width = sensed.shape[-2:]
+        views = []
+        for scale in scales:
+            if scale == 1.0:
+                scaled, scaled_logits = sensed, logits
+            else:
+                scaled = cfa_resize(sensed, scale, tile)
+                scaled_logits = self._network(scaled, amp)
+            view_logits = [scaled_logits.float()]
+            if flip:
+                flipped, shift = cfa_flip(scaled, tile)
+                view_logits.append(cfa_unflip(self._network(flipped, amp).float(), shift))
+            for view in view_logits:
+                if view.shape[-2:] != (height, width):  # logits are resized, then turned into probabilities
+                    view = F.interpolate(view, size=(height, width), mode="bilinear", align_corners=False)
+                views.append(torch.softmax(view, dim=1))
+        return sum(views) / len(views)
+
+    def _network(self, sensed: torch.Tensor, amp: bool) -> torch.Tensor:
+        with torch.autocast(device_type=sensed.device.type, dtype=torch.bfloat16, enabled=amp):
+            return self.network(sensed)
+
+
+def cfa_resize(sensed: torch.Tensor, scale: float, tile: int) -> torch.Tensor:
+    """A capture [B, C, H, W] resized by ``scale`` (bilinear) so that every pixel keeps its CFA site: with 2 x 2
+    tiles the mosaic's four sites are resized as planes at half resolution (the output is 2 round(H s / 2) x
+    2 round(W s / 2)); with 1 x 1 (RGB after an ISP) the capture is resized directly. Scale 1 returns it as is."""
+    if scale == 1.0:
+        return sensed
+    if scale <= 0:
+        raise ValueError(f"scale test-time augmentation needs scales > 0, got {scale}")
+    if tile not in (1, 2):
+        raise ValueError(f"scale test-time augmentation keeps the CFA phase only for 1x1 and 2x2 tiles, got {tile}x{tile}")
+    planes = F.pixel_unshuffle(sensed, tile) if tile == 2 else sensed
+    size = tuple(max(1, round(side * scale)) for side in planes.shape[-2:])
+    planes = F.interpolate(planes, size=size, mode="bilinear", align_corners=False)
+    return F.pixel_shuffle(planes, tile) if tile == 2 else planes
 
 
 def cfa_flip(sensed: torch.Tensor, tile: int) -> tuple[torch.Tensor, int]:
