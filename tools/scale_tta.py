@@ -7,9 +7,8 @@ resized by each scale (the CFA phase kept), averaged, against the capture alone.
 Each frame is captured once (the eval-mode camera: noise keyed by the frame's index), as `warpsense eval` does; each
 scale resizes that capture, not the scene: a mosaic with 2 x 2 tiles is packed into its four sites, each site
 plane resized bilinearly, and unpacked, so every pixel keeps its CFA site; an RGB capture (fixed ISP) is resized as
-it is (`warpsense.system.cfa_resize`). The network's logits at each scale are resized back to the frame and their
-softmax averaged over the set, as `warpsense eval --scale-tta` does for one set; this tool scores several sets from
-one pass. Prints each set's mIoU; ``--json`` writes them. ``--limit N`` takes N frames spread over the split.
+it is (`warpsense.system.cfa_resize`). The views come from `SensingModel.scaled_views`, whose average over a set is
+what `warpsense eval --scale-tta` scores; this tool scores several sets from one pass over the scales. Prints each set's mIoU; ``--json`` writes them. ``--limit N`` takes N frames spread over the split.
 """
 
 from __future__ import annotations
@@ -18,10 +17,9 @@ import argparse
 import json
 
 import torch
-from torch.nn import functional as F
 
 from warpsense.data import build_dataset
-from warpsense.system import cfa_resize, load_system
+from warpsense.system import load_system
 from warpsense.train.metrics import ConfusionMatrix
 
 
@@ -36,20 +34,14 @@ def scale_sets_miou(checkpoint: str, data_root: str, split: str, sets: list[list
     indices = list(range(len(dataset)))
     if limit:
         indices = indices[:: max(1, len(indices) // limit)][:limit]
-    tile = model.camera.tile if model.isp is None else 1
     classes = model.network.head.out_channels
     matrices = [ConfusionMatrix(classes, "cpu") for _ in sets]
     scales = sorted({scale for scales in sets for scale in scales})
     for index in indices:
         image, label = dataset[index][:2]
-        sensed = model.sense(image[None], torch.tensor([index]))
-        height, width = sensed.shape[-2:]
-        probabilities = {}
-        for scale in scales:
-            logits = model.network(cfa_resize(sensed, scale, tile)).float()
-            if logits.shape[-2:] != (height, width):
-                logits = F.interpolate(logits, size=(height, width), mode="bilinear", align_corners=False)
-            probabilities[scale] = torch.softmax(logits, dim=1)
+        logits, sensed = model(image[None], image_index=torch.tensor([index]))
+        views = model.scaled_views(sensed, logits, scales)  # each scale once, shared by every set holding it
+        probabilities = {scale: scale_views[0] for scale, scale_views in zip(scales, views)}
         for matrix, scales_of_set in zip(matrices, sets):
             average = sum(probabilities[scale] for scale in scales_of_set) / len(scales_of_set)
             matrix.update(average.argmax(dim=1), label[None])

@@ -44,23 +44,25 @@ def _eval(args) -> int:
     return 0
 
 
-def _seed_list(text: str) -> tuple[int, ...]:
-    """"0,1,2" -> (0, 1, 2); argparse turns the ValueError into a one-line usage error."""
+def _comma_separated(text: str, convert, example: str) -> tuple:
+    """``text`` split at commas and each part converted; argparse turns the error into a one-line usage error."""
     try:
-        seeds = tuple(int(part) for part in text.split(","))
+        return tuple(convert(part) for part in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers such as 0,1,2, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected comma-separated {example}, got {text!r}") from None
+
+
+def _seed_list(text: str) -> tuple[int, ...]:
+    """"0,1,2" -> (0, 1, 2), distinct."""
+    seeds = _comma_separated(text, int, "integers such as 0,1,2")
     if len(set(seeds)) != len(seeds):
         raise argparse.ArgumentTypeError(f"seeds must be distinct, got {text!r}")
     return seeds
 
 
 def _scale_list(text: str) -> tuple[float, ...]:
-    """"0.75,1,1.25" -> (0.75, 1.0, 1.25); argparse turns the ValueError into a one-line usage error."""
-    try:
-        scales = tuple(float(part) for part in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated scales such as 0.75,1,1.25, got {text!r}") from None
+    """"0.75,1,1.25" -> (0.75, 1.0, 1.25), each > 0."""
+    scales = _comma_separated(text, float, "scales such as 0.75,1,1.25")
     if any(not scale > 0 for scale in scales):
         raise argparse.ArgumentTypeError(f"scales must be > 0, got {text!r}")
     return scales

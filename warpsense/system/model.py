@@ -57,9 +57,19 @@ class SensingModel(nn.Module):
         logits, sensed = self(image, amp, image_index)
         if not flip and tuple(scales) == (1.0,):
             return torch.softmax(logits.float(), dim=1)
+        views = [view for scale_views in self.scaled_views(sensed, logits, scales, flip, amp) for view in scale_views]
+        return sum(views) / len(views)
+
+    @torch.no_grad()
+    def scaled_views(self, sensed: torch.Tensor, logits: torch.Tensor, scales, flip: bool = False,
+                     amp: bool = False) -> list[list[torch.Tensor]]:
+        """Per scale of ``scales``, the class probabilities [B, K, H, W] of the capture ``sensed`` resized by it
+        (`cfa_resize`; ``logits`` are the network's on ``sensed`` itself, reused at scale 1), each view's logits
+        resized back to H x W before the softmax; with ``flip`` each scale's list also holds the mirrored view
+        (`cfa_flip`). `probabilities` averages them; tools that score several scale sets average their own."""
         tile = self.camera.tile if self.isp is None else 1
         height, width = sensed.shape[-2:]
-        views = []
+        per_scale = []
         for scale in scales:
             if scale == 1.0:
                 scaled, scaled_logits = sensed, logits
@@ -70,11 +80,13 @@ class SensingModel(nn.Module):
             if flip:
                 flipped, shift = cfa_flip(scaled, tile)
                 view_logits.append(cfa_unflip(self._network(flipped, amp).float(), shift))
+            views = []
             for view in view_logits:
                 if view.shape[-2:] != (height, width):  # logits are resized, then turned into probabilities
                     view = F.interpolate(view, size=(height, width), mode="bilinear", align_corners=False)
                 views.append(torch.softmax(view, dim=1))
-        return sum(views) / len(views)
+            per_scale.append(views)
+        return per_scale
 
     def _network(self, sensed: torch.Tensor, amp: bool) -> torch.Tensor:
         with torch.autocast(device_type=sensed.device.type, dtype=torch.bfloat16, enabled=amp):
