@@ -35,6 +35,9 @@ def test_quick_cpu_suite_on_camvid_over_two_seeds(shared_data, tmp_path, capsys)
         assert 0 <= record["final_val_miou"] == curve[-1]["val_miou"] <= 1
         assert set(record["time_to"]) == {f"{level:.2f}" for level in LEVELS}
     assert runs[0]["capture_s"] == 0  # a CPU run captures no CUDA graph
+    # one untimed warm-up per seed, before either method, recorded with both
+    for recipe, baseline in zip(runs[0::2], runs[1::2]):
+        assert recipe["process_warmup_s"] == baseline["process_warmup_s"] > 0
     # the same network for both methods: the config's (the camvid presets' pyramid context included)
     assert runs[0]["network_parameters"] == runs[1]["network_parameters"] > 0
     for baseline in runs[1::2]:  # each seed's baseline reaches its own final val, at its end at the latest
