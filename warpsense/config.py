@@ -190,6 +190,7 @@ class LossConfig:
     ohem_weight: float = _field(0.6, minimum=0)
     ohem_fraction: float = _field(0.25, minimum=0, maximum=1, exclusive=True)
     lovasz_weight: float = _field(0.4, minimum=0)
+    lovasz_stride: int = _field(1, minimum=1)
     smooth_weight: float = _field(0.01, minimum=0)
     class_balance: float = _field(0.0, minimum=0, maximum=2)
     teacher: str = ""

@@ -169,3 +169,33 @@ def test_ohem_with_class_weights_is_the_weighted_pixel_loss():
                                per_pixel.flatten()[valid].sum() / valid.sum())
     hardest = per_pixel.flatten()[valid].sort(descending=True).values[:10]  # round(0.25 * 39) = 10
     torch.testing.assert_close(ohem_cross_entropy(logits, target, 0.25, class_weights=weights), hardest.mean())
+
+
+def test_lovasz_stride_is_the_lovasz_term_of_the_grid_pixels():
+    from warpsense.config import load_config
+    from warpsense.train.losses import segmentation_loss
+
+    generator = torch.Generator().manual_seed(0)
+    logits = torch.randn(2, 4, 6, 8, generator=generator, requires_grad=True)
+    target = torch.randint(0, 4, (2, 6, 8), generator=generator)
+    target[0, 0, 0] = 255
+    guide = torch.rand(2, 1, 6, 8, generator=generator)
+    only_lovasz = ["loss.ohem_weight=0", "loss.smooth_weight=0", "loss.lovasz_weight=1"]
+    full, _ = segmentation_loss(logits, target, guide, load_config(None, only_lovasz).loss)
+    assert full.item() == pytest.approx(lovasz_softmax(logits, target).item())
+    strided, _ = segmentation_loss(logits, target, guide, load_config(None, only_lovasz + ["loss.lovasz_stride=2"]).loss)
+    reference = lovasz_softmax(logits.detach()[..., 0::2, 0::2].contiguous(), target[..., 0::2, 0::2].contiguous())
+    assert strided.item() == pytest.approx(reference.item(), abs=1e-6)
+    assert strided.item() != pytest.approx(full.item(), abs=1e-3)  # a different estimate on this input
+    strided.backward()
+    off_grid = torch.ones(6, 8, dtype=torch.bool)
+    off_grid[0::2, 0::2] = False
+    assert logits.grad[..., off_grid].abs().max() == 0  # only the grid's pixels get the term's gradient
+    assert logits.grad[..., ~off_grid].abs().max() > 0
+
+
+def test_exception_lovasz_stride_below_one():
+    from warpsense.config import ConfigError, load_config
+
+    with pytest.raises(ConfigError, match="loss.lovasz_stride"):
+        load_config(None, ["loss.lovasz_stride=0"])
