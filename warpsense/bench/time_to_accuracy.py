@@ -64,6 +64,12 @@ def time_to(curve: list[dict], level: float) -> float | None:
     return next((point["wall_s"] for point in curve if point["val_miou"] >= level), None)
 
 
+def baseline_system(config, num_classes: int) -> SensingModel:
+    """The baseline's system: the train suite's plain-torch camera (`BaselineCamera`) and the config's network on its
+    one-channel mosaic."""
+    return SensingModel(BaselineCamera(), network_from_config(config.model, 1, num_classes, tile=2))
+
+
 def baseline_curve(config, device: torch.device) -> tuple[list[dict], dict]:
     """Train the plain-torch baseline under ``config``'s data, network, loss and schedule; its validation curve and
     start times."""
@@ -76,15 +82,14 @@ def baseline_curve(config, device: torch.device) -> tuple[list[dict], dict]:
     context = DistributedContext(device=device)
     batches = build_train_batches(config, train_set, context, progress=False)
     steps = min(len(batches), config.train.max_steps_per_epoch or len(batches))
-    network = network_from_config(config.model, 1, len(train_set.classes), tile=2)
-    model = SensingModel(BaselineCamera(), network).to(device).train()
+    model = baseline_system(config, len(train_set.classes)).to(device).train()
     set_finite_check(model, False)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.train.lr, weight_decay=config.train.weight_decay)
     amp = config.train.amp and device.type == "cuda"
     total = config.train.epochs * steps
     step = TrainingStep(config.loss, optimizer, [], total, amp)
     curve, index = [], 0
-    start = {"setup_s": time.perf_counter() - started, "network_parameters": count_parameters(network)}
+    start = {"setup_s": time.perf_counter() - started, "network_parameters": count_parameters(model.network)}
     for epoch in range(config.train.epochs):
         batches.set_epoch(epoch)
         model.train()
@@ -114,8 +119,7 @@ def process_warmup(config, device: torch.device) -> float:
     images = torch.randint(0, 256, shape, dtype=torch.uint8, device=device)
     labels = torch.randint(0, classes, (shape[0], *shape[2:]), device=device)
     amp = config.train.amp and device.type == "cuda"
-    for model in (build_system(config, classes), SensingModel(BaselineCamera(),
-                                                              network_from_config(config.model, 1, classes, tile=2))):
+    for model in (build_system(config, classes), baseline_system(config, classes)):
         model = model.to(device).train()
         logits, _ = model(images, amp)
         torch.nn.functional.cross_entropy(logits.float(), labels).backward()
