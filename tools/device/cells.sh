@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Runs the pending cells of a study plan on the GPU, in one process, stopped (SIGINT, resumable) after LIMIT seconds;
+# the study directory .device/state/NAME (default NAME = PLAN) comes back as $OUT/NAME.tgz, without plots or best
+# checkpoints; the last checkpoints stay, so an interrupted cell resumes in the next call (tools/device/README.md).
+# Usage: bash tools/device/cells.sh PLAN LIMIT all|CAMERA/LIGHT/SEED [NAME]
+set -u
+plan=$1; limit=$2; which=${3:-all}; name=${4:-$1}
+ln -sfn ../kernels warpsense/kernels; ln -sfn ../configs warpsense/configs
+export PYTHONPATH=/tmp/site:$PWD
+nvidia-smi --query-gpu=name --format=csv,noheader
+state=.device/state/$name
+mkdir -p "$state"
+extra=()
+[ "$which" != all ] && extra=(--cell "$which")
+start=$(date +%s)
+timeout --signal=INT --kill-after=30 "$limit" python -m warpsense study run "$plan" --out "$state" \
+  --set data.root=.device/camvid "${extra[@]}"
+rc=$?
+echo "study run exit $rc after $(( $(date +%s) - start )) s"
+tar czf "$OUT/$name.tgz" --exclude="*.png" --exclude="checkpoint_best.safetensors" -C .device/state "$name"
+ls -la "$OUT"
+exit $rc
