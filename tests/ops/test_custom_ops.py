@@ -7,7 +7,7 @@ import torch
 from tests.conftest import device_params
 from warpsense.camera import Camera
 from warpsense.config import load_config
-from warpsense.ops import cfa, noise, psf, quantize, sensor
+from warpsense.ops import cfa, noise, psf, quantize, sensor, smoothness
 
 DOUBLE = dict(dtype=torch.float64)
 
@@ -34,6 +34,8 @@ CASES = {
     "psf_conv": (psf._psf_conv_cells, lambda: (_rand(2, 3, 6, 7), psf.node_cells(_rand(3, 3, 2, 3, 3)).detach()
                                                .requires_grad_(), 3, 2)),
     "psf_conv_cudnn": (psf._psf_conv_cudnn, lambda: (_rand(2, 3, 6, 7), _rand(3, 3, 3))),
+    "smoothness_map": (smoothness._smoothness_map,
+                       lambda: (_rand(2, 4, 5, 3), _rand(2, 4, 5), torch.tensor([10.0, 0.1, 0.1], **DOUBLE))),
 }
 # the backward ops, with the forward inputs (no grad) and a gradient of the forward output's shape
 BACKWARD_CASES = {
@@ -51,6 +53,9 @@ BACKWARD_CASES = {
     "psf_conv_backward_cells": (psf._psf_backward_cells,
                                 lambda: (_rand(2, 3, 6, 7), _rand(2, 3, 6, 7), psf.node_cells(_rand(3, 3, 2, 3, 3)),
                                          3, 2)),
+    "smoothness_map_backward": (smoothness._smoothness_map_backward,
+                                lambda: (_rand(2, 4, 5, 3), _rand(2, 4, 5), torch.tensor([10.0, 0.1, 0.1], **DOUBLE),
+                                         _rand(2, 4, 5))),
 }
 
 

@@ -158,14 +158,16 @@ def test_nan_stays_local(method):
 
 
 def test_fft_high_dynamic_range_documented_limit():
-    """float64 FFT keeps a 1e-6 region beside a 1e3 one to 1e-6 relative; auto never picks FFT (it loses the dark
-    side in float32: rounding is relative to the brightest pixel)."""
+    """float64 FFT keeps a 1e-6 region beside a 1e3 one to 1e-5 relative; auto never picks FFT (it loses the dark
+    side in float32: rounding is relative to the brightest pixel). An FFT's rounding error is a few float64 ulps of
+    the brightest pixel, ~1e-12 here, i.e. 1e-6 of the dark side: how many ulps depends on the FFT library's code
+    path for the CPU (2.4e-6 measured on one machine, under 1e-6 on another); float32 would be 1e-4, 100x off."""
     image = torch.full((1, 1, 32, 32), 1e-6, dtype=torch.float64)
     image[..., :, :16] = 1e3
     psf = random_psf(1, 1, 1, 3)
     exact = psf_conv_reference(image, psf)
     dark = (slice(None), slice(None), slice(None), slice(20, None))
-    torch.testing.assert_close(psf_conv(image, psf, "fft")[dark], exact[dark], rtol=1e-6, atol=0)
+    torch.testing.assert_close(psf_conv(image, psf, "fft")[dark], exact[dark], rtol=1e-5, atol=0)
     torch.testing.assert_close(psf_conv(image.float(), psf.float(), "auto")[dark], exact[dark].float(), rtol=1e-5, atol=0)
 
 

@@ -199,3 +199,29 @@ def test_exception_lovasz_stride_below_one():
 
     with pytest.raises(ConfigError, match="loss.lovasz_stride"):
         load_config(None, ["loss.lovasz_stride=0"])
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_segmentation_loss_is_the_weighted_sum_of_its_terms(stride):
+    # the terms share one softmax inside segmentation_loss: the total and its gradient are those of the public
+    # term functions, each computing its own
+    from warpsense.config import load_config
+    from warpsense.train.losses import segmentation_loss
+
+    generator = torch.Generator().manual_seed(1)
+    logits = torch.randn(2, 5, 6, 8, generator=generator, dtype=torch.float64)
+    target = torch.randint(0, 5, (2, 6, 8), generator=generator)
+    target[1, 2, 3] = 255
+    guide = torch.rand(2, 3, 6, 8, generator=generator)
+    config = load_config(None, [f"loss.lovasz_stride={stride}"]).loss
+    mine = logits.clone().requires_grad_()
+    total, parts = segmentation_loss(mine, target, guide, config)
+    theirs = logits.clone().requires_grad_()
+    expected = (config.ohem_weight * ohem_cross_entropy(theirs, target, config.ohem_fraction)
+                + config.lovasz_weight * lovasz_softmax(theirs[..., ::stride, ::stride], target[..., ::stride, ::stride])
+                + config.smooth_weight * edge_aware_smoothness(theirs, guide))
+    torch.testing.assert_close(total, expected.float())
+    assert set(parts) == {"ohem", "lovasz", "smooth"}
+    total.backward()
+    expected.backward()
+    torch.testing.assert_close(mine.grad, theirs.grad, rtol=1e-5, atol=1e-7)

@@ -21,10 +21,12 @@ from warpsense.ops import cfa_mosaic, poisson_gaussian, psf_conv, quantize_ste
 from warpsense.ops.psf import _conv2d_warp_gradient, psf_conv_fft, psf_conv_patch
 from warpsense.ops.reference import (
     cfa_mosaic_reference,
+    edge_aware_smoothness_reference,
     poisson_gaussian_reference,
     psf_conv_reference,
     quantize_reference,
 )
+from warpsense.ops.smoothness import edge_aware_smoothness
 
 
 def time_backward(forward, inputs, device, repeats: int, warmup: int = 2) -> dict:
@@ -193,6 +195,15 @@ def _kernel_suite(device: str, quick: bool) -> list[dict]:
         bench.case("psf_conv_varying", "torch_patch", shape, psf_conv_patch, [image, varying],
                    reference=psf_conv_reference)
         bench.case("psf_conv_varying", "torch_blend", shape, psf_conv_reference, [image, varying])
+    # the training loss's edge-aware smoothness: 11 class probabilities in the network's channels-last layout
+    smooth_sizes = [(1, 96, 128)] if quick else ([(16, 352, 480)] if device == "cuda" else [(1, 192, 640)])
+    for batch, height, width in smooth_sizes:
+        probabilities = torch.softmax(torch.randn(batch, 11, height, width, dtype=torch.float64, device=device), 1)
+        probabilities = probabilities.contiguous(memory_format=torch.channels_last).requires_grad_()
+        guide = torch.rand(batch, height, width, dtype=torch.float64, device=device, requires_grad=True)
+        shape = (batch, 11, height, width)
+        bench.case("edge_smoothness", "warp", shape, edge_aware_smoothness, [probabilities, guide])
+        bench.case("edge_smoothness", "torch_eager", shape, edge_aware_smoothness_reference, [probabilities, guide])
     if not quick:
         _end_to_end(bench, device)
     return bench.records

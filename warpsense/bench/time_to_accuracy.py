@@ -4,8 +4,9 @@ against the plain-torch baseline of the train suite, in one run on one device.
 - recipe: `warpsense train --config camvid_codesign` as shipped (`warpsense.train.engine.train`), validated every
   ``eval_every`` epochs; its times are the run's own ``wall_s`` (setup, training and evaluation included).
 - baseline: the train suite's plain-torch camera (`BaselineCamera`: a 7x7 Gaussian via conv2d, eager sensor ops)
-  with the same network, loss, optimizer, cosine schedule, epochs, training data on the device and validation,
-  trained by a plain eager loop (no compile, no CUDA graph), as a user's script would be.
+  with the same network, loss (its smoothness term in plain torch), optimizer, cosine schedule, epochs, training
+  data on the device and validation, trained by a plain eager loop (no compile, no CUDA graph), as a user's script
+  would be.
 
 Records: one per method with its curve (epoch, wall_s, val mIoU), its final val, the time to each level in
 ``LEVELS`` (None if never reached), the time to the baseline's final val, where the start went (``setup_s``, until
@@ -27,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from warpsense.bench.train_suite import BaselineCamera
+from warpsense.bench.train_suite import BASELINE_SMOOTHNESS, BaselineCamera
 from warpsense.camera.camera import set_finite_check
 from warpsense.config import load_config
 from warpsense.data import build_dataset
@@ -38,6 +39,7 @@ from warpsense.system.build import build_system
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.engine import build_train_batches, train
 from warpsense.train.evaluate import evaluate
+from warpsense.train.losses import segmentation_loss
 from warpsense.train.run_dir import METRICS, read_metrics
 from warpsense.train.step import TrainingStep
 
@@ -87,7 +89,7 @@ def baseline_curve(config, device: torch.device) -> tuple[list[dict], dict]:
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.train.lr, weight_decay=config.train.weight_decay)
     amp = config.train.amp and device.type == "cuda"
     total = config.train.epochs * steps
-    step = TrainingStep(config.loss, optimizer, [], total, amp)
+    step = TrainingStep(config.loss, optimizer, [], total, amp, smoothness_pairs=BASELINE_SMOOTHNESS)
     curve, index = [], 0
     start = {"setup_s": time.perf_counter() - started, "network_parameters": count_parameters(model.network)}
     for epoch in range(config.train.epochs):
@@ -109,7 +111,7 @@ def baseline_curve(config, device: torch.device) -> tuple[list[dict], dict]:
 
 def process_warmup(config, device: torch.device) -> float:
     """One untimed forward + backward of the recipe's system and of the baseline's, at the training batch and crop
-    with bf16 autocast as they train, in this process: what the first method timed would otherwise pay for both
+    with bf16 autocast and the loss as they train, in this process: what the first method timed would otherwise pay for both
     (Warp's modules loaded from its kernel cache or built, torch's custom-op machinery imported on first call,
     cuDNN's kernels loaded). Round 15, H100: the recipe, timed first, had an 11.7-16.0 s first epoch and the
     baseline after it 1.3-1.5 s. Its wall seconds; nothing trains (the parameters' gradients are dropped)."""
@@ -119,10 +121,12 @@ def process_warmup(config, device: torch.device) -> float:
     images = torch.randint(0, 256, shape, dtype=torch.uint8, device=device)
     labels = torch.randint(0, classes, (shape[0], *shape[2:]), device=device)
     amp = config.train.amp and device.type == "cuda"
-    for model in (build_system(config, classes), baseline_system(config, classes)):
+    for model, options in ((build_system(config, classes), {}),
+                           (baseline_system(config, classes), {"smoothness_pairs": BASELINE_SMOOTHNESS})):
         model = model.to(device).train()
-        logits, _ = model(images, amp)
-        torch.nn.functional.cross_entropy(logits.float(), labels).backward()
+        logits, sensed = model(images, amp)
+        loss, _ = segmentation_loss(logits, labels, sensed, config.loss, **options)
+        loss.backward()
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     return time.perf_counter() - started

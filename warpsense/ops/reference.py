@@ -129,3 +129,14 @@ def psf_conv_blend_fft(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
     result = torch.fft.irfft2(spectrum, s=(full_h, full_w))
     # circular convolution anchored at (0, 0): the valid part of the padded frame starts at 2r
     return result[..., 2 * radius : 2 * radius + height, 2 * radius : 2 * radius + width]
+
+
+def edge_aware_smoothness_reference(probabilities: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1):
+    """[B,K,H,W], [B,H,W] -> 0-d: half the mean over horizontal neighbour pairs and half the mean over vertical
+    ones of exp(-|g_p - g_q| / sigma) |P(p) - P(q)|_1 (eq. 9 of the paper), from shifted slices."""
+    guide = guide.unsqueeze(1)
+    dx_p = (probabilities[..., :, 1:] - probabilities[..., :, :-1]).abs().sum(dim=1, keepdim=True)
+    dy_p = (probabilities[..., 1:, :] - probabilities[..., :-1, :]).abs().sum(dim=1, keepdim=True)
+    wx = torch.exp(-(guide[..., :, 1:] - guide[..., :, :-1]).abs() / sigma)
+    wy = torch.exp(-(guide[..., 1:, :] - guide[..., :-1, :]).abs() / sigma)
+    return 0.5 * ((wx * dx_p).mean() + (wy * dy_p).mean())

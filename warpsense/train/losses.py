@@ -6,6 +6,7 @@ import torch
 from torch.nn import functional as F
 
 from warpsense.data.labels import IGNORE_INDEX
+from warpsense.ops.smoothness import edge_aware_smoothness as smoothness_pairs
 
 
 def class_balance_weights(counts: torch.Tensor, power: float) -> torch.Tensor:
@@ -77,8 +78,14 @@ def lovasz_softmax(logits: torch.Tensor, target: torch.Tensor, ignore_index: int
     """Lovasz-softmax loss (Berman, Rannen Triki, Blaschko, CVPR 2018), averaged over the classes present in the
     batch's labels. All classes are sorted at once and absent ones masked out, so no host round trip; ignored
     pixels get error 0 and foreground 0, which adds nothing to the loss. Returns 0 when no pixel is valid."""
-    num_classes = logits.shape[1]
-    probabilities = torch.softmax(logits.float(), dim=1).transpose(0, 1).reshape(num_classes, -1)
+    return _lovasz_of_probabilities(torch.softmax(logits.float(), dim=1), target, ignore_index)
+
+
+def _lovasz_of_probabilities(probabilities: torch.Tensor, target: torch.Tensor,
+                             ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
+    """`lovasz_softmax` of class probabilities [B, K, H, W]."""
+    num_classes = probabilities.shape[1]
+    probabilities = probabilities.transpose(0, 1).reshape(num_classes, -1)
     labels = target.reshape(-1)
     valid = labels != ignore_index
     classes = torch.arange(num_classes, device=labels.device)[:, None]
@@ -90,18 +97,23 @@ def lovasz_softmax(logits: torch.Tensor, target: torch.Tensor, ignore_index: int
     return (losses * present).sum() / present.sum().clamp_min(1)
 
 
-def edge_aware_smoothness(logits: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1) -> torch.Tensor:
+def edge_aware_smoothness(logits: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1,
+                          pairs=smoothness_pairs) -> torch.Tensor:
     """Mean over 4-neighbour pairs of w_pq |P(p) - P(q)|_1 (eq. 9 of the paper), w_pq = exp(-|I_p - I_q| / sigma) from the
-    guide image [B, C, H, W] (the sensor output), so predictions stay smooth except across image edges."""
-    probabilities = torch.softmax(logits.float(), dim=1)
+    guide image [B, C, H, W] (the sensor output; its channel mean, resized to the logits if needed), so predictions
+    stay smooth except across image edges. ``pairs(probabilities, guide, sigma)`` sums the pairs: by default one
+    fused Warp op forward and backward (`warpsense.ops.smoothness`); the plain-torch baseline passes
+    `warpsense.ops.reference.edge_aware_smoothness_reference`."""
+    return _smoothness_of_probabilities(torch.softmax(logits.float(), dim=1), guide, sigma, pairs)
+
+
+def _smoothness_of_probabilities(probabilities: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1,
+                                 pairs=smoothness_pairs) -> torch.Tensor:
+    """`edge_aware_smoothness` of class probabilities [B, K, H, W]."""
     guide = guide.float().mean(dim=1, keepdim=True)
     if guide.shape[-2:] != probabilities.shape[-2:]:
         guide = F.interpolate(guide, size=probabilities.shape[-2:], mode="bilinear", align_corners=False)
-    dx_p = (probabilities[..., :, 1:] - probabilities[..., :, :-1]).abs().sum(dim=1, keepdim=True)
-    dy_p = (probabilities[..., 1:, :] - probabilities[..., :-1, :]).abs().sum(dim=1, keepdim=True)
-    wx = torch.exp(-(guide[..., :, 1:] - guide[..., :, :-1]).abs() / sigma)
-    wy = torch.exp(-(guide[..., 1:, :] - guide[..., :-1, :]).abs() / sigma)
-    return 0.5 * ((wx * dx_p).mean() + (wy * dy_p).mean())
+    return pairs(probabilities, guide[:, 0], sigma)
 
 
 def pixel_distillation(student: torch.Tensor, teacher: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
@@ -154,12 +166,14 @@ def distillation_loss(student: torch.Tensor, teacher: torch.Tensor, temperature:
     return term(student, teacher, temperature)
 
 
-def segmentation_loss(logits, target, guide, loss_config,
-                      class_weights: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+def segmentation_loss(logits, target, guide, loss_config, class_weights: torch.Tensor | None = None,
+                      smoothness_pairs=smoothness_pairs) -> tuple[torch.Tensor, dict[str, float]]:
     """Total loss 0.6 OHEM + 0.4 Lovasz + lambda smoothness (eq. 10 of the paper; weights from the config), the
     OHEM term's pixels weighted by ``class_weights`` [K] when given. With ``loss_config.lovasz_stride`` = s > 1 the
     Lovasz term sees the pixels on a grid of every s-th row and column (the crops' random offsets move the grid over
     the scene): an estimate of the batch's Jaccard loss from 1/s^2 of the pixels, whose sort dominates its cost.
+
+    ``smoothness_pairs``: how the smoothness term sums its pairs (`edge_aware_smoothness`'s ``pairs``).
 
     Returns the loss and a dict of its detached parts (tensors: no host sync per step)."""
     parts = {}
@@ -167,11 +181,15 @@ def segmentation_loss(logits, target, guide, loss_config,
     if loss_config.ohem_weight > 0:
         parts["ohem"] = ohem_cross_entropy(logits, target, loss_config.ohem_fraction, class_weights=class_weights)
         total = total + loss_config.ohem_weight * parts["ohem"]
+    # one softmax for the two terms that read probabilities (per pixel, so a strided view is the strided softmax)
+    probabilities = torch.softmax(logits.float(), dim=1) \
+        if loss_config.lovasz_weight > 0 or loss_config.smooth_weight > 0 else None
     if loss_config.lovasz_weight > 0:
         stride = loss_config.lovasz_stride
-        parts["lovasz"] = lovasz_softmax(logits[..., ::stride, ::stride], target[..., ::stride, ::stride])
+        parts["lovasz"] = _lovasz_of_probabilities(probabilities[..., ::stride, ::stride],
+                                                   target[..., ::stride, ::stride])
         total = total + loss_config.lovasz_weight * parts["lovasz"]
     if loss_config.smooth_weight > 0:
-        parts["smooth"] = edge_aware_smoothness(logits, guide)
+        parts["smooth"] = _smoothness_of_probabilities(probabilities, guide, pairs=smoothness_pairs)
         total = total + loss_config.smooth_weight * parts["smooth"]
     return total, {k: v.detach() for k, v in parts.items()}

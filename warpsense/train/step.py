@@ -49,12 +49,14 @@ class TrainingStep:
             step (compiled and captured with it) and is never part of the trained model.
         class_weights: [K] weights of the OHEM term's pixels by class (loss.class_balance), on the device.
         ema: a `warpsense.train.ema.WeightEMA` updated after every optimizer step (inside the captured step).
+        smoothness_pairs: how the smoothness term sums its pairs (`warpsense.train.losses.edge_aware_smoothness`);
+            None: the fused Warp op. The plain-torch baseline of the benchmarks passes the plain-torch reference.
     """
 
     def __init__(self, loss_config, optimizer: torch.optim.Optimizer, camera_params: list, total_steps: int,
                  amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False,
                  micro_batch: int = 0, teacher: torch.nn.Module | None = None,
-                 class_weights: torch.Tensor | None = None, ema=None):
+                 class_weights: torch.Tensor | None = None, ema=None, smoothness_pairs=None):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
         if cuda_graph and compile_mode in SELF_CAPTURING_COMPILE_MODES:
@@ -70,6 +72,7 @@ class TrainingStep:
         self.teacher = teacher if loss_config.distill_weight > 0 else None
         self.class_weights = class_weights
         self.ema = ema
+        self.loss_options = {} if smoothness_pairs is None else {"smoothness_pairs": smoothness_pairs}
         self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
         self.compiled = compile_mode != "off"
         self.forward_loss = self._forward_loss if not self.compiled else \
@@ -92,7 +95,8 @@ class TrainingStep:
 
     def _forward_loss(self, model, images, labels):
         logits, sensed = model(images, self.amp)
-        loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config, self.class_weights)
+        loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config, self.class_weights,
+                                        **self.loss_options)
         if self.teacher is not None:
             with torch.no_grad():
                 teacher_logits, _ = self.teacher(images, self.amp)
