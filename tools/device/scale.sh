@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# Issue 32 on a machine of several GPUs (tools/device/README.md: the kit installed, .device/camvid carried).
+#   bash tools/device/scale.sh study 0      camvid_scaling on GPU 0 alone -> .device/state/scale_1gpu
+#   bash tools/device/scale.sh study auto   camvid_scaling over every GPU  -> .device/state/scale_all
+#   bash tools/device/scale.sh ddp [EPOCHS] torchrun on 1 GPU and on all, camvid_codesign, the same global batch
+#                                           (data.batch_size is global), EPOCHS (default 30) -> .device/state/ddpN
+# Extra overrides for the study runs go in $SET (e.g. SET="--set run.deterministic=true" for the per-cell equality
+# check, which the throughput figures should not carry: it costs 31% of the step, docs/benchmarks.md round 14).
+# Cells per hour and the GPUs' busy fraction are in each study's throughput.json; everything comes back as
+# $OUT/scale.tgz (no plots, no weights).
+set -u
+what=$1; arg=${2:-}
+ln -sfn ../kernels warpsense/kernels; ln -sfn ../configs warpsense/configs
+export PYTHONPATH=/tmp/site:$PWD
+nvidia-smi -L
+gpus=$(nvidia-smi -L | wc -l)
+mkdir -p .device/state
+case $what in
+  study)
+    name=scale_$([ "$arg" = auto ] && echo all || echo 1gpu)
+    # shellcheck disable=SC2086  # $SET is a list of arguments
+    python -m warpsense study run camvid_scaling --out ".device/state/$name" --gpus "$arg" \
+      --set data.root=.device/camvid ${SET:-}
+    python -m warpsense study report ".device/state/$name" --json "$OUT/$name.json" > "$OUT/$name.txt"
+    cat ".device/state/$name/throughput.json"
+    ;;
+  ddp)
+    epochs=${arg:-30}
+    for nproc in 1 "$gpus"; do
+      torchrun --standalone --nproc_per_node "$nproc" -m warpsense train --config camvid_codesign --no-progress \
+        --set data.root=.device/camvid --set run.output_dir=.device/state/ddp$nproc --set train.epochs="$epochs" \
+        --set train.warmup_epochs=$(( epochs * 3 / 10 )) > "$OUT/ddp$nproc.log" 2>&1
+      echo "torchrun N=$nproc exit $?"; tail -3 "$OUT/ddp$nproc.log"
+    done
+    ;;
+  *) echo "usage: scale.sh study 0|auto | ddp [EPOCHS]" >&2; exit 2 ;;
+esac
+tar czf "$OUT/scale.tgz" --exclude="*.png" --exclude="*.safetensors" -C .device/state .
