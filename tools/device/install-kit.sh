@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth]
+#   step:   the training step at Lovasz stride 1 and 2 (round 16)
+#   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
+#           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -20,5 +23,12 @@ if [ "${1:-}" = step ]; then
   for s in 1 2; do
     python tools/bench_train_bound.py --config camvid_codesign --set loss.lovasz_stride=$s --steps 60 \
       --json "$OUT/step_stride$s.json" 2>&1 | grep -v Warning
+  done
+fi
+if [ "${1:-}" = smooth ]; then
+  python -m pytest -q -p no:warnings -m cuda tests/ops/test_smoothness.py tests/ops/test_custom_ops.py -k smooth
+  for term in "loss.smooth_weight=0.01" "loss.smooth_weight=0"; do
+    python tools/bench_train_bound.py --config camvid_codesign --set "$term" --steps 60 \
+      --json "$OUT/step_${term#loss.}.json" 2>&1 | grep -v Warning
   done
 fi
