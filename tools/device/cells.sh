@@ -3,6 +3,8 @@
 # the study directory .device/state/NAME (default NAME = PLAN) comes back as $OUT/NAME.tgz, without plots or best
 # checkpoints; the last checkpoints stay, so an interrupted cell resumes in the next call (tools/device/README.md).
 # Usage: bash tools/device/cells.sh PLAN LIMIT all|CAMERA/LIGHT/SEED [NAME]
+# PER_GPU=N runs N cells at once on the GPU (the study's local pool, one process each; round 9 found 6 at once slower
+# than 1 on an H100 without MPS: the GPU time-slices processes). Unset: the cells one after another in one process.
 set -u
 plan=$1; limit=$2; which=${3:-all}; name=${4:-$1}
 ln -sfn ../kernels warpsense/kernels; ln -sfn ../configs warpsense/configs
@@ -14,7 +16,7 @@ extra=()
 [ "$which" != all ] && extra=(--cell "$which")
 start=$(date +%s)
 timeout --signal=INT --kill-after=30 "$limit" python -m warpsense study run "$plan" --out "$state" \
-  --set data.root=.device/camvid "${extra[@]}"
+  --set data.root=.device/camvid ${PER_GPU:+--per-gpu "$PER_GPU"} "${extra[@]}"
 rc=$?
 echo "study run exit $rc after $(( $(date +%s) - start )) s"
 tar czf "$OUT/$name.tgz" --exclude="*.png" --exclude="checkpoint_best.safetensors" -C .device/state "$name"
