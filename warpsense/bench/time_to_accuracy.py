@@ -121,11 +121,10 @@ def process_warmup(config, device: torch.device) -> float:
     images = torch.randint(0, 256, shape, dtype=torch.uint8, device=device)
     labels = torch.randint(0, classes, (shape[0], *shape[2:]), device=device)
     amp = config.train.amp and device.type == "cuda"
-    for model, options in ((build_system(config, classes), {}),
-                           (baseline_system(config, classes), {"smoothness_pairs": BASELINE_SMOOTHNESS})):
+    for model, pairs in ((build_system(config, classes), None), (baseline_system(config, classes), BASELINE_SMOOTHNESS)):
         model = model.to(device).train()
         logits, sensed = model(images, amp)
-        loss, _ = segmentation_loss(logits, labels, sensed, config.loss, **options)
+        loss, _ = segmentation_loss(logits, labels, sensed, config.loss, smoothness_pairs=pairs)
         loss.backward()
     if device.type == "cuda":
         torch.cuda.synchronize(device)

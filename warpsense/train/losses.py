@@ -6,7 +6,7 @@ import torch
 from torch.nn import functional as F
 
 from warpsense.data.labels import IGNORE_INDEX
-from warpsense.ops.smoothness import edge_aware_smoothness as smoothness_pairs
+from warpsense.ops.smoothness import edge_aware_smoothness as fused_smoothness
 
 
 def class_balance_weights(counts: torch.Tensor, power: float) -> torch.Tensor:
@@ -98,22 +98,22 @@ def _lovasz_of_probabilities(probabilities: torch.Tensor, target: torch.Tensor,
 
 
 def edge_aware_smoothness(logits: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1,
-                          pairs=smoothness_pairs) -> torch.Tensor:
+                          pairs=None) -> torch.Tensor:
     """Mean over 4-neighbour pairs of w_pq |P(p) - P(q)|_1 (eq. 9 of the paper), w_pq = exp(-|I_p - I_q| / sigma) from the
     guide image [B, C, H, W] (the sensor output; its channel mean, resized to the logits if needed), so predictions
-    stay smooth except across image edges. ``pairs(probabilities, guide, sigma)`` sums the pairs: by default one
+    stay smooth except across image edges. ``pairs(probabilities, guide, sigma)`` sums the pairs: None is one
     fused Warp op forward and backward (`warpsense.ops.smoothness`); the plain-torch baseline passes
     `warpsense.ops.reference.edge_aware_smoothness_reference`."""
     return _smoothness_of_probabilities(torch.softmax(logits.float(), dim=1), guide, sigma, pairs)
 
 
 def _smoothness_of_probabilities(probabilities: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1,
-                                 pairs=smoothness_pairs) -> torch.Tensor:
+                                 pairs=None) -> torch.Tensor:
     """`edge_aware_smoothness` of class probabilities [B, K, H, W]."""
     guide = guide.float().mean(dim=1, keepdim=True)
     if guide.shape[-2:] != probabilities.shape[-2:]:
         guide = F.interpolate(guide, size=probabilities.shape[-2:], mode="bilinear", align_corners=False)
-    return pairs(probabilities, guide[:, 0], sigma)
+    return (pairs or fused_smoothness)(probabilities, guide[:, 0], sigma)
 
 
 def pixel_distillation(student: torch.Tensor, teacher: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
@@ -167,7 +167,7 @@ def distillation_loss(student: torch.Tensor, teacher: torch.Tensor, temperature:
 
 
 def segmentation_loss(logits, target, guide, loss_config, class_weights: torch.Tensor | None = None,
-                      smoothness_pairs=smoothness_pairs) -> tuple[torch.Tensor, dict[str, float]]:
+                      smoothness_pairs=None) -> tuple[torch.Tensor, dict[str, float]]:
     """Total loss 0.6 OHEM + 0.4 Lovasz + lambda smoothness (eq. 10 of the paper; weights from the config), the
     OHEM term's pixels weighted by ``class_weights`` [K] when given. With ``loss_config.lovasz_stride`` = s > 1 the
     Lovasz term sees the pixels on a grid of every s-th row and column (the crops' random offsets move the grid over

@@ -72,7 +72,7 @@ class TrainingStep:
         self.teacher = teacher if loss_config.distill_weight > 0 else None
         self.class_weights = class_weights
         self.ema = ema
-        self.loss_options = {} if smoothness_pairs is None else {"smoothness_pairs": smoothness_pairs}
+        self.smoothness_pairs = smoothness_pairs
         self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
         self.compiled = compile_mode != "off"
         self.forward_loss = self._forward_loss if not self.compiled else \
@@ -96,7 +96,7 @@ class TrainingStep:
     def _forward_loss(self, model, images, labels):
         logits, sensed = model(images, self.amp)
         loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config, self.class_weights,
-                                        **self.loss_options)
+                                        self.smoothness_pairs)
         if self.teacher is not None:
             with torch.no_grad():
                 teacher_logits, _ = self.teacher(images, self.amp)
