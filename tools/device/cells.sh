@@ -7,8 +7,7 @@
 # than 1 on an H100 without MPS: the GPU time-slices processes). Unset: the cells one after another in one process.
 set -u
 plan=$1; limit=$2; which=${3:-all}; name=${4:-$1}
-ln -sfn ../kernels warpsense/kernels; ln -sfn ../configs warpsense/configs
-export PYTHONPATH=/tmp/site:$PWD
+source tools/device/env.sh
 nvidia-smi --query-gpu=name --format=csv,noheader
 state=.device/state/$name
 mkdir -p "$state"

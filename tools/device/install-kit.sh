@@ -8,8 +8,7 @@ set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
 bash /tmp/kit/install.sh /tmp/site || exit 2
-ln -sfn ../kernels warpsense/kernels; ln -sfn ../configs warpsense/configs
-export PYTHONPATH=/tmp/site:$PWD
+source tools/device/env.sh
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 python - <<'PY'
 import torch, warp as wp

@@ -10,8 +10,7 @@
 # $OUT/scale.tgz (no plots, no weights).
 set -u
 what=$1; arg=${2:-}
-ln -sfn ../kernels warpsense/kernels; ln -sfn ../configs warpsense/configs
-export PYTHONPATH=/tmp/site:$PWD
+source tools/device/env.sh
 nvidia-smi -L
 gpus=$(nvidia-smi -L | wc -l)
 mkdir -p .device/state

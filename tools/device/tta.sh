@@ -4,8 +4,7 @@
 # Records and curves come back as $OUT/tta_seedS.json / .png. Usage: bash tools/device/tta.sh LIMIT SEED
 set -u
 limit=$1; seed=$2
-ln -sfn ../kernels warpsense/kernels; ln -sfn ../configs warpsense/configs
-export PYTHONPATH=/tmp/site:$PWD
+source tools/device/env.sh
 nvidia-smi --query-gpu=name --format=csv,noheader
 timeout --signal=INT --kill-after=30 "$limit" python -m warpsense bench --suite time-to-accuracy \
   --camvid .device/camvid --device cuda --seeds "$seed" --json "$OUT/tta_seed$seed.json" --plot "$OUT/tta_seed$seed.png"
