@@ -26,8 +26,9 @@ if [ "${1:-}" = step ]; then
 fi
 if [ "${1:-}" = smooth ]; then
   python -m pytest -q -p no:warnings -m cuda tests/ops/test_smoothness.py tests/ops/test_custom_ops.py -k smooth
-  for term in "loss.smooth_weight=0.01" "loss.smooth_weight=0"; do
-    python tools/bench_train_bound.py --config camvid_codesign --set "$term" --steps 60 \
-      --json "$OUT/step_${term#loss.}.json" 2>&1 | grep -v Warning
+  # $OUT names without '=': the device tool refuses such names on the way back
+  for w in on:0.01 off:0; do
+    python tools/bench_train_bound.py --config camvid_codesign --set "loss.smooth_weight=${w#*:}" --steps 60 \
+      --json "$OUT/step_smooth_${w%%:*}.json" 2>&1 | grep -v Warning
   done
 fi
