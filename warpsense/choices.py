@@ -16,6 +16,11 @@ DATASETS = ("scenes", "camvid", "cityscapes", "kitti360")
 ON_DEVICE_MODES = ("auto", "always", "never")
 """Whether the decoded training set is kept on the GPU (`warpsense.data.on_device`)."""
 
+SCALE_FILLS = ("cover", "reflect")
+"""How a training crop is filled where the rescaled frame is smaller than it (`warpsense.data.transforms`):
+``cover`` raises the scale until the frame covers the crop; ``reflect`` keeps the drawn scale and mirrors the frame
+into the rest of the crop, labelled ignore there (real zoom-out, and no black pixels for the camera to see)."""
+
 PSF_METHODS = ("auto", "direct", "conv2d", "fft", "patch")
 """PSF-convolution methods (`warpsense.ops.psf.psf_conv`)."""
 

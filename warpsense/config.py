@@ -31,6 +31,7 @@ from warpsense.choices import (
     PSF_METHODS,
     QUANTIZE_MODES,
     RENDER_PRECISIONS,
+    SCALE_FILLS,
     SELF_CAPTURING_COMPILE_MODES,
 )
 from warpsense.resources import CONFIG_DIR
@@ -76,6 +77,7 @@ class DataConfig:
     crop_width: int = _field(128, minimum=1)
     scale_min: float = _field(1.0, minimum=0, exclusive=True)
     scale_max: float = _field(1.0, minimum=0, exclusive=True)
+    scale_fill: str = _field("cover", choices=SCALE_FILLS)
     hflip: bool = True
     batch_size: int = _field(8, minimum=1)
     num_workers: int = _field(0, minimum=0, maximum=256)

@@ -1,3 +1,4 @@
+import numpy as np
 import pytest
 import torch
 from torch.utils.data import DataLoader, SequentialSampler
@@ -5,7 +6,7 @@ from torch.utils.data import DataLoader, SequentialSampler
 from warpsense.data import StreetScenes
 from warpsense.data.labels import IGNORE_INDEX
 from warpsense.data.on_device import DeviceBatches
-from warpsense.data.transforms import Augmented, EpochSampler
+from warpsense.data.transforms import Augmented, EpochSampler, reflect_index
 
 
 class _Sequential(SequentialSampler):
@@ -87,6 +88,52 @@ def test_downscale_never_pads_the_crop():
     for index in range(len(cpu_path)):
         image, label = cpu_path[index]
         assert image.shape == (3, 28, 36) and _padding_free(image[None], label[None])
+
+
+def test_reflect_index_is_numpys_symmetric_padding():
+    size, pad = 7, 23  # farther out than the axis is long: the mirror repeats
+    expected = np.pad(np.arange(size), pad, mode="symmetric")
+    assert reflect_index(torch.arange(-pad, size + pad), size).tolist() == expected.tolist()
+    floats = reflect_index(torch.arange(-pad, size + pad, dtype=torch.float32), torch.tensor(float(size)))
+    assert floats.tolist() == expected.astype(float).tolist()
+
+
+def _reflect_paths(scale, crop):
+    scenes = StreetScenes(6, 30, 40, seed=1)
+    device = DeviceBatches(scenes, "cpu", batch_size=3, crop=crop, scale_range=scale, hflip=False, seed=0,
+                           progress=False, fill="reflect")
+    cpu = Augmented(scenes, crop, scale, hflip=False, seed=0, fill="reflect")
+    images, labels = device.augment(torch.arange(6), torch.Generator().manual_seed(0))
+    return scenes, list(zip(images, labels)) + [cpu[index] for index in range(len(cpu))]  # item k: scene k % 6
+
+
+def test_reflect_fill_mirrors_the_frame_into_the_crop():
+    """At scale 1 a 30 x 40 frame sits somewhere inside a 36 x 48 crop, the rest its mirror image (NumPy's
+    symmetric padding), labelled ignore: in both data paths."""
+    scenes, pairs = _reflect_paths((1.0, 1.0), (36, 48))
+    offsets = set()
+    for k, (image, label) in enumerate(pairs):
+        source, source_label = scenes[k % 6]
+        padded = np.pad(source.numpy(), ((0, 0), (6, 6), (8, 8)), mode="symmetric")
+        found = [(y, x) for y in range(7) for x in range(9)
+                 if np.array_equal(padded[:, 6 - y : 42 - y, 8 - x : 56 - x], image.numpy())]
+        assert found, f"crop {k} is not the frame in its mirror image"
+        y, x = found[0]
+        expected = torch.full((36, 48), IGNORE_INDEX, dtype=torch.long)
+        expected[y : y + 30, x : x + 40] = source_label
+        assert torch.equal(label, expected)
+        offsets.add((y, x))
+    assert len(offsets) > 1  # the frame's place in the crop is drawn
+
+
+def test_reflect_fill_zooms_out_without_black_pixels():
+    """Below the covering scale the frame really shrinks (ignore labels where it does not reach, about the scaled
+    frame's area labelled) and no black padding enters the crop, unlike zero padding."""
+    _, pairs = _reflect_paths((0.5, 0.6), (28, 36))
+    for image, label in pairs:
+        labelled = int((label != IGNORE_INDEX).sum())
+        assert 0.5**2 * 30 * 40 * 0.8 <= labelled <= 0.6**2 * 30 * 40 * 1.2
+        assert not bool((image.amax(dim=(0, 2)) == 0).any()) and not bool((image.amax(dim=(0, 1)) == 0).any())
 
 
 def test_decoded_dataset_gives_the_items_and_the_same_evaluation():

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Runs the pending cells of a study plan on the GPU, in one process, stopped (SIGINT, resumable) after LIMIT seconds;
-# the study directory .device/state/NAME (default NAME = PLAN) comes back as $OUT/NAME.tgz, without plots or best
-# checkpoints; the last checkpoints stay, so an interrupted cell resumes in the next call (tools/device/README.md).
+# the study directory .device/state/NAME (default NAME = PLAN) comes back as $OUT/NAME.tgz, without plots or weights
+# but an interrupted cell's last checkpoint, so that it resumes in the next call (tools/device/README.md).
 # Usage: bash tools/device/cells.sh PLAN LIMIT all|CAMERA/LIGHT/SEED [NAME]
 # PER_GPU=N runs N cells at once on the GPU (the study's local pool, one process each; round 9 found 6 at once slower
 # than 1 on an H100 without MPS: the GPU time-slices processes). Unset: the cells one after another in one process.
@@ -18,6 +18,12 @@ timeout --signal=INT --kill-after=30 "$limit" python -m warpsense study run "$pl
   --set data.root=.device/camvid ${PER_GPU:+--per-gpu "$PER_GPU"} "${extra[@]}"
 rc=$?
 echo "study run exit $rc after $(( $(date +%s) - start )) s"
-tar czf "$OUT/$name.tgz" --exclude="*.png" --exclude="checkpoint_best.safetensors" -C .device/state "$name"
+# a finished cell's weights stay here (the device tool refuses large files, ~15 MB): only an interrupted cell's last
+# checkpoint comes back, so that it can resume on the next machine
+finished=()
+for done in "$state"/runs/*/evaluation.json; do
+  [ -e "$done" ] && finished+=(--exclude="$name/runs/$(basename "$(dirname "$done")")/checkpoint_last.safetensors")
+done
+tar czf "$OUT/$name.tgz" --exclude="*.png" --exclude="checkpoint_best.safetensors" "${finished[@]}" -C .device/state "$name"
 ls -la "$OUT"
 exit $rc

@@ -42,7 +42,8 @@ def build_dataset(data_config, split: str, train: bool, seed: int = 0, part: str
         dataset.pairs = dataset.pairs[:data_config.max_train_images or None]
     if train:
         crop = (data_config.crop_height, data_config.crop_width)
-        return Augmented(dataset, crop, (data_config.scale_min, data_config.scale_max), data_config.hflip, seed)
+        return Augmented(dataset, crop, (data_config.scale_min, data_config.scale_max), data_config.hflip, seed,
+                         data_config.scale_fill)
     return dataset
 
 

@@ -1,7 +1,7 @@
 """A training set held on the GPU: decoded once as uint8, augmented there in batches with fixed output shapes.
 
-Same augmentation as `warpsense.data.transforms.scale_crop_flip` (random rescale raised where needed to cover
-the crop, crop, horizontal flip), drawn per batch from a device generator, so a training step needs no host work and no
+Same augmentation as `warpsense.data.transforms.scale_crop_flip` (random rescale, raised where needed to cover
+the crop or mirrored into it, crop, horizontal flip), drawn per batch from a device generator, so a training step needs no host work and no
 host-device copy.
 """
 
@@ -15,6 +15,7 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from warpsense.data.labels import IGNORE_INDEX
+from warpsense.data.transforms import reflect_index
 
 DECODE_THREADS = 8
 """Threads that decode a dataset's files at once (PIL and NumPy release the GIL while decoding): the CamVid training
@@ -64,7 +65,8 @@ class DeviceBatches:
     """
 
     def __init__(self, dataset, device, batch_size: int, crop: tuple[int, int], scale_range=(1.0, 1.0),
-                 hflip: bool = True, seed: int = 0, rank: int = 0, world_size: int = 1, progress: bool = True):
+                 hflip: bool = True, seed: int = 0, rank: int = 0, world_size: int = 1, progress: bool = True,
+                 fill: str = "cover"):
         items = decode_all(dataset, "loading training set onto the device", progress)
         sizes = [image.shape[1:] for image, _ in items]
         height = max(size[0] for size in sizes)
@@ -76,7 +78,7 @@ class DeviceBatches:
             self.labels[index, : label.shape[0], : label.shape[1]] = label.clamp(max=IGNORE_INDEX).to(device)
         self.sizes = torch.tensor(sizes, dtype=torch.float32, device=device)  # [N, 2] (height, width)
         self.device, self.batch_size, self.crop = torch.device(device), batch_size, crop
-        self.scale_range, self.hflip, self.seed = scale_range, hflip, seed
+        self.scale_range, self.hflip, self.seed, self.fill = scale_range, hflip, seed, fill
         self.rank, self.world_size = rank, world_size
         self.epoch = 0
         self.classes = dataset.classes
@@ -97,29 +99,33 @@ class DeviceBatches:
 
     def augment(self, indices: torch.Tensor, generator: torch.Generator):
         """Scale, crop and flip the images at ``indices`` into one fixed-shape batch (bilinear images, nearest
-        labels), all on the device."""
+        labels), all on the device; where a scaled image is smaller than the crop (``fill`` "reflect"), it sits at
+        a random offset and the rest of the crop mirrors it, labelled ignore."""
         batch = indices.shape[0]
         crop_h, crop_w = self.crop
         low, high = self.scale_range
         draws = torch.rand(batch, 4, generator=generator, device=self.device)
         size = self.sizes[indices]  # [B, 2] source height, width
-        # raised where needed so the scaled image covers the crop (as in scale_crop_flip: no padding)
-        cover = torch.maximum(crop_h / size[:, 0], crop_w / size[:, 1]) * (1 + 1e-6)
-        scale = torch.maximum(low + (high - low) * draws[:, 0], cover)
+        scale = low + (high - low) * draws[:, 0]
+        if self.fill == "cover":  # raised where needed so the scaled image covers the crop (as in scale_crop_flip)
+            scale = torch.maximum(scale, torch.maximum(crop_h / size[:, 0], crop_w / size[:, 1]) * (1 + 1e-6))
         scaled_h, scaled_w = size[:, 0] * scale, size[:, 1] * scale
-        # top-left corner of the crop in the scaled image
-        top = (draws[:, 1] * (scaled_h - crop_h).clamp_min(0)).floor()
-        left = (draws[:, 2] * (scaled_w - crop_w).clamp_min(0)).floor()
+        # top-left corner of the crop in the scaled image (negative where the image is smaller: it sits inside)
+        top = (draws[:, 1] * (scaled_h - crop_h)).floor()
+        left = (draws[:, 2] * (scaled_w - crop_w)).floor()
         flip = (draws[:, 3] < 0.5) if self.hflip else torch.zeros(batch, dtype=torch.bool, device=self.device)
-        # output pixel (i, j) -> scaled pixel (top + i, left + j) -> source pixel centre / scale, in the padded store
+        # output pixel (i, j) -> scaled pixel (top + i, left + j), mirrored into the scaled image -> source pixel
+        # centre / scale, in the padded store
         rows = torch.arange(crop_h, device=self.device, dtype=torch.float32)
         cols = torch.arange(crop_w, device=self.device, dtype=torch.float32)
         cols = torch.where(flip[:, None], crop_w - 1 - cols[None, :], cols[None, :])
-        source_y = (top[:, None] + rows[None, :] + 0.5) / scale[:, None] - 0.5
-        source_x = (left[:, None] + cols + 0.5) / scale[:, None] - 0.5
+        scaled_y = top[:, None] + rows[None, :]
+        scaled_x = left[:, None] + cols
+        inside_y = (scaled_y >= 0) & (scaled_y < scaled_h[:, None])
+        inside_x = (scaled_x >= 0) & (scaled_x < scaled_w[:, None])
+        source_y = (reflect_index(scaled_y, scaled_h[:, None]) + 0.5) / scale[:, None] - 0.5
+        source_x = (reflect_index(scaled_x, scaled_w[:, None]) + 0.5) / scale[:, None] - 0.5
         store_h, store_w = self.images.shape[-2:]
-        inside_y = (top[:, None] + rows[None, :]) < scaled_h[:, None]
-        inside_x = (left[:, None] + cols) < scaled_w[:, None]
         grid_y = (source_y + 0.5) / store_h * 2 - 1
         grid_x = (source_x + 0.5) / store_w * 2 - 1
         grid = torch.stack(torch.broadcast_tensors(grid_x[:, None, :], grid_y[:, :, None]), dim=-1)
@@ -128,6 +134,6 @@ class DeviceBatches:
         labels = F.grid_sample(self.labels[indices, None].float(), grid, mode="nearest", padding_mode="border",
                                align_corners=False)[:, 0]
         inside = inside_y[:, :, None] & inside_x[:, None, :]
-        images = torch.where(inside[:, None], images, 0.0).round_().clamp_(0, 255).to(torch.uint8)
+        images = images.round_().clamp_(0, 255).to(torch.uint8)
         labels = torch.where(inside, labels, float(IGNORE_INDEX)).long()
         return images, labels

@@ -6,26 +6,54 @@ import torch
 from torch.nn import functional as F
 from torch.utils.data import Dataset, Sampler
 
+from warpsense.data.labels import IGNORE_INDEX
+
+
+def reflect_index(index: torch.Tensor, size) -> torch.Tensor:
+    """Positions ``index`` along an axis of length ``size`` (int or float tensor), mirrored into [0, size) with the
+    edge repeated (..., 1, 0 | 0, 1, ..., size - 1 | size - 1, ...), as NumPy's ``pad(mode="symmetric")``, for any
+    distance outside."""
+    period = torch.remainder(index, 2 * size)
+    return torch.where(period < size, period, 2 * size - 1 - period)
+
+
+def _window(extent: int, crop: int, generator: torch.Generator) -> torch.Tensor:
+    """Positions [crop] of a random crop along an axis of ``extent`` pixels; where the axis is shorter than the
+    crop, the frame sits at a random offset inside it and the positions reach outside [0, extent)."""
+    if extent >= crop:
+        start = int(torch.randint(0, extent - crop + 1, (), generator=generator))
+    else:
+        start = -int(torch.randint(0, crop - extent + 1, (), generator=generator))
+    return torch.arange(start, start + crop)
+
 
 def scale_crop_flip(image: torch.Tensor, label: torch.Tensor, crop: tuple[int, int], scale_range: tuple[float, float],
-                    hflip: bool, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+                    hflip: bool, generator: torch.Generator, fill: str = "cover") -> tuple[torch.Tensor, torch.Tensor]:
     """uint8 [3, H, W], int64 [H, W] -> a random (crop_h, crop_w) window after a random rescale and flip.
 
-    The scale is raised where needed so the rescaled image covers the crop: padding would enter the camera (its
-    mean normalisation, paper 4.4) and the network as black pixels that no eval frame has."""
+    ``fill`` (`warpsense.choices.SCALE_FILLS`) decides what happens where the rescaled image is smaller than the
+    crop. ``cover`` raises the scale so the rescaled image covers the crop: zero padding would enter the camera (its
+    mean normalisation, paper 4.4) and the network as black pixels that no eval frame has. ``reflect`` keeps the
+    drawn scale (zoom-out below the crop's size), places the image at a random offset and fills the rest of the crop
+    with its mirror image, labelled `IGNORE_INDEX`, so the crop's statistics stay those of a frame."""
     low, high = scale_range
     crop_h, crop_w = crop
     scale = low + (high - low) * float(torch.rand((), generator=generator))
-    scale = max(scale, crop_h / image.shape[1], crop_w / image.shape[2])
+    if fill == "cover":
+        scale = max(scale, crop_h / image.shape[1], crop_w / image.shape[2])
     if abs(scale - 1.0) > 1e-6:
-        size = (max(crop_h, round(image.shape[1] * scale)), max(crop_w, round(image.shape[2] * scale)))
+        size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[2] * scale)))
+        if fill == "cover":
+            size = (max(crop_h, size[0]), max(crop_w, size[1]))
         image = F.interpolate(image[None].float(), size=size, mode="bilinear", align_corners=False)[0]
         image = image.round().clamp(0, 255).to(torch.uint8)
         label = F.interpolate(label[None, None].float(), size=size, mode="nearest")[0, 0].long()
-    top = int(torch.randint(0, image.shape[1] - crop_h + 1, (), generator=generator))
-    left = int(torch.randint(0, image.shape[2] - crop_w + 1, (), generator=generator))
-    image = image[:, top : top + crop_h, left : left + crop_w]
-    label = label[top : top + crop_h, left : left + crop_w]
+    rows = _window(image.shape[1], crop_h, generator)
+    cols = _window(image.shape[2], crop_w, generator)
+    inside = ((rows >= 0) & (rows < image.shape[1]))[:, None] & ((cols >= 0) & (cols < image.shape[2]))[None, :]
+    rows, cols = reflect_index(rows, image.shape[1]), reflect_index(cols, image.shape[2])
+    image = image[:, rows[:, None], cols[None, :]]
+    label = torch.where(inside, label[rows[:, None], cols[None, :]], IGNORE_INDEX)
     if hflip and bool(torch.rand((), generator=generator) < 0.5):
         image, label = image.flip(-1), label.flip(-1)
     return image.contiguous(), label.contiguous()
@@ -39,8 +67,10 @@ class Augmented(Dataset):
     included, hold their own copy of this object, which a `set_epoch` call in the main process never reaches.
     """
 
-    def __init__(self, dataset, crop: tuple[int, int], scale_range=(1.0, 1.0), hflip: bool = True, seed: int = 0):
+    def __init__(self, dataset, crop: tuple[int, int], scale_range=(1.0, 1.0), hflip: bool = True, seed: int = 0,
+                 fill: str = "cover"):
         self.dataset, self.crop, self.scale_range, self.hflip, self.seed = dataset, crop, scale_range, hflip, seed
+        self.fill = fill
         self.classes = dataset.classes
 
     def __len__(self) -> int:
@@ -50,7 +80,7 @@ class Augmented(Dataset):
         epoch, index = divmod(int(index), len(self.dataset))
         image, label = self.dataset[index]
         generator = torch.Generator().manual_seed((self.seed * 1_000_003 + epoch) * 1_000_003 + index)
-        return scale_crop_flip(image, label, self.crop, self.scale_range, self.hflip, generator)
+        return scale_crop_flip(image, label, self.crop, self.scale_range, self.hflip, generator, self.fill)
 
 
 class EpochSampler(Sampler):
