@@ -78,6 +78,8 @@ class DataConfig:
     scale_min: float = _field(1.0, minimum=0, exclusive=True)
     scale_max: float = _field(1.0, minimum=0, exclusive=True)
     scale_fill: str = _field("cover", choices=SCALE_FILLS)
+    paste_classes: str = ""
+    paste_probability: float = _field(0.5, minimum=0, maximum=1)
     hflip: bool = True
     batch_size: int = _field(8, minimum=1)
     num_workers: int = _field(0, minimum=0, maximum=256)

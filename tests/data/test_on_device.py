@@ -4,9 +4,9 @@ import torch
 from torch.utils.data import DataLoader, SequentialSampler
 
 from warpsense.data import StreetScenes
-from warpsense.data.labels import IGNORE_INDEX
+from warpsense.data.labels import CAMVID_CLASSES, IGNORE_INDEX
 from warpsense.data.on_device import DeviceBatches
-from warpsense.data.transforms import Augmented, EpochSampler, reflect_index
+from warpsense.data.transforms import Augmented, EpochSampler, paste, paste_class_ids, reflect_index
 
 
 class _Sequential(SequentialSampler):
@@ -186,3 +186,54 @@ def test_decode_all_keeps_the_order_and_raises_an_items_own_error(monkeypatch):
     dataset.bad = 17
     with pytest.raises(ValueError, match="item 17: broken file"):
         on_device.decode_all(dataset, "test")
+
+
+def test_paste_matches_a_pixel_loop():
+    generator = torch.Generator().manual_seed(5)
+    image, donor_image = (torch.randint(0, 256, (2, 3, 6, 7), generator=generator, dtype=torch.uint8) for _ in "ab")
+    label, donor_label = (torch.randint(0, 12, (2, 6, 7), generator=generator) for _ in "ab")
+    donor_label[0, 0, 0] = IGNORE_INDEX
+    pasted_image, pasted_label = paste(image, label, donor_image, donor_label, torch.tensor([2, 9]))
+    expected_image, expected_label = image.numpy().copy(), label.numpy().copy()
+    for b, y, x in np.ndindex(2, 6, 7):
+        if int(donor_label[b, y, x]) in (2, 9):
+            expected_image[b, :, y, x] = donor_image[b, :, y, x].numpy()
+            expected_label[b, y, x] = int(donor_label[b, y, x])
+    assert np.array_equal(pasted_image.numpy(), expected_image) and np.array_equal(pasted_label.numpy(), expected_label)
+    assert (pasted_label != label).any()
+
+
+def test_paste_class_names_are_checked():
+    assert paste_class_ids(" pole, pedestrian ,", CAMVID_CLASSES) == (2, 9)
+    assert paste_class_ids("", CAMVID_CLASSES) == ()
+    with pytest.raises(ValueError, match="data.paste_classes: 'polee' is not a class.*valid: sky, building, pole"):
+        paste_class_ids("pole,polee", CAMVID_CLASSES)
+
+
+def _paste_paths(probability):
+    """Crops that are the whole frame at scale 1 (no flip), so the expected paste is exact; item k: scene k % 6."""
+    scenes = StreetScenes(6, 30, 40, seed=1)
+    classes = paste_class_ids("pole,sign_symbol,pedestrian,bicyclist", scenes.classes)
+    device = DeviceBatches(scenes, "cpu", batch_size=6, crop=(30, 40), hflip=False, seed=0, progress=False,
+                           paste_classes=classes, paste_probability=probability)
+    generator = torch.Generator().manual_seed(0)
+    images, labels = device.paste_donors(*device.augment(torch.arange(6), generator), generator)
+    cpu = Augmented(scenes, (30, 40), hflip=False, seed=0, paste_classes=classes, paste_probability=probability)
+    return scenes, classes, list(zip(images, labels)) + [cpu[index] for index in range(len(cpu))]
+
+
+def test_paste_puts_a_donors_class_pixels_on_the_crop():
+    scenes, classes, pairs = _paste_paths(1.0)
+    changed = 0
+    for k, (image, label) in enumerate(pairs):
+        own_image, own_label = scenes[k % 6]
+        candidates = [paste(own_image, own_label, *scenes[d], torch.tensor(classes)) for d in range(6)]
+        assert any(torch.equal(image, i) and torch.equal(label, lab) for i, lab in candidates), f"crop {k}"
+        changed += not torch.equal(label, own_label)
+    assert changed >= 4  # donors are drawn, and most carry thin-class pixels the crop did not have there
+
+
+def test_paste_probability_zero_pastes_nothing():
+    scenes, _, pairs = _paste_paths(0.0)
+    for k, (image, label) in enumerate(pairs):
+        assert torch.equal(image, scenes[k % 6][0]) and torch.equal(label, scenes[k % 6][1])

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from warpsense.data.datasets import KITTI360, CamVid, Cityscapes, DatasetError
 from warpsense.data.scenes import StreetScenes
-from warpsense.data.transforms import Augmented
+from warpsense.data.transforms import Augmented, paste_class_ids
 
 DATASETS = {"camvid": CamVid, "cityscapes": Cityscapes, "kitti360": KITTI360, "scenes": StreetScenes}
 
@@ -43,7 +43,8 @@ def build_dataset(data_config, split: str, train: bool, seed: int = 0, part: str
     if train:
         crop = (data_config.crop_height, data_config.crop_width)
         return Augmented(dataset, crop, (data_config.scale_min, data_config.scale_max), data_config.hflip, seed,
-                         data_config.scale_fill)
+                         data_config.scale_fill, paste_class_ids(data_config.paste_classes, dataset.classes),
+                         data_config.paste_probability)
     return dataset
 
 

@@ -15,7 +15,7 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from warpsense.data.labels import IGNORE_INDEX
-from warpsense.data.transforms import reflect_index
+from warpsense.data.transforms import paste, reflect_index
 
 DECODE_THREADS = 8
 """Threads that decode a dataset's files at once (PIL and NumPy release the GIL while decoding): the CamVid training
@@ -66,7 +66,7 @@ class DeviceBatches:
 
     def __init__(self, dataset, device, batch_size: int, crop: tuple[int, int], scale_range=(1.0, 1.0),
                  hflip: bool = True, seed: int = 0, rank: int = 0, world_size: int = 1, progress: bool = True,
-                 fill: str = "cover"):
+                 fill: str = "cover", paste_classes: tuple[int, ...] = (), paste_probability: float = 0.0):
         items = decode_all(dataset, "loading training set onto the device", progress)
         sizes = [image.shape[1:] for image, _ in items]
         height = max(size[0] for size in sizes)
@@ -79,6 +79,8 @@ class DeviceBatches:
         self.sizes = torch.tensor(sizes, dtype=torch.float32, device=device)  # [N, 2] (height, width)
         self.device, self.batch_size, self.crop = torch.device(device), batch_size, crop
         self.scale_range, self.hflip, self.seed, self.fill = scale_range, hflip, seed, fill
+        self.paste_classes = torch.tensor(paste_classes, dtype=torch.long, device=device)
+        self.paste_probability = paste_probability
         self.rank, self.world_size = rank, world_size
         self.epoch = 0
         self.classes = dataset.classes
@@ -95,7 +97,21 @@ class DeviceBatches:
         order = order[self.rank :: self.world_size]
         for step in range(len(self)):
             indices = order[step * self.batch_size : (step + 1) * self.batch_size]
-            yield self.augment(indices, generator)
+            images, labels = self.augment(indices, generator)
+            if len(self.paste_classes):
+                images, labels = self.paste_donors(images, labels, generator)
+            yield images, labels
+
+    def paste_donors(self, images: torch.Tensor, labels: torch.Tensor, generator: torch.Generator):
+        """`warpsense.data.transforms.paste` onto each crop with ``paste_probability``, from a training image drawn
+        at random and augmented on its own (as `Augmented` does on the CPU path); drawn after the batch's own
+        augmentation, so that a run without pasting repeats its batches exactly."""
+        batch = images.shape[0]
+        chosen = torch.rand(batch, generator=generator, device=self.device) < self.paste_probability
+        donors = torch.randint(0, len(self.images), (batch,), generator=generator, device=self.device)
+        donor_images, donor_labels = self.augment(donors, generator)
+        donor_labels = torch.where(chosen[:, None, None], donor_labels, IGNORE_INDEX)  # not chosen: nothing to paste
+        return paste(images, labels, donor_images, donor_labels, self.paste_classes)
 
     def augment(self, indices: torch.Tensor, generator: torch.Generator):
         """Scale, crop and flip the images at ``indices`` into one fixed-shape batch (bilinear images, nearest

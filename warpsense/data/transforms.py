@@ -59,8 +59,33 @@ def scale_crop_flip(image: torch.Tensor, label: torch.Tensor, crop: tuple[int, i
     return image.contiguous(), label.contiguous()
 
 
+def paste_class_ids(names: str, classes) -> tuple[int, ...]:
+    """``data.paste_classes`` ("pole,pedestrian", or "") -> the class indices in ``classes``, with an error naming
+    the key and the valid names for a name the dataset does not have."""
+    ids = []
+    for name in (part.strip() for part in names.split(",")):
+        if not name:
+            continue
+        if name not in classes:
+            raise ValueError(f"data.paste_classes: {name!r} is not a class of this dataset; valid: {', '.join(classes)}")
+        ids.append(list(classes).index(name))
+    return tuple(ids)
+
+
+def paste(image: torch.Tensor, label: torch.Tensor, donor_image: torch.Tensor, donor_label: torch.Tensor,
+          classes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Copy-paste augmentation (Ghiasi et al., CVPR 2021; for semantic labels ClassMix, Olsson et al., WACV 2021):
+    the donor's pixels of ``classes`` (int64 [K]) replace the image's, their labels with them.
+
+    Shapes: uint8 images [..., 3, H, W], int64 labels [..., H, W], batched or not, donor and image alike. It runs on
+    the sRGB radiance before the camera, so pasted objects pass through the same optics and noise as the rest."""
+    mask = torch.isin(donor_label, classes)
+    return torch.where(mask.unsqueeze(-3), donor_image, image), torch.where(mask, donor_label, label)
+
+
 class Augmented(Dataset):
-    """Wraps a dataset with `scale_crop_flip`; sample i of epoch e draws from a generator seeded by (seed, e, i),
+    """Wraps a dataset with `scale_crop_flip` (and, with ``paste_classes``, `paste` from another augmented item
+    drawn at random, with ``paste_probability``); sample i of epoch e draws from a generator seeded by (seed, e, i),
     so augmentation is the same whatever the worker count, and a resumed run repeats it exactly.
 
     The epoch travels inside the index (`EpochSampler` yields e * len + i): DataLoader workers, persistent ones
@@ -68,9 +93,9 @@ class Augmented(Dataset):
     """
 
     def __init__(self, dataset, crop: tuple[int, int], scale_range=(1.0, 1.0), hflip: bool = True, seed: int = 0,
-                 fill: str = "cover"):
+                 fill: str = "cover", paste_classes: tuple[int, ...] = (), paste_probability: float = 0.0):
         self.dataset, self.crop, self.scale_range, self.hflip, self.seed = dataset, crop, scale_range, hflip, seed
-        self.fill = fill
+        self.fill, self.paste_classes, self.paste_probability = fill, tuple(paste_classes), paste_probability
         self.classes = dataset.classes
 
     def __len__(self) -> int:
@@ -80,6 +105,15 @@ class Augmented(Dataset):
         epoch, index = divmod(int(index), len(self.dataset))
         image, label = self.dataset[index]
         generator = torch.Generator().manual_seed((self.seed * 1_000_003 + epoch) * 1_000_003 + index)
+        image, label = self._augment(image, label, generator)
+        # the donor is drawn after the crop's own draws, so a run without pasting repeats its augmentation exactly
+        if self.paste_classes and float(torch.rand((), generator=generator)) < self.paste_probability:
+            donor = int(torch.randint(0, len(self.dataset), (), generator=generator))
+            donor_image, donor_label = self._augment(*self.dataset[donor], generator)
+            image, label = paste(image, label, donor_image, donor_label, torch.tensor(self.paste_classes))
+        return image, label
+
+    def _augment(self, image, label, generator):
         return scale_crop_flip(image, label, self.crop, self.scale_range, self.hflip, generator, self.fill)
 
 

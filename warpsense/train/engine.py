@@ -94,7 +94,8 @@ def build_train_batches(config, train_set, context, progress: bool = True):
     if on_device:
         return DeviceBatches(train_set.dataset, device, per_rank, crop, (config.data.scale_min, config.data.scale_max),
                              config.data.hflip, config.run.seed, context.rank, context.world_size,
-                             progress and context.is_main, config.data.scale_fill)
+                             progress and context.is_main, config.data.scale_fill, train_set.paste_classes,
+                             train_set.paste_probability)
     sampler = EpochSampler(DistributedSampler(train_set, num_replicas=context.world_size, rank=context.rank,
                                               shuffle=True, seed=config.run.seed, drop_last=True), len(train_set))
     loader = DataLoader(train_set, batch_size=per_rank, sampler=sampler, num_workers=config.data.num_workers,
