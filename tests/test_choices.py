@@ -26,7 +26,7 @@ def test_config_choices_are_the_shared_tuples():
         "optics.method": choices.PSF_METHODS, "optics.render_precision": choices.RENDER_PRECISIONS, "cfa.pattern": tuple(choices.CFA_LAYOUTS),
         "cfa.mode": choices.CFA_MODES, "quantize.mode": choices.QUANTIZE_MODES, "train.compile": choices.COMPILE_MODES,
         "model.name": choices.MODEL_NAMES, "model.context": choices.MODEL_CONTEXTS, "model.input": choices.MODEL_INPUTS,
-        "model.input_transform": choices.MODEL_INPUT_TRANSFORMS,
+        "model.input_transform": choices.MODEL_INPUT_TRANSFORMS, "data.scale_fill": choices.SCALE_FILLS,
         "loss.distill_mode": choices.DISTILL_MODES, "photons.light": tuple(choices.LIGHT_LEVELS),
     }
 
@@ -56,6 +56,12 @@ def test_registries_implement_exactly_the_named_choices():
     assert {name: light_electrons(name) for name in choices.LIGHT_LEVELS} == choices.LIGHT_LEVELS
     assert choices.BAYER_LAYOUTS == ("RGGB", "BGGR", "GRBG", "GBRG")
     assert set(choices.SELF_CAPTURING_COMPILE_MODES) < set(choices.COMPILE_MODES)
+    from warpsense.data.transforms import check_fill
+
+    for fill in choices.SCALE_FILLS:
+        assert check_fill(fill) == fill
+    with pytest.raises(KeyError, match="unknown scale fill 'zero'; valid: cover, reflect"):
+        check_fill("zero")
 
 
 def test_cli_offers_the_shared_choices():

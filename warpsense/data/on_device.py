@@ -1,8 +1,8 @@
 """A training set held on the GPU: decoded once as uint8, augmented there in batches with fixed output shapes.
 
 Same augmentation as `warpsense.data.transforms.scale_crop_flip` (random rescale, raised where needed to cover
-the crop or mirrored into it, crop, horizontal flip), drawn per batch from a device generator, so a training step needs no host work and no
-host-device copy.
+the crop or mirrored into it, crop, horizontal flip) and `paste`, drawn per batch from a device generator, so a
+training step needs no host work and no host-device copy.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from warpsense.data.labels import IGNORE_INDEX
-from warpsense.data.transforms import paste, reflect_index
+from warpsense.data.transforms import check_fill, paste, reflect_index
 
 DECODE_THREADS = 8
 """Threads that decode a dataset's files at once (PIL and NumPy release the GIL while decoding): the CamVid training
@@ -78,7 +78,7 @@ class DeviceBatches:
             self.labels[index, : label.shape[0], : label.shape[1]] = label.clamp(max=IGNORE_INDEX).to(device)
         self.sizes = torch.tensor(sizes, dtype=torch.float32, device=device)  # [N, 2] (height, width)
         self.device, self.batch_size, self.crop = torch.device(device), batch_size, crop
-        self.scale_range, self.hflip, self.seed, self.fill = scale_range, hflip, seed, fill
+        self.scale_range, self.hflip, self.seed, self.fill = scale_range, hflip, seed, check_fill(fill)
         self.paste_classes = torch.tensor(paste_classes, dtype=torch.long, device=device)
         self.paste_probability = paste_probability
         self.rank, self.world_size = rank, world_size

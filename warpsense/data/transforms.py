@@ -6,7 +6,15 @@ import torch
 from torch.nn import functional as F
 from torch.utils.data import Dataset, Sampler
 
+from warpsense.choices import SCALE_FILLS
 from warpsense.data.labels import IGNORE_INDEX
+
+
+def check_fill(fill: str) -> str:
+    """``fill`` if it is one of `warpsense.choices.SCALE_FILLS`, else a KeyError listing them."""
+    if fill not in SCALE_FILLS:
+        raise KeyError(f"unknown scale fill {fill!r}; valid: {', '.join(SCALE_FILLS)}")
+    return fill
 
 
 def reflect_index(index: torch.Tensor, size) -> torch.Tensor:
@@ -67,7 +75,8 @@ def paste_class_ids(names: str, classes) -> tuple[int, ...]:
         if not name:
             continue
         if name not in classes:
-            raise ValueError(f"data.paste_classes: {name!r} is not a class of this dataset; valid: {', '.join(classes)}")
+            raise ValueError(f"data.paste_classes: {name!r} is not a class of this dataset; "
+                             f"valid: {', '.join(classes)}")
         ids.append(list(classes).index(name))
     return tuple(ids)
 
@@ -95,7 +104,8 @@ class Augmented(Dataset):
     def __init__(self, dataset, crop: tuple[int, int], scale_range=(1.0, 1.0), hflip: bool = True, seed: int = 0,
                  fill: str = "cover", paste_classes: tuple[int, ...] = (), paste_probability: float = 0.0):
         self.dataset, self.crop, self.scale_range, self.hflip, self.seed = dataset, crop, scale_range, hflip, seed
-        self.fill, self.paste_classes, self.paste_probability = fill, tuple(paste_classes), paste_probability
+        self.fill = check_fill(fill)
+        self.paste_classes, self.paste_probability = tuple(paste_classes), paste_probability
         self.classes = dataset.classes
 
     def __len__(self) -> int:
