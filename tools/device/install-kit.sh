@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data]
 #   step:   the training step at Lovasz stride 1 and 2 (round 16)
 #   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
 #           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
+#   data:   the training data path's cuda tests (scale fill, copy-paste on the GPU), ~1 minute
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -31,4 +32,7 @@ if [ "${1:-}" = smooth ]; then
     python tools/bench_train_bound.py --config camvid_codesign --set "loss.smooth_weight=${w#*:}" --steps 60 \
       --json "$OUT/step_smooth_${w%%:*}.json" 2>&1 | grep -v Warning
   done
+fi
+if [ "${1:-}" = data ]; then
+  python -m pytest -q -p no:warnings -m cuda tests/data/test_on_device.py
 fi
