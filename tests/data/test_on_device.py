@@ -99,13 +99,17 @@ def test_reflect_index_is_numpys_symmetric_padding():
     assert floats.tolist() == expected.astype(float).tolist()
 
 
-def _reflect_paths(scale, crop, device="cpu"):
-    """The device path (on ``device``) and the CPU path's crops of 6 scenes; item k: scene k % 6."""
+def _both_paths(scale, crop, device="cpu", **options):
+    """The device path's (on ``device``) and the CPU path's crops of 6 scenes, without flips, with the augmentation
+    ``options`` both take (fill, paste_classes, paste_probability); item k: scene k % 6."""
     scenes = StreetScenes(6, 30, 40, seed=1)
-    batches = DeviceBatches(scenes, device, batch_size=3, crop=crop, scale_range=scale, hflip=False, seed=0,
-                            progress=False, fill="reflect")
-    cpu = Augmented(scenes, crop, scale, hflip=False, seed=0, fill="reflect")
-    images, labels = batches.augment(torch.arange(6, device=device), torch.Generator(device).manual_seed(0))
+    batches = DeviceBatches(scenes, device, batch_size=6, crop=crop, scale_range=scale, hflip=False, seed=0,
+                            progress=False, **options)
+    generator = torch.Generator(device).manual_seed(0)
+    images, labels = batches.augment(torch.arange(6, device=device), generator)
+    if options.get("paste_classes"):
+        images, labels = batches.paste_donors(images, labels, generator)
+    cpu = Augmented(scenes, crop, scale, hflip=False, seed=0, **options)
     return scenes, list(zip(images.cpu(), labels.cpu())) + [cpu[index] for index in range(len(cpu))]
 
 
@@ -113,7 +117,7 @@ def _reflect_paths(scale, crop, device="cpu"):
 def test_reflect_fill_mirrors_the_frame_into_the_crop(device):
     """At scale 1 a 30 x 40 frame sits somewhere inside a 36 x 48 crop, the rest its mirror image (NumPy's
     symmetric padding), labelled ignore: in both data paths."""
-    scenes, pairs = _reflect_paths((1.0, 1.0), (36, 48), device)
+    scenes, pairs = _both_paths((1.0, 1.0), (36, 48), device, fill="reflect")
     offsets = set()
     for k, (image, label) in enumerate(pairs):
         source, source_label = scenes[k % 6]
@@ -133,7 +137,7 @@ def test_reflect_fill_mirrors_the_frame_into_the_crop(device):
 def test_reflect_fill_zooms_out_without_black_pixels(device):
     """Below the covering scale the frame really shrinks (ignore labels where it does not reach, about the scaled
     frame's area labelled) and no black padding enters the crop, unlike zero padding."""
-    _, pairs = _reflect_paths((0.5, 0.6), (28, 36), device)
+    _, pairs = _both_paths((0.5, 0.6), (28, 36), device, fill="reflect")
     for image, label in pairs:
         labelled = int((label != IGNORE_INDEX).sum())
         assert 0.5**2 * 30 * 40 * 0.8 <= labelled <= 0.6**2 * 30 * 40 * 1.2
@@ -214,26 +218,21 @@ def test_paste_class_names_are_checked():
         paste_class_ids("pole,polee", CAMVID_CLASSES)
 
 
+THIN = paste_class_ids("pole,sign_symbol,pedestrian,bicyclist", CAMVID_CLASSES)
+
+
 def _paste_paths(probability, device="cpu"):
-    """Crops that are the whole frame at scale 1 (no flip), so the expected paste is exact; item k: scene k % 6."""
-    scenes = StreetScenes(6, 30, 40, seed=1)
-    classes = paste_class_ids("pole,sign_symbol,pedestrian,bicyclist", scenes.classes)
-    batches = DeviceBatches(scenes, device, batch_size=6, crop=(30, 40), hflip=False, seed=0, progress=False,
-                            paste_classes=classes, paste_probability=probability)
-    generator = torch.Generator(device).manual_seed(0)
-    images, labels = batches.paste_donors(*batches.augment(torch.arange(6, device=device), generator), generator)
-    images, labels = images.cpu(), labels.cpu()
-    cpu = Augmented(scenes, (30, 40), hflip=False, seed=0, paste_classes=classes, paste_probability=probability)
-    return scenes, classes, list(zip(images, labels)) + [cpu[index] for index in range(len(cpu))]
+    """Crops that are the whole frame at scale 1, so the expected paste is exact; item k: scene k % 6."""
+    return _both_paths((1.0, 1.0), (30, 40), device, paste_classes=THIN, paste_probability=probability)
 
 
 @pytest.mark.parametrize("device", device_params())
 def test_paste_puts_a_donors_class_pixels_on_the_crop(device):
-    scenes, classes, pairs = _paste_paths(1.0, device)
+    scenes, pairs = _paste_paths(1.0, device)
     changed = 0
     for k, (image, label) in enumerate(pairs):
         own_image, own_label = scenes[k % 6]
-        candidates = [paste(own_image, own_label, *scenes[d], torch.tensor(classes)) for d in range(6)]
+        candidates = [paste(own_image, own_label, *scenes[d], torch.tensor(THIN)) for d in range(6)]
         assert any(torch.equal(image, i) and torch.equal(label, lab) for i, lab in candidates), f"crop {k}"
         changed += not torch.equal(label, own_label)
     assert changed >= 4  # donors are drawn, and most carry thin-class pixels the crop did not have there
@@ -241,6 +240,6 @@ def test_paste_puts_a_donors_class_pixels_on_the_crop(device):
 
 @pytest.mark.parametrize("device", device_params())
 def test_paste_probability_zero_pastes_nothing(device):
-    scenes, _, pairs = _paste_paths(0.0, device)
+    scenes, pairs = _paste_paths(0.0, device)
     for k, (image, label) in enumerate(pairs):
         assert torch.equal(image, scenes[k % 6][0]) and torch.equal(label, scenes[k % 6][1])
