@@ -182,6 +182,8 @@ class ModelConfig:
     width: int = _field(16, minimum=1, maximum=512)
     context: str = _field("none", choices=MODEL_CONTEXTS)
     squeeze: bool = True
+    full_width: int = _field(0, minimum=0, maximum=512)
+    full_depth: int = _field(1, minimum=1, maximum=8)
     num_classes: int = _field(0, minimum=0, maximum=1024)
     channels_last: bool = True
     input: str = _field("sensor", choices=MODEL_INPUTS)

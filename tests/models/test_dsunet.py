@@ -1,5 +1,6 @@
 """DSUNet: shapes, the channels-last layout against the contiguous one, the bf16 decoder path, the bottleneck
-context module (pyramid pooling), the networks without squeeze-and-excitation, the Anscombe input, and the network a config builds."""
+context module (pyramid pooling), the networks without squeeze-and-excitation, the full-resolution path's width and
+depth, the Anscombe input, and the network a config builds."""
 
 import pytest
 import torch
@@ -23,6 +24,48 @@ def test_cardinality(in_channels, height, width, context):
     logits = DSUNet(in_channels=in_channels, num_classes=5, width=8, context=context)(
         torch.rand(2, in_channels, height, width))
     assert logits.shape == (2, 5, height, width)
+
+
+@pytest.mark.parametrize("full_width, full_depth", [(12, 1), (0, 2), (12, 3)])
+def test_cardinality_full_resolution_path(full_width, full_depth):
+    network = DSUNet(in_channels=1, num_classes=5, width=8, full_width=full_width, full_depth=full_depth)
+    assert network(torch.rand(2, 1, 37, 45)).shape == (2, 5, 37, 45)
+    channels = full_width or 8
+    assert network.stem[0].out_channels == network.head.in_channels == channels
+    assert len(network.enc1) == len(network.dec1) == full_depth
+
+
+def test_exception_full_resolution_path():
+    with pytest.raises(ValueError, match="full_depth >= 1, got 0 and 0"):
+        DSUNet(width=8, full_depth=0)
+    with pytest.raises(ValueError, match="packunet has its own full-resolution path"):
+        build_model("packunet", in_channels=1, num_classes=5, width=8, full_width=16)
+
+
+def test_feature_full_width_equal_to_width_is_the_default_network():
+    torch.manual_seed(0)
+    default = DSUNet(in_channels=1, num_classes=4, width=8).double().eval()
+    same = DSUNet(in_channels=1, num_classes=4, width=8, full_width=8).double().eval()
+    same.load_state_dict(default.state_dict())  # strict: the same parameters and shapes
+    image = torch.rand(2, 1, 32, 48, dtype=torch.float64)
+    torch.testing.assert_close(same(image), default(image), rtol=0, atol=0)
+
+
+def test_feature_deeper_full_resolution_path_with_silent_blocks_is_the_shallow_network():
+    """The extra full-resolution blocks are residual: with their last BN scale at 0 each adds exactly 0, so the depth-3
+    network with the depth-1 network's weights gives its logits; with the scale left as built, it does not."""
+    torch.manual_seed(0)
+    shallow = DSUNet(in_channels=1, num_classes=4, width=8).double().eval()
+    deep = DSUNet(in_channels=1, num_classes=4, width=8, full_depth=3).double().eval()
+    missing, unexpected = deep.load_state_dict(shallow.state_dict(), strict=False)
+    assert not unexpected and missing and all(key.startswith(("enc1.1.", "enc1.2.", "dec1.1.", "dec1.2."))
+                                              for key in missing)
+    image = torch.rand(2, 1, 32, 48, dtype=torch.float64)
+    assert not torch.allclose(deep(image), shallow(image))
+    for stage in (deep.enc1, deep.dec1):
+        for block in list(stage)[1:]:
+            torch.nn.init.zeros_(block.norm2.weight)
+    torch.testing.assert_close(deep(image), shallow(image), rtol=1e-12, atol=1e-12)
 
 
 def test_parameter_budget():
@@ -181,9 +224,10 @@ def test_feature_without_squeeze_is_the_network_with_its_se_gates_removed(name):
 def test_module_network_from_config_takes_every_model_key():
     config = load_config(None, ["model.width=8", "model.context=pyramid", "model.squeeze=false",
                                 "model.channels_last=false", "model.num_classes=5", "model.input_transform=anscombe",
-                                "model.anscombe_offset=0.02"])
+                                "model.anscombe_offset=0.02", "model.full_width=12", "model.full_depth=2"])
     network = network_from_config(config.model, in_channels=1, num_classes=11, tile=2)
-    expected = DSUNet(in_channels=1, num_classes=5, width=8, context="pyramid", squeeze=False)
+    expected = DSUNet(in_channels=1, num_classes=5, width=8, context="pyramid", squeeze=False, full_width=12,
+                      full_depth=2)
     assert [name for name, _ in network.named_parameters()] == [name for name, _ in expected.named_parameters()]
     assert network.memory_format == torch.contiguous_format and network.head.out_channels == 5
     assert isinstance(network.input_transform, Anscombe) and network.input_transform.offset == 0.02

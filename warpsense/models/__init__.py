@@ -23,7 +23,8 @@ def network_from_config(model_config, in_channels: int, num_classes: int, tile: 
                        num_classes=model_config.num_classes or num_classes, width=model_config.width, tile=tile,
                        channels_last=model_config.channels_last, context=model_config.context,
                        squeeze=model_config.squeeze, input_transform=model_config.input_transform,
-                       anscombe_offset=model_config.anscombe_offset)
+                       anscombe_offset=model_config.anscombe_offset, full_width=model_config.full_width,
+                       full_depth=model_config.full_depth)
 
 
 def count_parameters(model) -> int:
