@@ -3,6 +3,7 @@
 # the study directory .device/state/NAME (default NAME = PLAN) comes back as $OUT/NAME.tgz, without plots or weights
 # but an interrupted cell's last checkpoint, so that it resumes in the next call (tools/device/README.md).
 # Usage: bash tools/device/cells.sh PLAN LIMIT all|CAMERA/LIGHT/SEED [NAME]
+# KEEP="CELL_DIR ..." (e.g. paste.night.seed0) brings those finished cells' last weights back too (~5 MB each).
 # PER_GPU=N runs N cells at once on the GPU (the study's local pool, one process each; round 9 found 6 at once slower
 # than 1 on an H100 without MPS: the GPU time-slices processes). Unset: the cells one after another in one process.
 set -u
@@ -22,7 +23,9 @@ echo "study run exit $rc after $(( $(date +%s) - start )) s"
 # checkpoint comes back, so that it can resume on the next machine
 finished=()
 for done in "$state"/runs/*/evaluation.json; do
-  [ -e "$done" ] && finished+=(--exclude="$name/runs/$(basename "$(dirname "$done")")/checkpoint_last.safetensors")
+  cell=$(basename "$(dirname "$done")")
+  [[ " ${KEEP:-} " == *" $cell "* ]] && continue
+  [ -e "$done" ] && finished+=(--exclude="$name/runs/$cell/checkpoint_last.safetensors")
 done
 tar czf "$OUT/$name.tgz" --exclude="*.png" --exclude="checkpoint_best.safetensors" "${finished[@]}" -C .device/state "$name"
 ls -la "$OUT"
