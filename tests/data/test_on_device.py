@@ -4,6 +4,7 @@ import torch
 from torch.utils.data import DataLoader, SequentialSampler
 
 from tests.conftest import device_params
+from warpsense.config import load_config, preset_names
 from warpsense.data import StreetScenes
 from warpsense.data.labels import CAMVID_CLASSES, IGNORE_INDEX
 from warpsense.data.on_device import DeviceBatches
@@ -219,6 +220,14 @@ def test_paste_class_names_are_checked():
 
 
 THIN = paste_class_ids("pole,sign_symbol,pedestrian,bicyclist", CAMVID_CLASSES)
+
+
+@pytest.mark.parametrize("preset", [name for name in preset_names() if name.startswith("camvid")])
+def test_paste_classes_of_the_camvid_presets_are_camvid_classes(preset):
+    """The camvid presets paste four CamVid classes since round 18 (the base preset sets them): a misspelt name would
+    fail only when a run starts."""
+    classes = paste_class_ids(load_config(preset).data.paste_classes, CAMVID_CLASSES)
+    assert preset != "camvid" or classes == THIN
 
 
 def _paste_paths(probability, device="cpu"):
