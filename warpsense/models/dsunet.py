@@ -133,8 +133,8 @@ class DSUNet(nn.Module):
 
     The full-resolution path (stem, ``enc1``, ``dec1`` and the head's input) carries ``full_width`` channels (0: w)
     through ``full_depth`` separable blocks in the encoder and in the decoder (1: one each). It is where a pole or a
-    sign a few pixels wide is seen whole, and it costs little in parameters (width 40 adds 5.6k, depth 2 adds 2.4k at
-    w = 24) but most of the step's memory traffic.
+    sign a few pixels wide is seen whole. It costs little in parameters (width 40 adds 5.6k, depth 2 adds 2.4k at
+    w = 24) and much in activations, which are full-resolution there (round 18: 6-7% longer runs on an H100).
 
     ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 it doubles the training speed (batch
     norm and depthwise convolutions have fast NHWC kernels; their NCHW bf16 backward is slow). The output is the
