@@ -72,10 +72,10 @@ def test_subpackages_load_on_attribute_access_and_no_driver_warning_on_cpu():
 
 
 def test_train_print_config_shows_the_resolved_config_and_trains_nothing(tmp_path, capsys):
-    assert main(["train", "--config", "camvid_codesign", "--set", "train.epochs=40",
+    assert main(["train", "--config", "camvid_codesign", "--set", "train.epochs=60",
                  "--set", f"run.output_dir={tmp_path}", "--print-config"]) == 0
     printed = json.loads(capsys.readouterr().out)
-    assert printed["train"]["epochs"] == 40 and printed["optics"]["learnable"] is True  # override and preset
+    assert printed["train"]["epochs"] == 60 and printed["optics"]["learnable"] is True  # override and preset
     assert printed["model"]["width"] == 24 and list(tmp_path.iterdir()) == []  # from the base preset; no run
 
 

@@ -94,7 +94,7 @@ def _study(args) -> int:
 
     if args.study_command == "run":
         return run_study(args.plan, args.out, args.overrides, args.cell, args.plan_only, args.gpus, args.per_gpu,
-                         progress=args.progress)
+                         progress=args.progress, worker=args.worker)
     return report_study(args.study_dir, args.json, args.plot, args.split, args.resamples)
 
 
@@ -207,8 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
     study_run = study_commands.add_parser(
         "run", help="run the plan's cells (resumable; finished cells are never retrained)",
         description="Run every cell of a plan into OUT/runs/<camera>.<light>.seed<N>. Finished cells are skipped, "
-        "interrupted ones resume, failed ones are reported and the others go on. With GPUs the cells run as a local "
-        "pool of processes (--per-gpu at once on each GPU).", epilog="shipped plans: configs/studies/")
+        "interrupted ones resume, failed ones are reported and the others go on. With several GPUs the cells run on a "
+        "local pool of worker processes (--per-gpu on each GPU), each taking the next cell.", epilog="shipped plans: configs/studies/")
     study_run.add_argument("plan", help="a study plan TOML file or a shipped plan name (configs/studies/)")
     study_run.add_argument("--out", required=True, help="the study directory")
     study_run.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -221,6 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 "(default: %(default)s)")
     study_run.add_argument("--per-gpu", type=int, default=1, help="cells at once on each GPU (default: %(default)s)")
     study_run.add_argument("--progress", action="store_true", help="show each cell's progress bars")
+    study_run.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)  # the local pool's processes
     study_report = study_commands.add_parser(
         "report", help="per camera and light: mIoU with intervals, differences to the reference",
         description="Mean mIoU and per-class IoU with 95%% t intervals over seeds, the seed-paired difference to "

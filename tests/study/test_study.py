@@ -2,6 +2,7 @@
 failing cell reported and skipped, the report; bad plans refused before anything is written; the local pool."""
 
 import json
+import os
 import shlex
 from pathlib import Path
 
@@ -143,6 +144,48 @@ def test_the_local_pool_gives_the_same_cells_as_one_process(tmp_path, capsys):
         here, pool = (json.loads((tmp_path / where / "runs" / cell.run_name / "evaluation.json").read_text())
                       for where in ("here", "pool"))
         assert here["splits"] == pool["splits"]
+
+
+def test_the_local_pool_trains_its_cells_on_one_worker_process_per_slot(tmp_path, capsys):
+    """One GPU slot, three cells: one worker process trains them all (its pid in each cell's log), so that the
+    interpreter, CUDA context and kernel modules are paid once per slot, not once per cell."""
+    import re
+
+    plan = load_plan("smoke", FAST)
+    cells = plan.cells()[:3]
+    assert run_cells(plan, tmp_path, cells, gpus=["0"], per_gpu=1) == 0
+    pids = {re.search(r"in worker process (\d+)", (tmp_path / "logs" / f"{cell.run_name}.log").read_text()).group(1)
+            for cell in cells}
+    assert len(pids) == 1 and str(os.getpid()) not in pids
+    assert all((tmp_path / "runs" / cell.run_name / "evaluation.json").is_file() for cell in cells)
+
+
+def test_a_worker_answers_each_cell_and_goes_on_past_a_failed_one(tmp_path, monkeypatch, capfd):
+    """The worker protocol: cell ids on stdin, one answer line each on stdout; a cell's output and a failure's
+    traceback go to its log, and the next cell still trains."""
+    import io
+
+    from warpsense.study import runner
+
+    plan = load_plan("smoke", FAST)
+    bad, good = plan.cells()[:2]
+    real = runner.train_cell
+
+    def train_cell(plan, out, cell, progress=False):
+        if cell == bad:
+            raise ValueError("no light to see by\nsecond line")
+        return real(plan, out, cell, progress)
+
+    monkeypatch.setattr(runner, "train_cell", train_cell)
+    monkeypatch.setattr("sys.stdin", io.StringIO(f"{bad.id}\n{good.id}\n"))
+    runner.record_plan(plan, tmp_path)
+    (tmp_path / "logs").mkdir()
+    assert runner.cell_worker(plan, tmp_path) == 0
+    answers = capfd.readouterr().out.splitlines()
+    assert answers == [f"failed {bad.id} ValueError: no light to see by", f"done {good.id}"]
+    assert "Traceback" in (tmp_path / "logs" / f"{bad.run_name}.log").read_text()
+    assert runner.cell_state(tmp_path, bad) == "new" and runner.cell_state(tmp_path, good) == "done"
+    assert "epoch" in (tmp_path / "logs" / f"{good.run_name}.log").read_text()
 
 
 BAD_PLANS = [

@@ -11,7 +11,7 @@ from warpsense.commands.eval import run_eval
 CHECKPOINTS = Path(__file__).resolve().parents[2] / "checkpoints"
 
 
-@pytest.mark.parametrize("name", ["camvid_codesign"])
+@pytest.mark.parametrize("name", ["camvid_codesign", "camvid_fixed_isp"])
 def test_committed_checkpoint_reproduces_its_val_miou_on_cpu(name, shared_data):
     recorded = json.loads((CHECKPOINTS / f"{name}.json").read_text())["state"]["record"]
     payload = run_eval(str(CHECKPOINTS / f"{name}.safetensors"), "camvid", str(shared_data / "camvid"), "val",

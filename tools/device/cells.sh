@@ -4,7 +4,7 @@
 # but an interrupted cell's last checkpoint, so that it resumes in the next call (tools/device/README.md).
 # Usage: bash tools/device/cells.sh PLAN LIMIT all|CAMERA/LIGHT/SEED [NAME]
 # KEEP="CELL_DIR ..." (e.g. paste.night.seed0) brings those finished cells' last weights back too (~5 MB each).
-# PER_GPU=N runs N cells at once on the GPU (the study's local pool, one process each; round 9 found 6 at once slower
+# PER_GPU=N runs N cells at once on the GPU (the study's local pool, N worker processes; round 9 found 6 at once slower
 # than 1 on an H100 without MPS: the GPU time-slices processes). Unset: the cells one after another in one process.
 set -u
 plan=$1; limit=$2; which=${3:-all}; name=${4:-$1}

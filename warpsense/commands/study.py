@@ -22,12 +22,15 @@ def parse_gpus(text: str) -> list[str]:
 
 
 def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None = None, plan_only: bool = False,
-              gpus: str = "auto", per_gpu: int = 1, progress: bool = False) -> int:
-    """The `warpsense study run` command; returns the exit code."""
+              gpus: str = "auto", per_gpu: int = 1, progress: bool = False, worker: bool = False) -> int:
+    """The `warpsense study run` command; returns the exit code. ``worker``: be one of the local pool's worker
+    processes (`warpsense.study.runner.cell_worker`, cell ids on stdin)."""
     from warpsense.study.plan import load_plan
-    from warpsense.study.runner import plan_commands, run_cells
+    from warpsense.study.runner import cell_worker, plan_commands, run_cells
 
     plan = load_plan(plan_name, overrides)
+    if worker:
+        return cell_worker(plan, Path(out))
     if per_gpu < 1:
         raise ValueError(f"--per-gpu must be >= 1, got {per_gpu}")
     if plan_only:
