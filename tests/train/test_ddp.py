@@ -152,3 +152,13 @@ def test_sync_batchnorm_is_a_choice_for_ddp_on_cuda():
     assert kinds([], True) == {"SyncBatchNorm"}
     assert kinds(["train.sync_batchnorm=false"], True) == {"BatchNorm2d"}
     assert kinds([], False) == {"BatchNorm2d"}
+
+
+def test_ddp_refuses_the_whole_step_graph_before_any_work(tmp_path):
+    """With several ranks a captured step would leave DDP's gradient all-reduce out: refused with the flag to set,
+    before the data is read or anything is written (a rank's context, no process group needed)."""
+    config = load_config(None, OVERRIDES + [f"run.output_dir={tmp_path}", "run.device=cpu", "train.cuda_graph=true"])
+    context = DistributedContext(rank=0, world_size=2, local_rank=0, device=torch.device("cpu"))
+    with pytest.raises(ValueError, match=r"several ranks \(DDP\) add --set train.cuda_graph=false"):
+        engine._train(config, tmp_path / "run", False, context, progress=False, return_model=False)
+    assert list(tmp_path.iterdir()) == []

@@ -3,7 +3,8 @@
 #   bash tools/device/scale.sh study 0      camvid_scaling on GPU 0 alone -> .device/state/scale_1gpu
 #   bash tools/device/scale.sh study auto   camvid_scaling over every GPU  -> .device/state/scale_all
 #   bash tools/device/scale.sh ddp [EPOCHS] torchrun on 1 GPU and on all, camvid_codesign, the same global batch
-#                                           (data.batch_size is global), EPOCHS (default 30) -> .device/state/ddpN
+#                                           (data.batch_size is global), eager on both (DDP refuses
+#                                           train.cuda_graph), EPOCHS (default 30) -> .device/state/ddpN
 # Extra overrides for the study runs go in $SET (e.g. SET="--set run.deterministic=true" for the per-cell equality
 # check, which the throughput figures should not carry: it costs 31% of the step, docs/benchmarks.md round 14).
 # Cells per hour and the GPUs' busy fraction are in each study's throughput.json; everything comes back as
@@ -27,7 +28,7 @@ case $what in
     epochs=${arg:-30}
     for nproc in 1 "$gpus"; do
       torchrun --standalone --nproc_per_node "$nproc" -m warpsense train --config camvid_codesign --no-progress \
-        --set data.root=.device/camvid --set run.output_dir=.device/state/ddp$nproc --set train.epochs="$epochs" \
+        --set train.cuda_graph=false --set data.root=.device/camvid --set run.output_dir=.device/state/ddp$nproc --set train.epochs="$epochs" \
         --set train.warmup_epochs=$(( epochs * 3 / 10 )) > "$OUT/ddp$nproc.log" 2>&1
       echo "torchrun N=$nproc exit $?"; tail -3 "$OUT/ddp$nproc.log"
     done

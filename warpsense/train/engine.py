@@ -272,6 +272,9 @@ def _epoch_line(record: dict, schedule: Schedule, config) -> str:
 
 def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_model: bool):
     run_started = time.perf_counter()
+    if config.train.cuda_graph and context.enabled:
+        raise ValueError("train.cuda_graph captures one GPU's step; with several ranks (DDP) add --set "
+                         "train.cuda_graph=false (the camvid presets set it true)")
     device = context.device
     torch.manual_seed(config.run.seed)
     datasets = _datasets(config)
@@ -325,8 +328,6 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
               f"{sum(p.numel() for p in model.camera.learnable_parameters()):,}; device: {device}; ranks: {context.world_size}")
 
-    if config.train.cuda_graph and context.enabled:
-        raise ValueError("train.cuda_graph captures one GPU's step; with several ranks (DDP) leave it false")
     teacher = None
     if config.loss.distill_weight > 0:  # read for training only: the checkpoint keeps the student alone
         teacher = load_teacher(config.loss.teacher, num_classes, device)
