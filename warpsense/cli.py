@@ -94,7 +94,7 @@ def _study(args) -> int:
 
     if args.study_command == "run":
         return run_study(args.plan, args.out, args.overrides, args.cell, args.plan_only, args.gpus, args.per_gpu,
-                         progress=args.progress, worker=args.worker)
+                         progress=args.progress, worker=args.worker, reuse=args.reuse)
     return report_study(args.study_dir, args.json, args.plot, args.split, args.resamples)
 
 
@@ -221,6 +221,9 @@ def build_parser() -> argparse.ArgumentParser:
                                 "(default: %(default)s)")
     study_run.add_argument("--per-gpu", type=int, default=1, help="cells at once on each GPU (default: %(default)s)")
     study_run.add_argument("--progress", action="store_true", help="show each cell's progress bars")
+    study_run.add_argument("--reuse", action="append", default=[], metavar="STUDY_DIR",
+                           help="copy in another study's finished runs for the cells whose config they trained "
+                           "(all but run.name and run.output_dir equal; repeatable)")
     study_run.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)  # the local pool's processes
     study_report = study_commands.add_parser(
         "report", help="per camera and light: mIoU with intervals, differences to the reference",

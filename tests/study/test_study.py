@@ -188,6 +188,33 @@ def test_a_worker_answers_each_cell_and_goes_on_past_a_failed_one(tmp_path, monk
     assert "epoch" in (tmp_path / "logs" / f"{good.run_name}.log").read_text()
 
 
+def test_reuse_copies_in_another_studys_runs_of_the_same_training_and_trains_the_rest(tmp_path, capsys):
+    """`--reuse DIR`: a cell whose resolved config another study's finished run trained (all but run.name and
+    run.output_dir equal) is copied in, not trained; a cell that differs in anything else is trained."""
+    earlier = load_plan("smoke", FAST)
+    cell = earlier.cells()[0]
+    assert run_cells(earlier, tmp_path / "earlier", [cell]) == 0
+    capsys.readouterr()
+    later = tmp_path / "later.toml"  # the same cameras under another study name
+    later.write_text((CONFIG_DIR / "studies" / "smoke.toml").read_text().replace('name = "smoke"', 'name = "later"'))
+    out = tmp_path / "later"
+    assert main(["study", "run", str(later), "--out", str(out), "--gpus", "none", "--cell", cell.id,
+                 "--reuse", str(tmp_path / "earlier"), *sum((["--set", text] for text in FAST), [])]) == 0
+    source = tmp_path / "earlier" / "runs" / cell.run_name
+    assert f"{cell.id}: the same training as {source}, copied in" in capsys.readouterr().out
+    assert (out / "runs" / cell.run_name / "evaluation.json").read_text() == (source / "evaluation.json").read_text()
+    assert not (out / "logs").exists() and not list((out / "runs").glob("*.reusing"))
+
+    other = load_plan(later, FAST + ["train.lr=0.002"])  # the same cell at another learning rate: trained here
+    assert run_cells(other, tmp_path / "other", [other.cell(cell.id)], reuse=[tmp_path / "earlier"]) == 0
+    assert "copied in" not in capsys.readouterr().out
+    config = json.loads((tmp_path / "other" / "runs" / cell.run_name / "config.json").read_text())
+    assert config["train"]["lr"] == 0.002 and config["run"]["output_dir"] == str(tmp_path / "other" / "runs")
+    assert_clean_failure(capsys, ["study", "run", "smoke", "--out", str(tmp_path / "x"), "--reuse",
+                                  str(tmp_path / "nowhere")], ("--reuse", "nowhere", "runs/"))
+    assert not (tmp_path / "x").exists()
+
+
 BAD_PLANS = [
     ("[study]\nseeds = [0]\nreference = \"a\"\ncolour = 1\n[[camera]]\nname = \"a\"\n[[light]]\nname = \"l\"\n"
      "full_well_electrons = 10.0\nread_electrons = 1.0\n", ("study.colour", "unknown key")),

@@ -22,7 +22,8 @@ def parse_gpus(text: str) -> list[str]:
 
 
 def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None = None, plan_only: bool = False,
-              gpus: str = "auto", per_gpu: int = 1, progress: bool = False, worker: bool = False) -> int:
+              gpus: str = "auto", per_gpu: int = 1, progress: bool = False, worker: bool = False,
+              reuse: list[str] | None = None) -> int:
     """The `warpsense study run` command; returns the exit code. ``worker``: be one of the local pool's worker
     processes (`warpsense.study.runner.cell_worker`, cell ids on stdin)."""
     from warpsense.study.plan import load_plan
@@ -36,11 +37,12 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     if plan_only:
         print("\n".join(plan_commands(plan, Path(out))))
         return 0
+    reuse_dirs = [Path(path) for path in reuse or []]
     if cell is not None:
-        return run_cells(plan, Path(out), [plan.cell(cell)], progress=progress, record=False)
+        return run_cells(plan, Path(out), [plan.cell(cell)], progress=progress, record=False, reuse=reuse_dirs)
     devices = parse_gpus(gpus)
     code = run_cells(plan, Path(out), gpus=devices if len(devices) * per_gpu > 1 else None, per_gpu=per_gpu,
-                     progress=progress, sample_gpus=devices)
+                     progress=progress, sample_gpus=devices, reuse=reuse_dirs)
     if code == 0:
         print(f"study finished; report: warpsense study report {out}")
     return code

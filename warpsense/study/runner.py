@@ -13,6 +13,7 @@ import json
 import os
 import queue
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -147,6 +148,55 @@ def record_plan(plan: Plan, out: Path) -> None:
     write_json(path, {**record, "source": plan.source})
 
 
+REUSE_IGNORED = (("run", "name"), ("run", "output_dir"))
+"""Config fields that name where a run lives, not what it trained: two runs that differ only there are the same."""
+
+
+def _training_key(config: dict) -> str:
+    """A run's config as text, without `REUSE_IGNORED`: equal keys, equal training."""
+    config = json.loads(json.dumps(config))
+    for section, key in REUSE_IGNORED:
+        config.get(section, {}).pop(key, None)
+    return json.dumps(config, sort_keys=True)
+
+
+def finished_runs(study_dirs: list[Path]) -> dict[str, Path]:
+    """The finished run directories of other studies (``<dir>/runs/*`` with an evaluation), by `_training_key`; the
+    first directory given wins where two hold the same training."""
+    from warpsense.train.engine import EVALUATION
+
+    found: dict[str, Path] = {}
+    for study_dir in study_dirs:
+        runs = Path(study_dir) / "runs"
+        if not runs.is_dir():
+            raise FileNotFoundError(f"--reuse {study_dir}: no runs/ folder (not a study directory)")
+        for run in sorted(runs.iterdir()):
+            if (run / EVALUATION).is_file() and (run / "config.json").is_file():
+                found.setdefault(_training_key(json.loads((run / "config.json").read_text())), run)
+    return found
+
+
+def reuse_cells(plan: Plan, out: Path, cells: list[Cell], finished: dict[str, Path]) -> dict[Cell, Path]:
+    """Copy into <out>/runs every not-yet-started cell whose resolved config one of the ``finished`` runs
+    (`finished_runs`) trained, identical but for `REUSE_IGNORED`, so that a study can take its reference cells from
+    an earlier one; returns the cells copied and where from. The copy is the whole run directory, written under a
+    temporary name first."""
+    reused = {}
+    for cell in cells:
+        if cell_state(out, cell) != "new" or run_dir(out, cell).exists():
+            continue
+        source = finished.get(_training_key(plan.config(cell, Path(out) / "runs").to_dict()))
+        if source is None:
+            continue
+        target = run_dir(out, cell)
+        partial = target.with_name(target.name + ".reusing")
+        shutil.rmtree(partial, ignore_errors=True)
+        shutil.copytree(source, partial)
+        partial.rename(target)
+        reused[cell] = source
+    return reused
+
+
 def train_cell(plan: Plan, out: Path, cell: Cell, progress: bool = False) -> dict:
     """Train (or resume) and evaluate one cell in this process; returns its evaluation record."""
     from warpsense.train.engine import train
@@ -164,7 +214,7 @@ def _score(record: dict) -> str:
 
 def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list[str] | None = None,
               per_gpu: int = 1, progress: bool = False, record: bool = True,
-              sample_gpus: list[str] | None = None) -> int:
+              sample_gpus: list[str] | None = None, reuse: list[Path] | None = None) -> int:
     """Run the cells not finished yet; a progress line per cell; returns the exit code (0 all finished, 1 some
     failed, 130 interrupted).
 
@@ -175,14 +225,20 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
         record: append this invocation's throughput to <out>/`THROUGHPUT` (a one-cell invocation does not).
         sample_gpus: GPU ids whose busy fraction is sampled meanwhile (default: ``gpus``; the command passes the
             visible GPUs also when the cells run in this process on one GPU).
+        reuse: other study directories whose finished runs are copied in for the cells they already trained
+            (`reuse_cells`).
     """
     out = Path(out)
     cells = plan.cells() if cells is None else cells
+    finished = finished_runs(list(reuse or []))  # a bad directory is refused before anything is written
     record_plan(plan, out)
+    reused = reuse_cells(plan, out, cells, finished)
     pending = [cell for cell in cells if cell_state(out, cell) != "done"]
     total = len(cells)
     for index, cell in enumerate(cells, start=1):
-        if cell not in pending:
+        if cell in reused:
+            print(f"[{index}/{total}] {cell.id}: the same training as {reused[cell]}, copied in", flush=True)
+        elif cell not in pending:
             print(f"[{index}/{total}] {cell.id}: finished earlier, skipped", flush=True)
     if not pending:
         return 0
