@@ -207,8 +207,9 @@ def build_parser() -> argparse.ArgumentParser:
     study_run = study_commands.add_parser(
         "run", help="run the plan's cells (resumable; finished cells are never retrained)",
         description="Run every cell of a plan into OUT/runs/<camera>.<light>.seed<N>. Finished cells are skipped, "
-        "interrupted ones resume, failed ones are reported and the others go on. With several GPUs the cells run on a "
-        "local pool of worker processes (--per-gpu on each GPU), each taking the next cell.", epilog="shipped plans: configs/studies/")
+        "interrupted ones resume, failed ones are reported and the others go on. With several GPUs the cells run "
+        "on a local pool of worker processes (--per-gpu on each GPU), each taking the next cell.",
+        epilog="shipped plans: configs/studies/")
     study_run.add_argument("plan", help="a study plan TOML file or a shipped plan name (configs/studies/)")
     study_run.add_argument("--out", required=True, help="the study directory")
     study_run.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
