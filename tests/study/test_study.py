@@ -160,6 +160,28 @@ def test_the_local_pool_trains_its_cells_on_one_worker_process_per_slot(tmp_path
     assert all((tmp_path / "runs" / cell.run_name / "evaluation.json").is_file() for cell in cells)
 
 
+def test_a_worker_that_dies_fails_its_cell_and_a_fresh_one_takes_the_next(tmp_path, monkeypatch, capsys):
+    """A worker process that exits without answering (a crash) fails the cell it held, with its exit status, and the
+    slot starts a new worker for the next cell; the study reports both failures and exits 1."""
+    import sys
+
+    from warpsense.study import runner
+
+    started = []
+
+    def dying_worker(plan, out):
+        started.append(1)
+        return [sys.executable, "-c", "import sys; sys.stdin.readline(); sys.exit(3)"]
+
+    monkeypatch.setattr(runner, "worker_command", dying_worker)
+    plan = load_plan("smoke", FAST)
+    cells = plan.cells()[:2]
+    assert run_cells(plan, tmp_path, cells, gpus=["0"], per_gpu=1) == 1
+    err = capsys.readouterr().err
+    assert err.count("FAILED (worker exit 3)") == 2 and len(started) == 2
+    assert "2 of 2 cells failed" in err
+
+
 def test_a_worker_answers_each_cell_and_goes_on_past_a_failed_one(tmp_path, monkeypatch, capfd):
     """The worker protocol: cell ids on stdin, one answer line each on stdout; a cell's output and a failure's
     traceback go to its log, and the next cell still trains."""
