@@ -222,12 +222,20 @@ def test_paste_class_names_are_checked():
 THIN = paste_class_ids("pole,sign_symbol,pedestrian,bicyclist", CAMVID_CLASSES)
 
 
-@pytest.mark.parametrize("preset", [name for name in preset_names() if name.startswith("camvid")])
-def test_paste_classes_of_the_camvid_presets_are_camvid_classes(preset):
-    """The camvid presets paste four CamVid classes since round 18 (the base preset sets them): a misspelt name would
-    fail only when a run starts."""
-    classes = paste_class_ids(load_config(preset).data.paste_classes, CAMVID_CLASSES)
-    assert preset != "camvid" or classes == THIN
+@pytest.mark.parametrize("preset", preset_names())
+def test_paste_classes_of_every_preset_are_classes_of_its_dataset(preset):
+    """The camvid presets paste four CamVid classes since round 18 (the base preset sets them), and presets built on
+    them for another dataset must name that dataset's classes: a wrong name would fail only when a run starts (the
+    cityscapes preset inherited CamVid's names in round 18)."""
+    from warpsense.data.labels import CITYSCAPES_CLASSES
+
+    data = load_config(preset).data
+    classes = {"camvid": CAMVID_CLASSES, "cityscapes": CITYSCAPES_CLASSES, "kitti360": CITYSCAPES_CLASSES}
+    if data.dataset not in classes:
+        assert data.paste_classes == "", f"{preset}: paste classes for {data.dataset} are not checked here"
+        return
+    ids = paste_class_ids(data.paste_classes, classes[data.dataset])
+    assert preset != "camvid" or ids == THIN
 
 
 def _paste_paths(probability, device="cpu"):
