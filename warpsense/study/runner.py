@@ -324,6 +324,8 @@ def cell_worker(plan: Plan, out: Path) -> int:
 
     out = Path(out)
     answers = os.fdopen(os.dup(1), "w", buffering=1)
+    sys.stdout.flush()
+    os.dup2(2, 1)  # anything printed between cells goes to stderr: stdout carries the answers alone
     for line in sys.stdin:
         cell = plan.cell(line.strip())
         with open(out / "logs" / f"{cell.run_name}.log", "a", buffering=1) as handle, _output_to(handle):
