@@ -28,8 +28,8 @@ case $what in
     epochs=${arg:-30}
     for nproc in 1 "$gpus"; do
       torchrun --standalone --nproc_per_node "$nproc" -m warpsense train --config camvid_codesign --no-progress \
-        --set train.cuda_graph=false --set data.root=.device/camvid --set run.output_dir=.device/state/ddp$nproc --set train.epochs="$epochs" \
-        --set train.warmup_epochs=$(( epochs * 3 / 10 )) > "$OUT/ddp$nproc.log" 2>&1
+        --set train.cuda_graph=false --set data.root=.device/camvid --set run.output_dir=.device/state/ddp$nproc \
+        --set train.epochs="$epochs" --set train.warmup_epochs=$(( epochs * 3 / 10 )) > "$OUT/ddp$nproc.log" 2>&1
       echo "torchrun N=$nproc exit $?"; tail -3 "$OUT/ddp$nproc.log"
     done
     ;;

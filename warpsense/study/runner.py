@@ -124,12 +124,17 @@ def cell_state(out: Path, cell: Cell) -> str:
     return "partial" if (run_dir(out, cell) / LAST).is_file() else "new"
 
 
-def cell_command(plan: Plan, out: Path, cell: Cell) -> list[str]:
-    """The command that runs one cell (what `--plan-only` prints, for a scheduler)."""
-    command = ["warpsense", "study", "run", plan.source, "--out", str(out), "--cell", cell.id]
+def _run_command(plan: Plan, out: Path, *options: str) -> list[str]:
+    """`warpsense study run` of ``plan`` into ``out`` with ``options`` and the plan's command-line overrides."""
+    command = ["warpsense", "study", "run", plan.source, "--out", str(out), *options]
     for text in plan.overrides:
         command += ["--set", text]
     return command
+
+
+def cell_command(plan: Plan, out: Path, cell: Cell) -> list[str]:
+    """The command that runs one cell (what `--plan-only` prints, for a scheduler)."""
+    return _run_command(plan, out, "--cell", cell.id)
 
 
 def record_plan(plan: Plan, out: Path) -> None:
@@ -182,6 +187,8 @@ def reuse_cells(plan: Plan, out: Path, cells: list[Cell], finished: dict[str, Pa
     an earlier one; returns the cells copied and where from. The copy is the whole run directory, written under a
     temporary name first."""
     reused = {}
+    if not finished:  # no --reuse: no cell's config to resolve here
+        return reused
     for cell in cells:
         if cell_state(out, cell) != "new" or run_dir(out, cell).exists():
             continue
@@ -287,10 +294,7 @@ def _in_process(plan, out, pending, numbering, total, progress) -> list[Cell] | 
 
 def worker_command(plan: Plan, out: Path) -> list[str]:
     """The command of one of the local pool's worker processes (`cell_worker`)."""
-    command = [sys.executable, "-m", "warpsense", "study", "run", plan.source, "--out", str(out), "--worker"]
-    for text in plan.overrides:
-        command += ["--set", text]
-    return command
+    return [sys.executable, "-m", *_run_command(plan, out, "--worker")]
 
 
 @contextlib.contextmanager
