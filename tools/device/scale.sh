@@ -2,9 +2,10 @@
 # Issue 32 on a machine of several GPUs (tools/device/README.md: the kit installed, .device/camvid carried).
 #   bash tools/device/scale.sh study 0      camvid_scaling on GPU 0 alone -> .device/state/scale_1gpu
 #   bash tools/device/scale.sh study auto   camvid_scaling over every GPU  -> .device/state/scale_all
-#   bash tools/device/scale.sh ddp [EPOCHS] torchrun on 1 GPU and on all, camvid_codesign, the same global batch
-#                                           (data.batch_size is global), eager on both (DDP refuses
-#                                           train.cuda_graph), EPOCHS (default 30) -> .device/state/ddpN
+#   bash tools/device/scale.sh ddp [EPOCHS] torchrun camvid_codesign with the same global batch (data.batch_size is
+#                                           global), EPOCHS (default 30): on 1 GPU and on all with the step
+#                                           captured as one CUDA graph (the preset; with DDP the all-reduce is
+#                                           captured too), then on all GPUs eager -> .device/state/ddp{1,N,N_eager}
 # Extra overrides for the study runs go in $SET (e.g. SET="--set run.deterministic=true" for the per-cell equality
 # check, which the throughput figures should not carry: it costs 31% of the step, docs/benchmarks.md round 14).
 # Cells per hour and the GPUs' busy fraction are in each study's throughput.json; everything comes back as
@@ -26,11 +27,13 @@ case $what in
     ;;
   ddp)
     epochs=${arg:-30}
-    for nproc in 1 "$gpus"; do
+    for run in "1 true" "$gpus true" "$gpus false"; do
+      read -r nproc graph <<< "$run"
+      name=ddp$nproc$([ "$graph" = false ] && echo _eager)
       torchrun --standalone --nproc_per_node "$nproc" -m warpsense train --config camvid_codesign --no-progress \
-        --set train.cuda_graph=false --set data.root=.device/camvid --set run.output_dir=.device/state/ddp$nproc \
-        --set train.epochs="$epochs" --set train.warmup_epochs=$(( epochs * 3 / 10 )) > "$OUT/ddp$nproc.log" 2>&1
-      echo "torchrun N=$nproc exit $?"; tail -3 "$OUT/ddp$nproc.log"
+        --set train.cuda_graph="$graph" --set data.root=.device/camvid --set run.output_dir=.device/state/$name \
+        --set train.epochs="$epochs" --set train.warmup_epochs=$(( epochs * 3 / 10 )) > "$OUT/$name.log" 2>&1
+      echo "torchrun N=$nproc cuda_graph=$graph exit $?"; tail -3 "$OUT/$name.log"
     done
     ;;
   *) echo "usage: scale.sh study 0|auto | ddp [EPOCHS]" >&2; exit 2 ;;

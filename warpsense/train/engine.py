@@ -272,9 +272,6 @@ def _epoch_line(record: dict, schedule: Schedule, config) -> str:
 
 def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_model: bool):
     run_started = time.perf_counter()
-    if config.train.cuda_graph and context.enabled:
-        raise ValueError("train.cuda_graph captures one GPU's step; with several ranks (DDP) add --set "
-                         "train.cuda_graph=false (the camvid presets set it true)")
     device = context.device
     torch.manual_seed(config.run.seed)
     datasets = _datasets(config)
@@ -343,7 +340,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
                                                        zip(datasets.train.classes, class_weights.tolist())))
     training_step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), schedule.epochs * steps_per_epoch,
                                  amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph,
-                                 config.train.micro_batch, teacher, class_weights, ema)
+                                 config.train.micro_batch, teacher, class_weights, ema, data_parallel=context.enabled)
     wrapped, wrapped_phase = model, None
     epoch = start_epoch
     # where a run's time goes before its first step (the first epoch's own time includes the compile / graph capture)
@@ -352,7 +349,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         joint = schedule.is_joint(epoch)
         model.camera.on_epoch(schedule, epoch)  # the joint phase trains the camera; the CFA anneals
         if context.enabled and wrapped_phase != joint:  # DDP buckets the parameters that take gradients
-            wrapped = wrap_data_parallel(model, device)
+            with training_step.capture_stream():  # a captured step captures DDP's all-reduce: built on its stream
+                wrapped = wrap_data_parallel(model, device)
             wrapped_phase = joint
         loader.set_epoch(epoch)
         model.train()

@@ -4,6 +4,7 @@ CUDA the whole step can be captured once per phase as a CUDA graph and replayed.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 
@@ -14,6 +15,9 @@ from warpsense.errors import first_line
 from warpsense.train.losses import distillation_loss, segmentation_loss
 
 EAGER_STEPS_BEFORE_CAPTURE = 3  # side-stream steps that initialise optimizer state, cuDNN and `auto` choices
+# with DDP: torch's CUDA-graph notes ask for at least 11 DDP-enabled eager iterations before a capture (the reducer
+# rebuilds its buckets after the first and samples run-time statistics with host reads in its early iterations)
+DDP_EAGER_STEPS_BEFORE_CAPTURE = 11
 LOSS_PARTS = ("ohem", "lovasz", "smooth", "distill")
 STATISTICS = ("loss", *LOSS_PARTS, "steps", "nonfinite_steps")
 
@@ -51,12 +55,17 @@ class TrainingStep:
         ema: a `warpsense.train.ema.WeightEMA` updated after every optimizer step (inside the captured step).
         smoothness_pairs: how the smoothness term sums its pairs (`warpsense.train.losses.edge_aware_smoothness`);
             None: the fused Warp op. The plain-torch baseline of the benchmarks passes the plain-torch reference.
+        data_parallel: the model is DDP-wrapped (several ranks). With ``cuda_graph`` the gradient all-reduce (NCCL)
+            is captured inside the step: the wrapper must be built within `capture_stream` (the side stream that
+            warms up and captures), `DDP_EAGER_STEPS_BEFORE_CAPTURE` eager steps run first, and the capture is
+            thread-local so that the process group's watchdog thread may query its events meanwhile.
     """
 
     def __init__(self, loss_config, optimizer: torch.optim.Optimizer, camera_params: list, total_steps: int,
                  amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False,
                  micro_batch: int = 0, teacher: torch.nn.Module | None = None,
-                 class_weights: torch.Tensor | None = None, ema=None, smoothness_pairs=None):
+                 class_weights: torch.Tensor | None = None, ema=None, smoothness_pairs=None,
+                 data_parallel: bool = False):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
         if cuda_graph and compile_mode in SELF_CAPTURING_COMPILE_MODES:
@@ -84,11 +93,15 @@ class TrainingStep:
         # the phase and batch shape being captured, eager steps run for it so far, and its graph once recorded
         self._capture_key, self._eager_count, self._captured = None, 0, None
         self._capture_seconds = 0.0
+        self._eager_before_capture = DDP_EAGER_STEPS_BEFORE_CAPTURE if data_parallel else EAGER_STEPS_BEFORE_CAPTURE
+        self._capture_mode = "thread_local" if data_parallel else "global"
+        self._stream = None  # the one side stream of the warm-up steps and the captures (and a DDP wrapper's birth)
         if cuda_graph:
             device = optimizer.param_groups[0]["params"][0].device
             if device.type != "cuda":
                 raise ValueError(f"train.cuda_graph needs a CUDA device; the model is on {device} (set "
                                  "train.cuda_graph=false)")
+            self._stream = torch.cuda.Stream(device)
             for group in optimizer.param_groups:
                 group["lr"] = torch.tensor(float(group["lr"]), device=device)
                 group["capturable"] = True
@@ -128,9 +141,10 @@ class TrainingStep:
         if self._capture_key != key:  # a new phase or shape: the old graph (and its memory) goes
             self._capture_key, self._eager_count, self._captured = key, 0, None
         if self._captured is None:
-            if self._eager_count < EAGER_STEPS_BEFORE_CAPTURE:
+            if self._eager_count < self._eager_before_capture:
                 self._eager_count += 1
-                self._on_side_stream(lambda: self._eager_step(model, images, labels, joint))
+                with self.capture_stream():  # warm-up must not run on the default stream (torch.cuda.graphs' recipe)
+                    self._eager_step(model, images, labels, joint)
                 return
             self._captured = self._capture(model, images, labels, joint)
         self._captured.images.copy_(images)
@@ -165,14 +179,18 @@ class TrainingStep:
             self.ema.update()
         self._accumulate(loss.detach(), parts)
 
-    @staticmethod
-    def _on_side_stream(work) -> None:
-        # warm-up before a capture must not run on the default stream (torch.cuda.graphs' whole-network recipe)
-        side = torch.cuda.Stream()
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side):
-            work()
-        torch.cuda.current_stream().wait_stream(side)
+    @contextlib.contextmanager
+    def capture_stream(self):
+        """Run the block on the side stream that warms up and captures the step, ordered after the work queued so
+        far and before the work that follows (without ``cuda_graph``: on the current stream). A DDP wrapper of a
+        captured step is built here (torch's CUDA-graph notes: DDP constructed on a side stream)."""
+        if self._stream is None:
+            yield
+            return
+        self._stream.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(self._stream):
+            yield
+        torch.cuda.current_stream().wait_stream(self._stream)
 
     def _capture(self, model, images, labels, joint) -> "_CapturedStep":
         """Record one step on static copies of the batch; it is not executed: the caller replays it."""
@@ -182,7 +200,7 @@ class TrainingStep:
         torch.cuda.synchronize()
         started = time.perf_counter()
         try:
-            with torch.cuda.graph(graph):
+            with torch.cuda.graph(graph, stream=self._stream, capture_error_mode=self._capture_mode):
                 self._forward_backward_update(model, static_images, static_labels, joint)
         except RuntimeError as error:  # a host read or synchronisation inside the step: name it, not the CUDA code
             raise RuntimeError(f"train.cuda_graph: the training step could not be captured ({first_line(error)}); "
