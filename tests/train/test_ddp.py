@@ -77,7 +77,7 @@ def _two_ranks(output_dir, result_dir, extra=("run.device=cpu",)) -> tuple[dict,
             for process in ranks.processes:
                 process.kill()
             pytest.fail(f"a DDP rank did not finish within {HANG_SECONDS + 60} s")
-    return torch.load(result_dir / "rank0.pt"), torch.load(result_dir / "rank1.pt")
+    return torch.load(result_dir / "rank0.pt", map_location="cpu"), torch.load(result_dir / "rank1.pt", map_location="cpu")
 
 
 @pytest.mark.slow

@@ -347,6 +347,19 @@ def cell_worker(plan: Plan, out: Path) -> int:
     return 0
 
 
+def worker_environment(gpu: str, workers: int, environ=None, cores: int | None = None) -> dict[str, str]:
+    """The environment of a pool worker: its GPU alone (``CUDA_VISIBLE_DEVICES``) and its share of the CPU's cores
+    as OpenMP threads (``OMP_NUM_THREADS`` = cores // workers, at least 1; kept where the caller set it), as
+    torchrun limits its ranks: every worker running an OpenMP pool of all the cores oversubscribes the CPU, and on
+    2 H100s with 16 cores each cell's set-up (the data onto the GPU, its copy-paste classes) took 5-8 s instead of
+    1 s (docs/benchmarks.md round 20)."""
+    environment = dict(os.environ if environ is None else environ)
+    environment["CUDA_VISIBLE_DEVICES"] = gpu
+    cores = cores or os.cpu_count() or 1
+    environment.setdefault("OMP_NUM_THREADS", str(max(1, cores // max(workers, 1))))
+    return environment
+
+
 def _pool(plan, out, pending, numbering, total, gpus, per_gpu) -> list[Cell] | None:
     """Cells on ``per_gpu`` worker processes per GPU (`cell_worker`), each taking the next pending cell when it is
     free; each cell writes its output to <out>/logs/<cell>.log. A worker that dies fails its cell and is replaced for
@@ -361,7 +374,7 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu) -> list[Cell] | N
 
     def start(gpu: str) -> subprocess.Popen:
         process = subprocess.Popen(worker_command(plan, out), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                   text=True, bufsize=1, env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu})
+                                   text=True, bufsize=1, env=worker_environment(gpu, len(gpus) * per_gpu))
         with lock:
             running.add(process)
         return process
