@@ -403,6 +403,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     # the DDP wrapper's reducer holds the process group: freed after destroy_process_group, gloo's destructor can
     # deadlock (seen on CPU, 1 run in ~3), so it goes first
     del wrapped
+    training_step.release_graphs()  # a live graph holding NCCL's all-reduce makes destroy_process_group wait forever
     context.barrier()
     context.close()
     return (run_dir, model) if return_model else run_dir

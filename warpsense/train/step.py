@@ -209,6 +209,16 @@ class TrainingStep:
         self._capture_seconds += time.perf_counter() - started
         return _CapturedStep(graph, static_images, static_labels)
 
+    def release_graphs(self) -> None:
+        """Free the captured step (its CUDA graph and memory pool); the next step warms up and captures anew.
+        Call it before a process group is destroyed: NCCL cannot destroy a communicator while a graph that captured
+        its all-reduce lives, and destroy_process_group then waits forever (pytorch#115388; seen on 2 H100s).
+        Dropping the last reference is not enough: this object refers to itself (``forward_loss`` is its bound
+        method), so it lives until the garbage collector runs."""
+        if self._captured is not None:
+            self._captured.graph.reset()
+        self._capture_key, self._eager_count, self._captured = None, 0, None
+
     def take_capture_seconds(self) -> float:
         """Host seconds spent capturing CUDA graphs since the last call (0 without train.cuda_graph): part of the
         first epoch of each phase, reported apart so that a run's start-up time can be attributed."""
