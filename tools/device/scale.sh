@@ -6,6 +6,10 @@
 #                                           global), EPOCHS (default 30): on 1 GPU and on all with the step
 #                                           captured as one CUDA graph (the preset; with DDP the all-reduce is
 #                                           captured too), then on all GPUs eager -> .device/state/ddp{1,N,N_eager}
+#   bash tools/device/scale.sh seeds EPOCHS S.. the final val over seeds, 1 rank against all ranks with the graph:
+#                                           the 1-rank runs at once, one per GPU (CUDA_VISIBLE_DEVICES), the
+#                                           all-rank runs one after another -> .device/state/seeds{1,N}_sS
+# Each torchrun is stopped after $LIMIT s (default 300: a rank that hangs at exit must not eat the call).
 # Extra overrides for the study runs go in $SET (e.g. SET="--set run.deterministic=true" for the per-cell equality
 # check, which the throughput figures should not carry: it costs 31% of the step, docs/benchmarks.md round 14).
 # Cells per hour and the GPUs' busy fraction are in each study's throughput.json; everything comes back as
@@ -30,12 +34,29 @@ case $what in
     for run in "1 true" "$gpus true" "$gpus false"; do
       read -r nproc graph <<< "$run"
       name=ddp$nproc$([ "$graph" = false ] && echo _eager)
-      torchrun --standalone --nproc_per_node "$nproc" -m warpsense train --config camvid_codesign --no-progress \
+      timeout "${LIMIT:-300}" torchrun --standalone --nproc_per_node "$nproc" -m warpsense train --config camvid_codesign --no-progress \
         --set train.cuda_graph="$graph" --set data.root=.device/camvid --set run.output_dir=.device/state/$name \
         --set train.epochs="$epochs" --set train.warmup_epochs=$(( epochs * 3 / 10 )) > "$OUT/$name.log" 2>&1
       echo "torchrun N=$nproc cuda_graph=$graph exit $?"; tail -3 "$OUT/$name.log"
     done
     ;;
-  *) echo "usage: scale.sh study 0|auto | ddp [EPOCHS]" >&2; exit 2 ;;
+  seeds)
+    epochs=$arg; shift 2
+    run() {  # run NPROC SEED: torchrun camvid_codesign with the graph, EPOCHS epochs, seed SEED
+      local name=seeds$1_s$2
+      timeout "${LIMIT:-300}" torchrun --standalone --nproc_per_node "$1" -m warpsense train --config camvid_codesign --no-progress \
+        --set data.root=.device/camvid --set run.output_dir=.device/state/$name --set run.seed="$2" \
+        --set train.epochs="$epochs" --set train.warmup_epochs=$(( epochs * 3 / 10 )) > "$OUT/$name.log" 2>&1
+      echo "torchrun N=$1 seed=$2 exit $?"; tail -2 "$OUT/$name.log"
+    }
+    i=0
+    for seed in "$@"; do  # 1 rank: one run per GPU at once (their img/s are not the scaling figure)
+      CUDA_VISIBLE_DEVICES=$(( i % gpus )) run 1 "$seed" &
+      i=$(( i + 1 )); [ $(( i % gpus )) = 0 ] && wait
+    done
+    wait
+    for seed in "$@"; do run "$gpus" "$seed"; done
+    ;;
+  *) echo "usage: scale.sh study 0|auto | ddp [EPOCHS] | seeds EPOCHS SEED..." >&2; exit 2 ;;
 esac
 tar czf "$OUT/scale.tgz" --exclude="*.png" --exclude="*.safetensors" -C .device/state .
