@@ -2,9 +2,12 @@
 # Issue 32 on a machine of several GPUs (tools/device/README.md: the kit installed, .device/camvid carried).
 #   bash tools/device/scale.sh study 0      camvid_scaling on GPU 0 alone -> .device/state/scale_1gpu
 #   bash tools/device/scale.sh study auto   camvid_scaling over every GPU  -> .device/state/scale_all
-#   bash tools/device/scale.sh studies      both, in one call, after an untimed warm-up (every cell for 2 epochs
-#                                           in one process: Warp's kernel cache and the bytecode cache filled, so
-#                                           that neither side pays them) -> scale_warm, scale_1gpu, scale_all
+#   bash tools/device/scale.sh warm         an untimed warm-up for the two above (every cell for 2 epochs in one
+#                                           process, ~80 s: Warp's kernel cache and the bytecode cache filled, so
+#                                           that neither side pays them) -> .device/state/scale_warm
+#   bash tools/device/scale.sh studies      warm, study 0 and study auto in one call (10-epoch cells fit; the
+#                                           plan's 20-epoch cells take ~80 + 330 + 180 s: warm and study 0 in
+#                                           one call, study auto in the next)
 #   bash tools/device/scale.sh ddp [EPOCHS] torchrun camvid_codesign with the same global batch (data.batch_size is
 #                                           global), EPOCHS (default 30): on 1 GPU and on all with the step
 #                                           captured as one CUDA graph (the preset; with DDP the all-reduce is
@@ -24,17 +27,16 @@ nvidia-smi -L
 gpus=$(nvidia-smi -L | wc -l)
 mkdir -p .device/state
 case $what in
-  study|studies)
-    if [ "$what" = studies ]; then
-      started=$(date +%s)
-      # shellcheck disable=SC2086  # $SET first: its own kernels (run.deterministic) are warmed too
-      python -m warpsense study run camvid_scaling --out .device/state/scale_warm --gpus 0 \
-        --set data.root=.device/camvid ${SET:-} --set train.epochs=2 --set train.warmup_epochs=1 > "$OUT/scale_warm.log" 2>&1
-      echo "warm-up (untimed by the studies): exit $?, $(( $(date +%s) - started )) s"
-      sides="0 auto"
-    else
-      sides=$arg
-    fi
+  warm|studies)
+    started=$(date +%s)
+    # shellcheck disable=SC2086  # $SET first: its own kernels (run.deterministic) are warmed too
+    python -m warpsense study run camvid_scaling --out .device/state/scale_warm --gpus 0 \
+      --set data.root=.device/camvid ${SET:-} --set train.epochs=2 --set train.warmup_epochs=1 > "$OUT/scale_warm.log" 2>&1
+    echo "warm-up (untimed by the studies): exit $?, $(( $(date +%s) - started )) s"
+    [ "$what" = studies ] && sides="0 auto" || sides=""
+    ;;&
+  study) sides=$arg ;;&
+  warm|study|studies)
     for side in $sides; do
       name=scale_$([ "$side" = auto ] && echo all || echo 1gpu)
       # shellcheck disable=SC2086  # $SET is a list of arguments
@@ -72,6 +74,6 @@ case $what in
     wait
     for seed in "$@"; do run "$gpus" "$seed"; done
     ;;
-  *) echo "usage: scale.sh study 0|auto | studies | ddp [EPOCHS] | seeds EPOCHS SEED..." >&2; exit 2 ;;
+  *) echo "usage: scale.sh study 0|auto | warm | studies | ddp [EPOCHS] | seeds EPOCHS SEED..." >&2; exit 2 ;;
 esac
 tar czf "$OUT/scale.tgz" --exclude="*.png" --exclude="*.safetensors" -C .device/state .
