@@ -257,7 +257,11 @@ def test_pixel_integration_is_exact_against_a_brute_force_midpoint_rule(name, mo
     lens.spec.psf_kernel_size = 9
     exact = lens.psf_grid((1, 1))
     assert lens.pixel_integration_error(lens.spec.oversampling, grid=(1, 1)) < 0.005
-    monkeypatch.setattr(lens_module, "integrate_pixels", midpoint)
+    def midpoint_render(coefficients, noll, azimuth, pupil_samples, zero_padding, size, factor, radius=None):
+        fine = lens_module.pupil_psf(coefficients, noll, azimuth, pupil_samples, zero_padding, radius)
+        return midpoint(fine, size, factor)
+
+    monkeypatch.setattr(lens_module, "render_pixels", midpoint_render)
     brute_force = lens.psf_grid((1, 1), oversampling=31)
     old_rule = lens.psf_grid((1, 1), oversampling=5)
     assert (exact - brute_force).abs().sum(dim=(-2, -1)).max() < 0.004
@@ -366,3 +370,74 @@ def test_feature_smooth_fft_size_keeps_the_psf_scale():
     for channel in range(3):
         moment = (rounded[channel] * radius2).sum()
         torch.testing.assert_close(moment, (unrounded[channel] * radius2).sum(), rtol=2e-2, atol=0)
+
+
+def _reference_pixels(coefficients, noll, azimuth, pupil_samples, padding, size, factor, radius=None):
+    """The straightforward rendering `render_pixels` must equal: each node's full M x M pupil, centred FFT, the box
+    filter by FFT (`pupil_psf` + `integrate_pixels`), normalised."""
+    from warpsense.optics import integrate_pixels
+
+    pixels = integrate_pixels(pupil_psf(coefficients, noll, azimuth, pupil_samples, padding, radius), size, factor)
+    return pixels / pixels.sum(dim=(-2, -1), keepdim=True)
+
+
+# Noll sets: a cosine/sine pair (5, 6), cosines or sines without their partner (8; 3, 7), m = 0 terms, none at all;
+# geometries: the lens's (D 64.3, Q 3.7, K 15, 5 per pixel), a pupil that nearly fills the grid (Q 1.2: the support
+# is clipped to it), odd and even M, a stopped-down pupil (radius float or tensor)
+RENDER_CASES = [([4, 6, 8, 11], 64.3, 3.7, 15, 5, None), ([2, 3, 5, 6, 7], 20.0, 2.5, 5, 3, 0.7),
+                ([1, 9, 12, 14], 16.0, 1.2, 3, 3, None), ([4], 30.0, 3.0, 7, 4, "tensor"), ([], 21.0, 2.0, 5, 3, None)]
+
+
+@pytest.mark.parametrize("noll, pupil, padding, size, factor, radius", RENDER_CASES)
+def test_render_pixels_equals_the_full_grid_rendering(noll, pupil, padding, size, factor, radius):
+    from warpsense.optics.lens import render_pixels
+
+    generator = torch.Generator().manual_seed(len(noll))
+    coefficients = 0.3 * torch.randn(4, len(noll), generator=generator, dtype=torch.float64)
+    azimuth = torch.tensor([0.0, 0.7, -2.1, 3.0], dtype=torch.float64)
+    radius = torch.tensor(0.85, dtype=torch.float64) if radius == "tensor" else radius
+    pixels = render_pixels(coefficients, noll, azimuth, pupil, padding, size, factor, radius)
+    assert pixels.shape == (4, size, size)
+    expected = _reference_pixels(coefficients, noll, azimuth, pupil, padding, size, factor, radius)
+    torch.testing.assert_close(pixels / pixels.sum(dim=(-2, -1), keepdim=True), expected, atol=1e-13, rtol=0)
+
+
+def test_render_pixels_gradients_equal_the_full_grid_rendering_and_gradcheck():
+    """Gradients to the coefficients, the azimuths and a learnable pupil radius (an f-number) equal the reference's;
+    float64 gradcheck of the fast path."""
+    from warpsense.optics.lens import render_pixels
+
+    noll = [2, 4, 7, 8]
+    generator = torch.Generator().manual_seed(3)
+    coefficients = (0.2 * torch.randn(2, 4, generator=generator, dtype=torch.float64)).requires_grad_()
+    azimuth = torch.tensor([0.3, -1.2], dtype=torch.float64, requires_grad=True)
+    radius = torch.tensor(0.8, dtype=torch.float64, requires_grad=True)
+    weights = torch.randn(2, 5, 5, generator=generator, dtype=torch.float64)
+
+    def fast(c, a, r):
+        pixels = render_pixels(c, noll, a, 12.0, 2.5, 5, 3, r)
+        return pixels / pixels.sum(dim=(-2, -1), keepdim=True)
+
+    inputs = (coefficients, azimuth, radius)
+    got = torch.autograd.grad((fast(*inputs) * weights).sum(), inputs)
+    want = torch.autograd.grad((_reference_pixels(coefficients, noll, azimuth, 12.0, 2.5, 5, 3, radius) * weights)
+                               .sum(), inputs)
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w, atol=1e-12, rtol=1e-10)
+    assert torch.autograd.gradcheck(fast, inputs)
+
+
+def test_render_pixels_geometry_kept_from_inference_mode_serves_training():
+    """The aperture, basis and box matrix are kept between calls; made first under inference mode (an evaluation
+    before training), they must still serve a rendering that takes gradients."""
+    from warpsense.optics.lens import render_pixels
+
+    coefficients = torch.tensor([[0.1, -0.2]], dtype=torch.float64)
+    azimuth = torch.zeros(1, dtype=torch.float64)
+    with torch.inference_mode():
+        evaluated = render_pixels(coefficients, [5, 11], azimuth, 13.7, 2.9, 5, 3)
+    trained = coefficients.clone().requires_grad_()
+    pixels = render_pixels(trained, [5, 11], azimuth, 13.7, 2.9, 5, 3)
+    pixels.sum().backward()
+    assert trained.grad is not None and torch.isfinite(trained.grad).all()
+    torch.testing.assert_close(pixels.detach(), evaluated.clone())

@@ -18,6 +18,7 @@ smallest odd K that leaves at most that fraction of every node's energy outside 
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass
@@ -26,7 +27,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from warpsense.optics.zernike import noll_to_nm, zernike
+from warpsense.optics.zernike import noll_to_nm, radial_polynomial, zernike
 from warpsense.resources import CONFIG_DIR
 
 REQUIRED_KEYS = {
@@ -354,9 +355,10 @@ class Lens(nn.Module):
         is sized for ``grid_f_number`` (default: ``f_number`` when a float, else the file's), which must be <= every
         F# rendered on it; the pupil in use is a fraction grid_F# / F# of the grid's.
 
+        Each channel is rendered by `render_pixels` (the pupil's support only, one basis shared by the nodes, the
+        pixels as two matrix products: the numbers of `pupil_psf` + `integrate_pixels` at a fraction of the work).
         The pupil FFT is computed in ``dtype`` (float32: complex64 transforms, about twice as fast as float64 on a CPU
-        (on a GPU the rendering is latency-bound and gains nothing) and accurate to ~1e-6 of the energy, far below
-        the K-window and grid errors; gradchecks use float64). Its size
+        and accurate to ~1e-6 of the energy, far below the K-window and grid errors; gradchecks use float64). Its size
         is rounded up to a 5-smooth number (`fast_fft_size`) by sampling the pupil slightly more finely, which
         keeps the image-plane spacing lambda F# / Q exact: sizes such as 239 (prime) or 265 (5 x 53) would run
         through Bluestein's algorithm at several times the cost."""
@@ -384,8 +386,7 @@ class Lens(nn.Module):
                     waves = waves * torch.stack([ratio ** noll_to_nm(j)[0] for j in noll])
                 radius = grid_f_number / f_number
             samples = fast_fft_size(round(pupil_samples_for(spec.pupil_samples, padding, size, factor) * padding))
-            fine = pupil_psf(waves, noll, azimuth, samples / padding, padding, radius)
-            per_wavelength.append(integrate_pixels(fine, size, factor))
+            per_wavelength.append(render_pixels(waves, noll, azimuth, samples / padding, padding, size, factor, radius))
         psf = torch.stack(per_wavelength)
         return psf / psf.sum(dim=(-2, -1), keepdim=True)
 
@@ -404,6 +405,121 @@ class Lens(nn.Module):
         psf = self.psf_at(height, azimuth, **options)
         size = psf.shape[-1]
         return psf.reshape(3, grid_y, grid_x, size, size)
+
+
+def render_pixels(
+    coefficients: torch.Tensor, noll: list[int], azimuth: torch.Tensor, pupil_samples: float, zero_padding: float,
+    size: int, factor: int, pupil_radius: torch.Tensor | float | None = None,
+) -> torch.Tensor:
+    """``integrate_pixels(pupil_psf(...), size, factor)`` at the cost it needs: [N, K, K] pixel-integrated PSFs
+    (not normalised: `Lens.psf_at` normalises the K x K window), the same numbers to rounding (tested in float64).
+
+    Three identities make it cheap, so that a learnable lens's rendering in each training step is a few passes over
+    the M x M grid instead of ~30 forward and ~60 backward (each node's wavefront, rolls, transforms):
+
+    - The wavefront is built on the pupil's support only (~D + 5 samples wide against M = D Q): the aperture is
+      zero beyond it, and ``fft2(..., s=(M, M))`` zero-pads.
+    - The field azimuth rotates coefficients, not images: Z_j(rho, theta - a) for a cosine/sine pair of azimuthal
+      order m mixes the pair's unrotated images by cos(m a) and sin(m a), so the N nodes' wavefronts are one
+      [N, B] x [B, S^2] product with B basis images shared by all nodes.
+    - |DFT|^2 does not change under a circular shift of the input or of the output: no ifftshift of the pupil and
+      no fftshift of the intensity, and the pixel centres are read at (k - K // 2) * factor mod M. The box filter of
+      `integrate_pixels` (multiplying the spectrum by sinc) is a circular convolution with b = IDFT(sinc), so the
+      K x K pixels are B I B^T with B[k, x] = b[(c_k - x) mod M]: two matrix products read the intensity once.
+
+    The aperture, basis images and B depend on the geometry alone and are kept between calls (`_pupil_basis`,
+    `_box_matrix`), except for a ``pupil_radius`` tensor (a learnable f-number), whose gradient runs through them.
+    """
+    samples = int(round(pupil_samples * zero_padding))
+    dtype, device = coefficients.dtype, coefficients.device
+    orders = {}  # (n, |m|) -> {+1: cosine column, -1: sine column}, in the order of first appearance
+    for column, j in enumerate(noll):
+        n, m = noll_to_nm(j)
+        orders.setdefault((n, abs(m)), {})[1 if m >= 0 else -1] = column
+    geometry = (samples, float(pupil_samples), tuple(orders), dtype, device)
+    if isinstance(pupil_radius, torch.Tensor):
+        aperture, images = _pupil_basis(*geometry, pupil_radius.to(dtype))
+    else:
+        aperture, images = _kept(_cached_pupil_basis, *geometry, pupil_radius)
+    azimuth = azimuth.to(dtype)
+    weights = []  # per basis image, its weight at each node [N]
+    for (_, m), columns in orders.items():
+        if m == 0:
+            weights.append(coefficients[:, columns[1]])
+            continue
+        zero = coefficients.new_zeros(coefficients.shape[0])
+        cosine = coefficients[:, columns[1]] if 1 in columns else zero
+        sine = coefficients[:, columns[-1]] if -1 in columns else zero
+        turn_cos, turn_sin = torch.cos(m * azimuth), torch.sin(m * azimuth)
+        # c cos(m (t - a)) + s sin(m (t - a)) = (c cos ma - s sin ma) cos mt + (c sin ma + s cos ma) sin mt
+        weights += [cosine * turn_cos - sine * turn_sin, cosine * turn_sin + sine * turn_cos]
+    width = aperture.shape[-1]
+    if weights:
+        wavefront = (torch.stack(weights, dim=1) @ images).reshape(-1, width, width)
+    else:
+        wavefront = coefficients.new_zeros(coefficients.shape[0], width, width)
+    field = aperture * torch.exp(1j * 2 * math.pi * wavefront)
+    spectrum = torch.fft.fft2(field, s=(samples, samples))
+    intensity = torch.view_as_real(spectrum).square().sum(dim=-1)  # [N, M, M], zero frequency at index 0
+    box = _kept(_box_matrix, samples, factor, size, dtype, device)
+    return box @ intensity @ box.T
+
+
+def _kept(cached, *key):
+    """``cached(*key)``, but computed afresh while a CUDA graph is being captured: kernels are recorded then, not
+    run, so a tensor first made during capture holds its values only inside that graph's replays."""
+    device = next(item for item in key if isinstance(item, torch.device))
+    if device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+        return cached.__wrapped__(*key)
+    return cached(*key)
+
+
+def _pupil_basis(samples: int, pupil_samples: float, orders: tuple, dtype: torch.dtype, device: torch.device,
+                 pupil_radius: torch.Tensor | float | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The aperture [S, S] on the pupil's support and the unrotated basis images [B, S * S] of the (n, |m|)
+    ``orders`` (one image for m = 0, a cosine and a sine image otherwise), Noll-normalised as `zernike`."""
+    # the support: the aperture (its antialiased edge included) is zero beyond rho = r + 1 / D, r <= 1 but for a
+    # float radius given above 1; within the M x M grid's indices -M // 2 .. M - 1 - M // 2 about its centre
+    extent = pupil_radius if isinstance(pupil_radius, float) and pupil_radius > 1 else 1.0
+    reach = math.ceil(extent * pupil_samples / 2) + 2
+    low, high = max(-reach, -(samples // 2)), min(reach, samples - 1 - samples // 2)
+    axis = torch.arange(low, high + 1, dtype=dtype, device=device) / (pupil_samples / 2)
+    y, x = torch.meshgrid(axis, axis, indexing="ij")
+    rho = torch.sqrt(x * x + y * y)
+    if pupil_radius is None:
+        aperture = (rho <= 1.0).to(dtype)
+    else:  # antialiased edge, as in pupil_psf
+        aperture = ((pupil_radius - rho) * (pupil_samples / 2) + 0.5).clamp(0.0, 1.0)
+        rho = rho / pupil_radius
+    theta = torch.atan2(y, x)
+    rho = rho.clamp(max=1.0)
+    images = []
+    for n, m in orders:
+        radial = math.sqrt(n + 1) * radial_polynomial(n, m, rho)
+        images += [radial] if m == 0 else [math.sqrt(2) * radial * torch.cos(m * theta),
+                                           math.sqrt(2) * radial * torch.sin(m * theta)]
+    images = torch.stack(images).flatten(1) if images else aperture.new_zeros(0, aperture.numel())
+    return aperture, images
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_pupil_basis(*geometry) -> tuple[torch.Tensor, torch.Tensor]:
+    """`_pupil_basis` for a geometry without gradients, computed once: plain tensors even when first asked for
+    under inference mode (evaluation), so that training may use them later."""
+    with torch.inference_mode(False), torch.no_grad():
+        return _pupil_basis(*geometry)
+
+
+@functools.lru_cache(maxsize=64)
+def _box_matrix(samples: int, factor: int, size: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """B [K, M]: row k is b = IDFT(sinc(f)), the box of one pixel band-limited to the M-point grid (``factor``
+    samples per pixel), centred at pixel k's centre (k - K // 2) * factor mod M."""
+    with torch.inference_mode(False), torch.no_grad():
+        frequency = torch.fft.fftfreq(samples, d=1.0 / factor, dtype=dtype, device=device)  # cycles per pixel
+        box = torch.fft.ifft(torch.sinc(frequency).to(torch.promote_types(dtype, torch.complex64))).real
+        centres = (torch.arange(size, device=device) - size // 2) * factor
+        rows = torch.arange(samples, device=device)
+        return box[(centres[:, None] - rows[None, :]) % samples]
 
 
 def fast_fft_size(n: int) -> int:
