@@ -441,3 +441,28 @@ def test_render_pixels_geometry_kept_from_inference_mode_serves_training():
     pixels.sum().backward()
     assert trained.grad is not None and torch.isfinite(trained.grad).all()
     torch.testing.assert_close(pixels.detach(), evaluated.clone())
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_render_pixels_captured_in_a_cuda_graph_first_matches_eager():
+    """A geometry first met while a CUDA graph is being captured is computed inside the graph, not kept (its
+    kernels are only recorded then): the replay equals the eager rendering, and a later eager call is right too."""
+    from warpsense.optics.lens import render_pixels
+
+    device = torch.device("cuda")
+    coefficients = torch.tensor([[0.1, -0.2, 0.05]], device=device)
+    azimuth = torch.tensor([0.4], device=device)
+    arguments = ([4, 7, 8], azimuth, 17.3, 2.7, 5, 3)  # a geometry no other test renders
+    stream = torch.cuda.Stream()
+    stream.wait_stream(torch.cuda.current_stream())
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.stream(stream), torch.cuda.graph(graph, stream=stream):
+        captured = render_pixels(coefficients, *arguments)
+    graph.replay()
+    torch.cuda.synchronize()
+    eager = render_pixels(coefficients, *arguments)
+    expected = _reference_pixels(coefficients.double(), arguments[0], azimuth.double(), *arguments[2:])
+    torch.testing.assert_close((captured / captured.sum(dim=(-2, -1), keepdim=True)).double(), expected,
+                               atol=1e-5, rtol=0)
+    torch.testing.assert_close(eager, captured)
