@@ -256,26 +256,17 @@ class Lens(nn.Module):
         """Normalised field height h [Gy*Gx] and azimuth [Gy*Gx] of the grid nodes.
 
         The nodes cover the whole field, edges and corners included (node n at n / (G - 1) of each axis; the
-        convention of `warpsense.ops.psf.node_axis`), so the corner PSF is rendered at h = 1; G = 1 is on axis."""
+        convention of `warpsense.ops.psf.node_axis`), so the corner PSF is rendered at h = 1; G = 1 is on axis.
+        Computed once per grid and device (read-only tensors: a training step renders the grid every time)."""
         grid_y, grid_x = grid or self.spec.psf_grid
-        aspect = self.spec.aspect_ratio
-        half_w, half_h = aspect / 2, 0.5
         device = self.base_coefficients.device
-
-        def axis(nodes, half):
-            if nodes == 1:
-                return torch.zeros(1, dtype=torch.float64, device=device)
-            return (torch.arange(nodes, dtype=torch.float64, device=device) / (nodes - 1) - 0.5) * 2 * half
-
-        ys, xs = axis(grid_y, half_h), axis(grid_x, half_w)
-        y, x = torch.meshgrid(ys, xs, indexing="ij")
-        height = torch.sqrt(x * x + y * y) / math.hypot(half_w, half_h)
-        return height.reshape(-1), torch.atan2(y, x).reshape(-1)
+        return _kept(_grid_points, grid_y, grid_x, float(self.spec.aspect_ratio), device)
 
     def field_coefficients(self, field_height: torch.Tensor) -> torch.Tensor:
         """[N, J] Zernike coefficients at normalised field heights [N]."""
+        coefficients = self.coefficients()
         powers = torch.stack([torch.ones_like(field_height), field_height, field_height**2], dim=1)
-        return powers.to(self.coefficients().dtype) @ self.coefficients().T
+        return powers.to(coefficients.dtype) @ coefficients.T
 
     def wavelength_coefficients(self, coefficients: torch.Tensor, field_height: torch.Tensor,
                                 channel: int) -> tuple[torch.Tensor, list[int]]:
@@ -441,28 +432,30 @@ def render_pixels(
         aperture, images = _pupil_basis(*geometry, pupil_radius.to(dtype))
     else:
         aperture, images = _kept(_cached_pupil_basis, *geometry, pupil_radius)
-    azimuth = azimuth.to(dtype)
-    weights = []  # per basis image, its weight at each node [N]
-    for (_, m), columns in orders.items():
-        if m == 0:
-            weights.append(coefficients[:, columns[1]])
-            continue
-        zero = coefficients.new_zeros(coefficients.shape[0])
-        cosine = coefficients[:, columns[1]] if 1 in columns else zero
-        sine = coefficients[:, columns[-1]] if -1 in columns else zero
-        turn_cos, turn_sin = torch.cos(m * azimuth), torch.sin(m * azimuth)
-        # c cos(m (t - a)) + s sin(m (t - a)) = (c cos ma - s sin ma) cos mt + (c sin ma + s cos ma) sin mt
-        weights += [cosine * turn_cos - sine * turn_sin, cosine * turn_sin + sine * turn_cos]
+    weights = _basis_weights(coefficients, azimuth.to(dtype), orders)
     width = aperture.shape[-1]
-    if weights:
-        wavefront = (torch.stack(weights, dim=1) @ images).reshape(-1, width, width)
-    else:
-        wavefront = coefficients.new_zeros(coefficients.shape[0], width, width)
+    wavefront = (weights @ images).reshape(-1, width, width)
     field = aperture * torch.exp(1j * 2 * math.pi * wavefront)
     spectrum = torch.fft.fft2(field, s=(samples, samples))
     intensity = torch.view_as_real(spectrum).square().sum(dim=-1)  # [N, M, M], zero frequency at index 0
     box = _kept(_box_matrix, samples, factor, size, dtype, device)
     return box @ intensity @ box.T
+
+
+@functools.lru_cache(maxsize=64)
+def _grid_points(grid_y: int, grid_x: int, aspect: float, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """`Lens.field_points` of a Gy x Gx grid on a frame of ``aspect`` (width / height)."""
+    half_w, half_h = aspect / 2, 0.5
+    with torch.inference_mode(False), torch.no_grad():
+
+        def axis(nodes, half):
+            if nodes == 1:
+                return torch.zeros(1, dtype=torch.float64, device=device)
+            return (torch.arange(nodes, dtype=torch.float64, device=device) / (nodes - 1) - 0.5) * 2 * half
+
+        y, x = torch.meshgrid(axis(grid_y, half_h), axis(grid_x, half_w), indexing="ij")
+        height = torch.sqrt(x * x + y * y) / math.hypot(half_w, half_h)
+        return height.reshape(-1), torch.atan2(y, x).reshape(-1)
 
 
 def _kept(cached, *key):
@@ -493,13 +486,41 @@ def _pupil_basis(samples: int, pupil_samples: float, orders: tuple, dtype: torch
         rho = rho / pupil_radius
     theta = torch.atan2(y, x)
     rho = rho.clamp(max=1.0)
-    images = []
+    # in the order of `_basis_weights`: the m = 0 images, the pairs' cosine images, then their sine images
+    round_, cosines, sines = [], [], []
     for n, m in orders:
         radial = math.sqrt(n + 1) * radial_polynomial(n, m, rho)
-        images += [radial] if m == 0 else [math.sqrt(2) * radial * torch.cos(m * theta),
-                                           math.sqrt(2) * radial * torch.sin(m * theta)]
+        if m == 0:
+            round_.append(radial)
+        else:
+            cosines.append(math.sqrt(2) * radial * torch.cos(m * theta))
+            sines.append(math.sqrt(2) * radial * torch.sin(m * theta))
+    images = round_ + cosines + sines
     images = torch.stack(images).flatten(1) if images else aperture.new_zeros(0, aperture.numel())
     return aperture, images
+
+
+def _basis_weights(coefficients: torch.Tensor, azimuth: torch.Tensor, orders: dict) -> torch.Tensor:
+    """[N, B] weights of `_pupil_basis`'s images at each node: the m = 0 coefficients as they are, and each
+    cosine/sine pair of order m rotated by the node's azimuth a, c cos(m (t - a)) + s sin(m (t - a)) =
+    (c cos ma - s sin ma) cos mt + (c sin ma + s cos ma) sin mt; a term without its partner has a zero partner.
+    All pairs at once (a few kernels, not a few per pair: a training step launches them on every rendering)."""
+    count = coefficients.shape[0]
+    blocks = [torch.stack([coefficients[:, columns[1]] for (_, m), columns in orders.items() if m == 0], dim=1)] \
+        if any(m == 0 for _, m in orders) else []
+    pairs = [(m, columns) for (_, m), columns in orders.items() if m != 0]
+    if pairs:
+        zero = coefficients.new_zeros(count)
+        cosine = torch.stack([coefficients[:, columns[1]] if 1 in columns else zero
+                              for _, columns in pairs], dim=1)
+        sine = torch.stack([coefficients[:, columns[-1]] if -1 in columns else zero for _, columns in pairs], dim=1)
+        orders_m = [m for m, _ in pairs]
+        angle = azimuth[:, None] * torch.arange(1, max(orders_m) + 1, dtype=azimuth.dtype, device=azimuth.device)
+        every_cos, every_sin = torch.cos(angle), torch.sin(angle)  # [N, max m]: column k - 1 is order k
+        turn_cos = torch.stack([every_cos[:, m - 1] for m in orders_m], dim=1)
+        turn_sin = torch.stack([every_sin[:, m - 1] for m in orders_m], dim=1)
+        blocks += [cosine * turn_cos - sine * turn_sin, cosine * turn_sin + sine * turn_cos]
+    return torch.cat(blocks, dim=1) if blocks else coefficients.new_zeros(count, 0)
 
 
 @functools.lru_cache(maxsize=64)
