@@ -7,12 +7,12 @@ launches, which bound the rendering on a GPU).
 """
 
 import argparse
-import json
 import statistics
 import time
 
 import torch
 
+from warpsense.files import write_json
 from warpsense.optics import integrate_pixels, pupil_psf
 from warpsense.optics import lens as lens_module
 from warpsense.optics.lens import Lens, read_lens_spec
@@ -88,8 +88,7 @@ def main() -> None:
         print(f"  {record['method']:<20} {record['median_ms']:9.2f} ms  {record['aten_calls']:4d} aten calls")
     print(f"  ratio {records[0]['median_ms'] / records[1]['median_ms']:.2f}x")
     if args.json:
-        with open(args.json, "w") as handle:
-            json.dump(records, handle, indent=1)
+        write_json(args.json, records)
 
 
 if __name__ == "__main__":
