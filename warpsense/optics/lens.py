@@ -442,25 +442,29 @@ def render_pixels(
     return box @ intensity @ box.T
 
 
-@functools.lru_cache(maxsize=64)
+# The geometry caches below are unbounded on purpose: a captured CUDA graph holds their tensors' addresses, and an
+# entry evicted after a capture would free memory the graph still reads. A process meets a handful of geometries
+# (the accuracy suite's sweeps a few dozen, each at most a few MB).
+@functools.cache
 def _grid_points(grid_y: int, grid_x: int, aspect: float, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """`Lens.field_points` of a Gy x Gx grid on a frame of ``aspect`` (width / height)."""
     half_w, half_h = aspect / 2, 0.5
+
+    def axis(nodes, half):
+        if nodes == 1:
+            return torch.zeros(1, dtype=torch.float64, device=device)
+        return (torch.arange(nodes, dtype=torch.float64, device=device) / (nodes - 1) - 0.5) * 2 * half
+
     with torch.inference_mode(False), torch.no_grad():
-
-        def axis(nodes, half):
-            if nodes == 1:
-                return torch.zeros(1, dtype=torch.float64, device=device)
-            return (torch.arange(nodes, dtype=torch.float64, device=device) / (nodes - 1) - 0.5) * 2 * half
-
         y, x = torch.meshgrid(axis(grid_y, half_h), axis(grid_x, half_w), indexing="ij")
         height = torch.sqrt(x * x + y * y) / math.hypot(half_w, half_h)
         return height.reshape(-1), torch.atan2(y, x).reshape(-1)
 
 
 def _kept(cached, *key):
-    """``cached(*key)``, but computed afresh while a CUDA graph is being captured: kernels are recorded then, not
-    run, so a tensor first made during capture holds its values only inside that graph's replays."""
+    """``cached(*key)`` (a `functools.cache` of geometry tensors), but computed afresh while a CUDA graph is being
+    captured: kernels are recorded then, not run, so a tensor first made during capture holds its values only inside
+    that graph's replays."""
     device = next(item for item in key if isinstance(item, torch.device))
     if device.type == "cuda" and torch.cuda.is_current_stream_capturing():
         return cached.__wrapped__(*key)
@@ -523,7 +527,7 @@ def _basis_weights(coefficients: torch.Tensor, azimuth: torch.Tensor, orders: di
     return torch.cat(blocks, dim=1) if blocks else coefficients.new_zeros(count, 0)
 
 
-@functools.lru_cache(maxsize=64)
+@functools.cache
 def _cached_pupil_basis(*geometry) -> tuple[torch.Tensor, torch.Tensor]:
     """`_pupil_basis` for a geometry without gradients, computed once: plain tensors even when first asked for
     under inference mode (evaluation), so that training may use them later."""
@@ -531,7 +535,7 @@ def _cached_pupil_basis(*geometry) -> tuple[torch.Tensor, torch.Tensor]:
         return _pupil_basis(*geometry)
 
 
-@functools.lru_cache(maxsize=64)
+@functools.cache
 def _box_matrix(samples: int, factor: int, size: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """B [K, M]: row k is b = IDFT(sinc(f)), the box of one pixel band-limited to the M-point grid (``factor``
     samples per pixel), centred at pixel k's centre (k - K // 2) * factor mod M."""
