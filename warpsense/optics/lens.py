@@ -510,13 +510,12 @@ def _basis_weights(coefficients: torch.Tensor, azimuth: torch.Tensor, orders: di
     (c cos ma - s sin ma) cos mt + (c sin ma + s cos ma) sin mt; a term without its partner has a zero partner.
     All pairs at once (a few kernels, not a few per pair: a training step launches them on every rendering)."""
     count = coefficients.shape[0]
-    blocks = [torch.stack([coefficients[:, columns[1]] for (_, m), columns in orders.items() if m == 0], dim=1)] \
-        if any(m == 0 for _, m in orders) else []
+    round_ = [coefficients[:, columns[1]] for (_, m), columns in orders.items() if m == 0]
+    blocks = [torch.stack(round_, dim=1)] if round_ else []
     pairs = [(m, columns) for (_, m), columns in orders.items() if m != 0]
     if pairs:
         zero = coefficients.new_zeros(count)
-        cosine = torch.stack([coefficients[:, columns[1]] if 1 in columns else zero
-                              for _, columns in pairs], dim=1)
+        cosine = torch.stack([coefficients[:, columns[1]] if 1 in columns else zero for _, columns in pairs], dim=1)
         sine = torch.stack([coefficients[:, columns[-1]] if -1 in columns else zero for _, columns in pairs], dim=1)
         orders_m = [m for m, _ in pairs]
         angle = azimuth[:, None] * torch.arange(1, max(orders_m) + 1, dtype=azimuth.dtype, device=azimuth.device)
