@@ -1,9 +1,12 @@
 """Time a learnable lens's PSF-grid rendering, forward + backward, as a training step pays it (issue 27): the fast
 path (`warpsense.optics.lens.render_pixels`) against the full-grid rendering it replaced (`pupil_psf` +
 `integrate_pixels`), in one process, and count the aten calls each makes (a device-independent proxy for kernel
-launches, which bound the rendering on a GPU).
+launches, which bound the rendering on a GPU). With ``--camera``, also the whole codesign camera forward + backward
+at the CamVid crop (`warpsense.bench.train_suite.camera_pass`, the train suite's camera-alone record) with each
+rendering, and the plain-torch baseline's Gaussian camera, eager and (CUDA) replayed as a graph.
 
-    python tools/bench_render.py [--lens phone_68deg] [--device cpu|cuda] [--dtype float32] [--repeats 20] [--json F]
+    python tools/bench_render.py [--lens phone_68deg] [--device cpu|cuda] [--dtype float32] [--repeats 20]
+                                 [--camera] [--json F]
 """
 
 import argparse
@@ -44,12 +47,28 @@ def aten_calls(step) -> int:
     return count
 
 
+def camera_records(name: str, device: torch.device) -> list[dict]:
+    """The codesign camera's forward + backward with the rendering in place (the baseline's Gaussian camera for
+    ``name`` "plain-torch baseline"), eager and, on CUDA, replayed as a graph."""
+    from warpsense.bench.train_suite import camera_pass
+
+    method, camera = ("torch_baseline", "simple") if name == "plain-torch baseline" else ("warpsense", "codesign")
+    records = []
+    for graph in (False, True) if device.type == "cuda" else (False,):
+        timing = camera_pass(method, camera, str(device), 16, 352, 480, graph)
+        records.append({"method": name, "camera": camera, "mode": "graph" if graph else "eager",
+                        "device": str(device), "shape": [16, 3, 352, 480], **timing})
+    return records
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--lens", default="phone_68deg")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--camera", action="store_true",
+                        help="also time the codesign camera (batch 16, 352 x 480) with each rendering, and the baseline's")
     parser.add_argument("--json", help="write the records here")
     args = parser.parse_args()
     device, dtype = torch.device(args.device), getattr(torch, args.dtype)
@@ -81,12 +100,21 @@ def main() -> None:
         records.append({"method": name, "lens": args.lens, "device": str(device), "dtype": args.dtype,
                         "grid": list(lens.spec.psf_grid), "kernel_size": lens.spec.psf_kernel_size,
                         "median_ms": statistics.median(times), "aten_calls": aten_calls(step)})
+        if args.camera:
+            records += camera_records(name, device)
     lens_module.render_pixels = fast
+    if args.camera:
+        records += camera_records("plain-torch baseline", device)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
     print(f"{args.lens}, {name}, {args.dtype}: learnable lens PSF grid, forward + backward (median of {args.repeats})")
-    for record in records:
+    rendering = [record for record in records if "aten_calls" in record]
+    for record in rendering:
         print(f"  {record['method']:<20} {record['median_ms']:9.2f} ms  {record['aten_calls']:4d} aten calls")
-    print(f"  ratio {records[0]['median_ms'] / records[1]['median_ms']:.2f}x")
+    print(f"  ratio {rendering[0]['median_ms'] / rendering[1]['median_ms']:.2f}x")
+    for record in records:
+        if "camera" in record:
+            print(f"  camera {record['camera']:<9} {record['mode']:<6} rendering {record['method']:<20} "
+                  f"{record['median_ms']:9.3f} ms [IQR {record['iqr_ms']:.3f}]")
     if args.json:
         write_json(args.json, records)
 
