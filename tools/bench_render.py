@@ -1,7 +1,7 @@
 """Time a learnable lens's PSF-grid rendering, forward + backward, as a training step pays it (issue 27): the fast
 path (`warpsense.optics.lens.render_pixels`) against the full-grid rendering it replaced (`pupil_psf` +
 `integrate_pixels`), in one process, and count the aten calls each makes (a device-independent proxy for kernel
-launches, which bound the rendering on a GPU). With ``--camera``, also the whole codesign camera forward + backward
+launches, which bound the rendering on a GPU); on CUDA also replayed as one CUDA graph. With ``--camera``, also the whole codesign camera forward + backward
 at the CamVid crop (`warpsense.bench.train_suite.camera_pass`, the train suite's camera-alone record) with each
 rendering, and the plain-torch baseline's Gaussian camera, eager and (CUDA) replayed as a graph.
 
@@ -15,6 +15,7 @@ import time
 
 import torch
 
+from warpsense.bench.timing import time_cuda_graph
 from warpsense.files import write_json
 from warpsense.optics import integrate_pixels, pupil_psf
 from warpsense.optics import lens as lens_module
@@ -74,6 +75,7 @@ def main() -> None:
     device, dtype = torch.device(args.device), getattr(torch, args.dtype)
     lens = Lens(read_lens_spec(args.lens), learnable=True).to(device)
     weights = None
+    parameters = [p for p in lens.parameters() if p.requires_grad]
     fast = lens_module.render_pixels
     records = []
     for name, render in (("full grid (before)", full_grid), ("render_pixels", fast)):
@@ -84,7 +86,7 @@ def main() -> None:
             psf = lens.psf_grid(dtype=dtype)
             if weights is None:
                 weights = torch.randn_like(psf)
-            (psf * weights).sum().backward()
+            return torch.autograd.grad((psf * weights).sum(), parameters)
 
         for _ in range(3):
             step()
@@ -100,6 +102,8 @@ def main() -> None:
         records.append({"method": name, "lens": args.lens, "device": str(device), "dtype": args.dtype,
                         "grid": list(lens.spec.psf_grid), "kernel_size": lens.spec.psf_kernel_size,
                         "median_ms": statistics.median(times), "aten_calls": aten_calls(step)})
+        if device.type == "cuda":  # as the training step pays it: replayed in the step's CUDA graph
+            records[-1]["graph_ms"] = time_cuda_graph(step, args.repeats)["median_ms"]
         if args.camera:
             records += camera_records(name, device)
     lens_module.render_pixels = fast
@@ -109,7 +113,8 @@ def main() -> None:
     print(f"{args.lens}, {name}, {args.dtype}: learnable lens PSF grid, forward + backward (median of {args.repeats})")
     rendering = [record for record in records if "aten_calls" in record]
     for record in rendering:
-        print(f"  {record['method']:<20} {record['median_ms']:9.2f} ms  {record['aten_calls']:4d} aten calls")
+        graph = f", {record['graph_ms']:6.3f} ms replayed as a CUDA graph" if "graph_ms" in record else ""
+        print(f"  {record['method']:<20} {record['median_ms']:9.2f} ms  {record['aten_calls']:4d} aten calls{graph}")
     print(f"  ratio {rendering[0]['median_ms'] / rendering[1]['median_ms']:.2f}x")
     for record in records:
         if "camera" in record:

@@ -448,20 +448,28 @@ def test_render_pixels_geometry_kept_from_inference_mode_serves_training():
 def test_render_pixels_captured_in_a_cuda_graph_first_matches_eager():
     """A geometry first met while a CUDA graph is being captured is computed inside the graph, not kept (its
     kernels are only recorded then): the replay equals the eager rendering, and a later eager call is right too."""
-    from warpsense.optics.lens import render_pixels
+    from warpsense.optics.lens import _cached_pupil_basis, render_pixels
 
     device = torch.device("cuda")
     coefficients = torch.tensor([[0.1, -0.2, 0.05]], device=device)
     azimuth = torch.tensor([0.4], device=device)
-    arguments = ([4, 7, 8], azimuth, 17.3, 2.7, 5, 3)  # a geometry no other test renders
+    arguments = ([4, 7, 8], azimuth, 17.3, 2.7, 5, 3)  # a pupil geometry no other test renders
     stream = torch.cuda.Stream()
     stream.wait_stream(torch.cuda.current_stream())
+    # as before any capture, an eager warm-up on the capturing stream: cuBLAS's handle and the M = 47 FFT plan
+    # cannot be created inside a capture (round 22: CUBLAS_STATUS_NOT_INITIALIZED in a fresh process). Another
+    # pupil sampling with the same M keeps the pupil basis unseen (the box matrix depends on M only: kept)
+    with torch.cuda.stream(stream):
+        render_pixels(coefficients, [4, 7, 8], azimuth, 17.4, 2.7, 5, 3)
+    kept = _cached_pupil_basis.cache_info().currsize
     graph = torch.cuda.CUDAGraph()
     with torch.cuda.stream(stream), torch.cuda.graph(graph, stream=stream):
         captured = render_pixels(coefficients, *arguments)
+    assert _cached_pupil_basis.cache_info().currsize == kept  # computed inside the graph, not kept
     graph.replay()
     torch.cuda.synchronize()
     eager = render_pixels(coefficients, *arguments)
+    assert _cached_pupil_basis.cache_info().currsize == kept + 1
     expected = _reference_pixels(coefficients.double(), arguments[0], azimuth.double(), *arguments[2:])
     torch.testing.assert_close((captured / captured.sum(dim=(-2, -1), keepdim=True)).double(), expected,
                                atol=1e-5, rtol=0)
