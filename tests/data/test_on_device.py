@@ -255,6 +255,30 @@ def test_paste_puts_a_donors_class_pixels_on_the_crop(device):
     assert changed >= 4  # donors are drawn, and most carry thin-class pixels the crop did not have there
 
 
+def test_ranks_batches_together_are_the_one_process_batch():
+    """DDP's data: with 2 ranks of batch 2, each step's two shares hold exactly the images, crops, flips and pasted
+    donors one process of batch 4 draws (round 22: each rank drew its own batch from the shared generator, so both
+    ranks' k-th images had the same crop and donor)."""
+    scenes = StreetScenes(9, 30, 40, seed=1)
+    options = dict(crop=(20, 24), scale_range=(0.7, 1.4), hflip=True, seed=3, progress=False, paste_classes=THIN,
+                   paste_probability=0.7)
+    one = DeviceBatches(scenes, "cpu", batch_size=4, **options)
+    ranks = [DeviceBatches(scenes, "cpu", batch_size=2, rank=r, world_size=2, **options) for r in range(2)]
+    for batches in (one, *ranks):
+        batches.set_epoch(1)
+    assert len(one) == len(ranks[0]) == len(ranks[1]) == 2
+    steps = 0
+    for (images, labels), share0, share1 in zip(one, *ranks):
+        assert share0[0].shape == (2, 3, 20, 24)
+        torch.testing.assert_close(images[0::2], share0[0], rtol=0, atol=0)
+        torch.testing.assert_close(images[1::2], share1[0], rtol=0, atol=0)
+        torch.testing.assert_close(labels[0::2], share0[1], rtol=0, atol=0)
+        torch.testing.assert_close(labels[1::2], share1[1], rtol=0, atol=0)
+        assert not torch.equal(share0[0], share1[0])
+        steps += 1
+    assert steps == 2
+
+
 @pytest.mark.parametrize("device", device_params())
 def test_paste_probability_zero_pastes_nothing(device):
     scenes, pairs = _paste_paths(0.0, device)

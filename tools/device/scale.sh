@@ -14,7 +14,8 @@
 #                                           captured too), then on all GPUs eager -> .device/state/ddp{1,N,N_eager}
 #   bash tools/device/scale.sh seeds EPOCHS S.. the final val over seeds, 1 rank against all ranks with the graph:
 #                                           the 1-rank runs at once, one per GPU (CUDA_VISIBLE_DEVICES), the
-#                                           all-rank runs one after another -> .device/state/seeds{1,N}_sS
+#                                           all-rank runs one after another -> .device/state/seeds{1,N}_sS;
+#                                           SIDES=all runs the all-rank side only (SIDES=1: the 1-rank side)
 # Each torchrun is stopped after $LIMIT s (default 300: a rank that hangs at exit must not eat the call).
 # Extra overrides for the study runs go in $SET (e.g. SET="--set run.deterministic=true" for the per-cell equality
 # check, which the throughput figures should not carry: it costs 31% of the step, docs/benchmarks.md round 14).
@@ -67,12 +68,14 @@ case $what in
       echo "torchrun N=$1 seed=$2 exit $?"; tail -2 "$OUT/$name.log"
     }
     i=0
-    for seed in "$@"; do  # 1 rank: one run per GPU at once (their img/s are not the scaling figure)
-      CUDA_VISIBLE_DEVICES=$(( i % gpus )) run 1 "$seed" &
-      i=$(( i + 1 )); [ $(( i % gpus )) = 0 ] && wait
-    done
-    wait
-    for seed in "$@"; do run "$gpus" "$seed"; done
+    case " ${SIDES:-1 all} " in *" 1 "*)
+      for seed in "$@"; do  # 1 rank: one run per GPU at once (their img/s are not the scaling figure)
+        CUDA_VISIBLE_DEVICES=$(( i % gpus )) run 1 "$seed" &
+        i=$(( i + 1 )); [ $(( i % gpus )) = 0 ] && wait
+      done
+      wait ;;
+    esac
+    case " ${SIDES:-1 all} " in *" all "*) for seed in "$@"; do run "$gpus" "$seed"; done ;; esac
     ;;
   *) echo "usage: scale.sh study 0|auto | warm | studies | ddp [EPOCHS] | seeds EPOCHS SEED..." >&2; exit 2 ;;
 esac

@@ -61,7 +61,11 @@ class DeviceBatches:
 
     Images of different sizes are padded to the largest (with 0 / the ignore label) and remember their own size, so
     the crop never samples the padding as if it were image. Per epoch the order is a permutation drawn from a
-    generator seeded by (seed, epoch), so resumed runs repeat it; with ``world_size`` > 1 each rank takes its share.
+    generator seeded by (seed, epoch), so resumed runs repeat it. With ``world_size`` > 1 every rank draws the
+    randomness of the global batch (``batch_size`` x ``world_size`` images: their scales, crops, flips and pasted
+    donors) and takes its share, every ``world_size``-th image from its ``rank``: the ranks' batches together are
+    the batch one process draws. (Until round 22 each rank drew one batch's randomness from the same generator, so
+    rank r's k-th image had rank 0's crop and donor: a global batch of 16 carried 8 donors, each twice.)
     """
 
     def __init__(self, dataset, device, batch_size: int, crop: tuple[int, int], scale_range=(1.0, 1.0),
@@ -94,9 +98,9 @@ class DeviceBatches:
     def __iter__(self):
         generator = torch.Generator(device=self.device).manual_seed(self.seed * 1_000_003 + self.epoch)
         order = torch.randperm(len(self.images), generator=generator, device=self.device)
-        order = order[self.rank :: self.world_size]
+        size = self.batch_size * self.world_size  # the global batch
         for step in range(len(self)):
-            indices = order[step * self.batch_size : (step + 1) * self.batch_size]
+            indices = order[step * size : (step + 1) * size]
             images, labels = self.augment(indices, generator)
             if len(self.paste_classes):
                 images, labels = self.paste_donors(images, labels, generator)
@@ -105,22 +109,29 @@ class DeviceBatches:
     def paste_donors(self, images: torch.Tensor, labels: torch.Tensor, generator: torch.Generator):
         """`warpsense.data.transforms.paste` onto each crop with ``paste_probability``, from a training image drawn
         at random and augmented on its own (as `Augmented` does on the CPU path); drawn after the batch's own
-        augmentation, so that a run without pasting repeats its batches exactly."""
-        batch = images.shape[0]
-        chosen = torch.rand(batch, generator=generator, device=self.device) < self.paste_probability
-        donors = torch.randint(0, len(self.images), (batch,), generator=generator, device=self.device)
+        augmentation, so that a run without pasting repeats its batches exactly. The draws are the global batch's;
+        ``images`` and ``labels`` are this rank's share of it."""
+        size = images.shape[0] * self.world_size
+        chosen = torch.rand(size, generator=generator, device=self.device)[self.share] < self.paste_probability
+        donors = torch.randint(0, len(self.images), (size,), generator=generator, device=self.device)
         donor_images, donor_labels = self.augment(donors, generator)
         donor_labels = torch.where(chosen[:, None, None], donor_labels, IGNORE_INDEX)  # not chosen: nothing to paste
         return paste(images, labels, donor_images, donor_labels, self.paste_classes)
 
+    @property
+    def share(self) -> slice:
+        """This rank's images of a global batch."""
+        return slice(self.rank, None, self.world_size)
+
     def augment(self, indices: torch.Tensor, generator: torch.Generator):
-        """Scale, crop and flip the images at ``indices`` into one fixed-shape batch (bilinear images, nearest
-        labels), all on the device; where a scaled image is smaller than the crop (``fill`` "reflect"), it sits at
-        a random offset and the rest of the crop mirrors it, labelled ignore."""
+        """Scale, crop and flip this rank's share of the global batch's images at ``indices`` into one fixed-shape
+        batch (bilinear images, nearest labels), all on the device; where a scaled image is smaller than the crop
+        (``fill`` "reflect"), it sits at a random offset and the rest of the crop mirrors it, labelled ignore."""
+        draws = torch.rand(indices.shape[0], 4, generator=generator, device=self.device)[self.share]
+        indices = indices[self.share]
         batch = indices.shape[0]
         crop_h, crop_w = self.crop
         low, high = self.scale_range
-        draws = torch.rand(batch, 4, generator=generator, device=self.device)
         size = self.sizes[indices]  # [B, 2] source height, width
         scale = low + (high - low) * draws[:, 0]
         if self.fill == "cover":  # raised where needed so the scaled image covers the crop (as in scale_crop_flip)
