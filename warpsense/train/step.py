@@ -139,7 +139,8 @@ class TrainingStep:
             return
         key = (joint, tuple(images.shape), images.dtype, tuple(labels.shape), labels.dtype)
         if self._capture_key != key:  # a new phase or shape: the old graph (and its memory) goes
-            self._capture_key, self._eager_count, self._captured = key, 0, None
+            self.release_graphs()
+            self._capture_key = key
         if self._captured is None:
             if self._eager_count < self._eager_before_capture:
                 self._eager_count += 1
