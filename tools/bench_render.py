@@ -1,9 +1,10 @@
 """Time a learnable lens's PSF-grid rendering, forward + backward, as a training step pays it (issue 27): the fast
 path (`warpsense.optics.lens.render_pixels`) against the full-grid rendering it replaced (`pupil_psf` +
 `integrate_pixels`), in one process, and count the aten calls each makes (a device-independent proxy for kernel
-launches, which bound the rendering on a GPU); on CUDA also replayed as one CUDA graph. With ``--camera``, also the whole codesign camera forward + backward
-at the CamVid crop (`warpsense.bench.train_suite.camera_pass`, the train suite's camera-alone record) with each
-rendering, and the plain-torch baseline's Gaussian camera, eager and (CUDA) replayed as a graph.
+launches, which bound the rendering on a GPU); on CUDA also replayed as one CUDA graph. With ``--camera``, also the
+whole codesign camera forward + backward at the CamVid crop (`warpsense.bench.train_suite.camera_pass`, the train
+suite's camera-alone record) with each rendering, and the plain-torch baseline's Gaussian camera, eager and (CUDA)
+replayed as a graph.
 
     python tools/bench_render.py [--lens phone_68deg] [--device cpu|cuda] [--dtype float32] [--repeats 20]
                                  [--camera] [--json F]
