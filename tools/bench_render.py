@@ -11,12 +11,10 @@ replayed as a graph.
 """
 
 import argparse
-import statistics
-import time
 
 import torch
 
-from warpsense.bench.timing import time_cuda_graph
+from warpsense.bench.timing import time_cuda_graph, time_function
 from warpsense.files import write_json
 from warpsense.optics import integrate_pixels, pupil_psf
 from warpsense.optics import lens as lens_module
@@ -89,20 +87,10 @@ def main() -> None:
                 weights = torch.randn_like(psf)
             return torch.autograd.grad((psf * weights).sum(), parameters)
 
-        for _ in range(3):
-            step()
-        times = []
-        for _ in range(args.repeats):
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-            started = time.perf_counter()
-            step()
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-            times.append((time.perf_counter() - started) * 1e3)
         records.append({"method": name, "lens": args.lens, "device": str(device), "dtype": args.dtype,
                         "grid": list(lens.spec.psf_grid), "kernel_size": lens.spec.psf_kernel_size,
-                        "median_ms": statistics.median(times), "aten_calls": aten_calls(step)})
+                        "median_ms": time_function(step, device, args.repeats)["median_ms"],
+                        "aten_calls": aten_calls(step)})
         if device.type == "cuda":  # as the training step pays it: replayed in the step's CUDA graph
             records[-1]["graph_ms"] = time_cuda_graph(step, args.repeats)["median_ms"]
         if args.camera:
