@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from warpsense.optics.zernike import noll_to_nm, radial_polynomial, zernike
+from warpsense.optics.zernike import noll_to_nm, radial_polynomial, zernike, zernike_nm
 from warpsense.resources import CONFIG_DIR
 
 REQUIRED_KEYS = {
@@ -493,12 +493,12 @@ def _pupil_basis(samples: int, pupil_samples: float, orders: tuple, dtype: torch
     # in the order of `_basis_weights`: the m = 0 images, the pairs' cosine images, then their sine images
     round_, cosines, sines = [], [], []
     for n, m in orders:
-        radial = math.sqrt(n + 1) * radial_polynomial(n, m, rho)
+        radial = radial_polynomial(n, m, rho)
         if m == 0:
-            round_.append(radial)
+            round_.append(zernike_nm(n, 0, rho, theta, radial))
         else:
-            cosines.append(math.sqrt(2) * radial * torch.cos(m * theta))
-            sines.append(math.sqrt(2) * radial * torch.sin(m * theta))
+            cosines.append(zernike_nm(n, m, rho, theta, radial))
+            sines.append(zernike_nm(n, -m, rho, theta, radial))
     images = round_ + cosines + sines
     images = torch.stack(images).flatten(1) if images else aperture.new_zeros(0, aperture.numel())
     return aperture, images

@@ -38,8 +38,16 @@ def radial_polynomial(n: int, m: int, rho: torch.Tensor) -> torch.Tensor:
 
 def zernike(j: int, rho: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
     """Noll-normalised Z_j(rho, theta) on the unit disc (rho in [0, 1], theta in radians)."""
-    n, m = noll_to_nm(j)
-    radial = math.sqrt(n + 1) * radial_polynomial(n, m, rho)
+    return zernike_nm(*noll_to_nm(j), rho, theta)
+
+
+def zernike_nm(n: int, m: int, rho: torch.Tensor, theta: torch.Tensor,
+               radial: torch.Tensor | None = None) -> torch.Tensor:
+    """Noll-normalised Z_n^m(rho, theta): cos(m theta) for m > 0, sin(|m| theta) for m < 0. ``radial``: R_n^|m|(rho)
+    when the caller has it already (a cosine/sine pair shares it)."""
+    if radial is None:
+        radial = radial_polynomial(n, m, rho)
+    radial = math.sqrt(n + 1) * radial
     if m == 0:
         return radial
     angular = torch.cos(m * theta) if m > 0 else torch.sin(-m * theta)
