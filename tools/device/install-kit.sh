@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf]
 #   step:   the training step at Lovasz stride 1 and 2 (round 16)
 #   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
 #           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
 #   data:   the training data path's cuda tests (scale fill, copy-paste on the GPU), ~1 minute
 #   render: the lens rendering's cuda tests, then tools/bench_render.py on the GPU (float32 with the whole camera,
 #           float64) -> $OUT/render_*.json, ~2 minutes (issue 27)
+#   psf:    the PSF op's cuda tests, then tools/bench_psf_layouts.py (the column-sliding kernels against the
+#           register-tiled ones, the codesign camera and batch-1 latency with each) -> $OUT/psf_layouts.json
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -43,4 +45,10 @@ if [ "${1:-}" = render ]; then
   echo "optics cuda tests exit $?"; tail -2 "$OUT/render_cuda_tests.txt"
   python tools/bench_render.py --device cuda --camera --json "$OUT/render_float32.json" 2>&1 | grep -v -e Warning -e USDT
   python tools/bench_render.py --device cuda --dtype float64 --json "$OUT/render_float64.json" 2>&1 | grep -v -e Warning -e USDT
+fi
+if [ "${1:-}" = psf ]; then
+  timeout 240 python -m pytest -q -p no:warnings -m cuda tests/ops/test_psf.py tests/ops/test_custom_ops.py \
+    > "$OUT/psf_cuda_tests.txt" 2>&1
+  echo "psf cuda tests exit $?"; tail -2 "$OUT/psf_cuda_tests.txt"
+  python tools/bench_psf_layouts.py --device cuda --json "$OUT/psf_layouts.json" 2>&1 | grep -v -e Warning -e USDT
 fi

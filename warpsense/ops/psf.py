@@ -19,6 +19,7 @@ from warpsense.kernels import psf as kernels
 from warpsense.ops._warp import Vectors, launch, prepare, save_inputs, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
 
+SLIDING = True  # TEMPORARY: the column-sliding kernels against the register-tiled ones, until a GPU decides
 _THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill an H100; serial CPU)
 
 
@@ -119,7 +120,8 @@ def _psf_backward_image(grad_out: torch.Tensor, cells: torch.Tensor, grid_y: int
     rows, cols = _source_tables(grad_out, grid_y, grid_x, radius)
     padded_grad = _padded_gradient(grad_out, radius, cells.dtype)
     grad_source = padded_grad.new_empty(batch * channels, height + 2 * radius, width + 2 * radius)
-    launch(kernels.psf_backward_source,
+    kernel = kernels.sliding_kernels(cells.shape[2])[1] if SLIDING else kernels.psf_backward_source
+    launch(kernel,
            (batch * channels, -(-(height + 2 * radius) // kernels.ROWS), width + 2 * radius),
            [padded_grad, Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1], grad_source],
            grad_out.device)
@@ -171,6 +173,11 @@ def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_
     radius = cells.shape[2] // 2
     rows, cols = _source_tables(image, grid_y, grid_x, radius)
     out = torch.empty_like(image)
+    if SLIDING:
+        launch(kernels.sliding_kernels(cells.shape[2])[0], (batch * channels, -(-height // kernels.ROWS), width),
+               [_padded_source(image, radius), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], rows[2], cols[0],
+                cols[1], out.view(batch * channels, height, width)], image.device)
+        return out
     launch(kernels.psf_forward, (batch * channels, -(-height // kernels.ROWS), -(-width // kernels.COLS)),
            [_padded_source(image, radius), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1],
             out.view(batch * channels, height, width)], image.device)
