@@ -9,6 +9,7 @@ edges), pixel q's centre at (q + 0.5) / size; between nodes the PSF is bilinear.
 from __future__ import annotations
 
 import functools
+import os
 import time
 
 import torch
@@ -19,7 +20,8 @@ from warpsense.kernels import psf as kernels
 from warpsense.ops._warp import Vectors, launch, prepare, save_inputs, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
 
-SLIDING = True  # TEMPORARY: the column-sliding kernels against the register-tiled ones, until a GPU decides
+# TEMPORARY: the column-sliding kernels against the register-tiled ones, until a GPU decides
+SLIDING = os.environ.get("WARPSENSE_PSF_LAYOUT", "sliding") == "sliding"
 _THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill an H100; serial CPU)
 
 
