@@ -295,26 +295,42 @@ def sliding_kernels(size: int) -> tuple[wp.Kernel, wp.Kernel]:
         simple = last - first <= 1
         acc = wp.vector(length=ROWS, dtype=source.dtype)
         value = wp.vector(length=wp.static(window), dtype=source.dtype)
-        for j in range(cells.shape[2]):
-            t = x + size - 1 - j  # output x reads source column t under tap column j
-            fx = col_frac[t]
-            column = col_cell[t]
-            for r in range(wp.static(window)):
-                value[r] = source[bc, y + r, t]
-            for i in range(wp.static(size)):
-                r0 = size - 1 - i
-                if simple and (r0 + ROWS <= split or r0 >= split):
-                    base = first
-                    if r0 >= split:
-                        base = last
-                    low, high = along_x(cells[c, base * cells_x + column, i, j], fx)
+        if last == first:
+            # the whole window in one cell (most threads): a loop without branches, small enough for the
+            # instruction cache
+            cell = first * cells_x
+            for j in range(cells.shape[2]):
+                t = x + size - 1 - j  # output x reads source column t under tap column j
+                fx = col_frac[t]
+                column = cell + col_cell[t]
+                for r in range(wp.static(window)):
+                    value[r] = source[bc, y + r, t]
+                for i in range(wp.static(size)):
+                    low, high = along_x(cells[c, column, i, j], fx)
                     slope = high - low
                     for k in range(wp.static(ROWS)):
-                        acc[k] = acc[k] + value[r0 + k] * (low + fy[r0 + k] * slope)
-                else:
-                    for k in range(wp.static(ROWS)):
-                        node = cells[c, row_cell[y + r0 + k] * cells_x + column, i, j]
-                        acc[k] = acc[k] + value[r0 + k] * bilinear(node, fy[r0 + k], fx)
+                        acc[k] = acc[k] + value[size - 1 - i + k] * (low + fy[size - 1 - i + k] * slope)
+        else:
+            for j in range(cells.shape[2]):
+                t = x + size - 1 - j
+                fx = col_frac[t]
+                column = col_cell[t]
+                for r in range(wp.static(window)):
+                    value[r] = source[bc, y + r, t]
+                for i in range(wp.static(size)):
+                    r0 = size - 1 - i
+                    if simple and (r0 + ROWS <= split or r0 >= split):
+                        base = first
+                        if r0 >= split:
+                            base = last
+                        low, high = along_x(cells[c, base * cells_x + column, i, j], fx)
+                        slope = high - low
+                        for k in range(wp.static(ROWS)):
+                            acc[k] = acc[k] + value[r0 + k] * (low + fy[r0 + k] * slope)
+                    else:
+                        for k in range(wp.static(ROWS)):
+                            node = cells[c, row_cell[y + r0 + k] * cells_x + column, i, j]
+                            acc[k] = acc[k] + value[r0 + k] * bilinear(node, fy[r0 + k], fx)
         height = out.shape[1]
         for k in range(ROWS):
             if y + k < height:

@@ -51,4 +51,8 @@ if [ "${1:-}" = psf ]; then
     > "$OUT/psf_cuda_tests.txt" 2>&1
   echo "psf cuda tests exit $?"; tail -2 "$OUT/psf_cuda_tests.txt"
   python tools/bench_psf_layouts.py --device cuda --json "$OUT/psf_layouts.json" 2>&1 | grep -v -e Warning -e USDT
+  for layout in tiled sliding; do  # the codesign training step with each layout, one process each
+    WARPSENSE_PSF_LAYOUT=$layout python tools/bench_train_bound.py --config camvid_codesign --steps 60 \
+      --json "$OUT/step_$layout.json" 2>&1 | grep -v Warning
+  done
 fi
