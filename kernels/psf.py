@@ -7,9 +7,8 @@ cell that holds q, so a point source renders as its PSF centred on it, unflipped
 the borders. Borders are clamp-to-edge.
 
 The kernels work on padded planes so that their inner loops carry no bounds checks and no clamps:
-    source: the image replicate-padded by r = K // 2 on every side (plus `ROWS - 1` extra rows at the bottom and
-        `COLS - 1` extra columns on the right), [B*C, H + 2r + ROWS - 1, W + 2r + COLS - 1]; source pixel s is image
-        pixel clamp(s - r).
+    source: the image replicate-padded by r = K // 2 on every side (plus `ROWS - 1` extra rows at the bottom),
+        [B*C, H + 2r + ROWS - 1, W + 2r]; source pixel s is image pixel clamp(s - r).
     padded gradient: grad_out zero-padded by 2r on every side (plus `ROWS - 1` extra rows and `TAPS - 1` extra
         columns), so output p = s - 2r + (i, j) of source s under tap (i, j) sits at (s_y + i, s_x + j).
 Per-axis tables over padded source coordinates give each source's cell and its fraction towards the upper node
@@ -19,22 +18,23 @@ of each cell (the last entry is the padded size). The op layer builds them (`war
 PSF layout: ``cells`` [C, cells_y * cells_x, K, K] of 4-vectors (PSF of the cell's nodes (0,0), (0,1), (1,0),
 (1,1)), so a tap reads its four node values in one vector load; tap (i, j) sits at offset d = (i - r, j - r).
 
-Why these kernels are fast: each thread keeps `ROWS` outputs (`ROWS` x `COLS` in the forward, where each source
-column is then loaded once per tap row for the `COLS` outputs that read it; or `TAPS` PSF taps) in registers. When its
-rows lie in one grid cell, which holds for most pixels, a tap is loaded and interpolated along x once for all of
-them, and each output then costs one load and two fused multiply-adds. Every kernel is a gather with one writer
-per output element: no atomics, deterministic.
+Why these kernels are fast: the forward and the image adjoint (`psf_kernels`, one pair per K, which they take as
+a compile-time constant) give each thread ROWS outputs of one column in registers. For each tap column the thread
+loads the K + ROWS - 1 values of its window once and runs all K tap rows from registers; where the window lies in
+one grid cell, which holds for most threads, a tap is one warp-uniform vector load, interpolated along x once
+for the ROWS outputs, and each output then costs two fused multiply-adds. Neighbouring threads hold neighbouring
+columns, so every load is coalesced. The PSF adjoint (`psf_backward_cells`) slides TAPS taps along each source
+row. Every kernel is a gather with one writer per output element: no atomics, deterministic.
 """
 
 import functools
-from typing import Any
+from typing import Any, NamedTuple
 
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-ROWS = 8  # output rows per thread in the forward and image-adjoint kernels (8 beat 4 on an H100)
-COLS = 4  # output columns per thread in the forward kernel (8 x 4 took 0.77x the time of 8 x 1 on an H100)
+ROWS = 8  # output rows per thread in the forward and image-adjoint kernels
 TAPS = 8  # PSF taps (consecutive j) per thread in the PSF-adjoint kernel (8 beat 4 on an H100)
 
 
@@ -49,115 +49,6 @@ def bilinear(corners: Any, fy: Any, fx: Any):
     """Value at fractions (fy, fx) inside a cell from its corner values (00, 01, 10, 11)."""
     top, bottom = along_x(corners, fx)
     return top + fy * (bottom - top)
-
-
-@wp.kernel
-def psf_forward(
-    source: wp.array3d(dtype=Any),
-    cells: wp.array4d(dtype=Any),
-    cells_x: int,
-    row_cell: wp.array(dtype=wp.int32),
-    row_frac: wp.array(dtype=Any),
-    col_cell: wp.array(dtype=wp.int32),
-    col_frac: wp.array(dtype=Any),
-    out: wp.array3d(dtype=Any),
-):
-    """Forward PSF convolution, ROWS x COLS outputs per thread: thread (plane, row group, column group) computes outputs
-    (y .. y + ROWS - 1, x .. x + COLS - 1). For each tap row it walks the K + COLS - 1 source columns its outputs
-    read once each (ROWS loads and one table lookup per source column, instead of per tap and output column), and
-    each source column feeds the COLS outputs it reaches under consecutive taps. The source carries COLS - 1 extra
-    padded columns on the right (and its column tables with it)."""
-    bc, group, column_group = wp.tid()
-    channels = cells.shape[0]
-    size = cells.shape[2]
-    c = bc % channels
-    y = group * ROWS
-    x = column_group * COLS
-    acc = wp.matrix(shape=(COLS, ROWS), dtype=source.dtype)
-    fy = wp.vector(length=ROWS, dtype=source.dtype)
-    value = wp.vector(length=ROWS, dtype=source.dtype)
-    row_base = wp.vector(length=ROWS, dtype=wp.int32)
-    for i in range(size):
-        s = y + size - 1 - i
-        for k in range(ROWS):
-            fy[k] = row_frac[s + k]
-            row_base[k] = row_cell[s + k] * cells_x
-        one_cell = row_base[0] == row_base[ROWS - 1]
-        for offset in range(size + COLS - 1):
-            t = x + offset  # output x + m reads this source under tap j = m + size - 1 - offset
-            fx = col_frac[t]
-            column = col_cell[t]
-            for k in range(ROWS):
-                value[k] = source[bc, s + k, t]
-            scaled = wp.cw_mul(value, fy)
-            for m in range(COLS):
-                j = m + size - 1 - offset
-                if j >= 0 and j < size:
-                    if one_cell:
-                        low, high = along_x(cells[c, row_base[0] + column, i, j], fx)
-                        acc[m] = acc[m] + value * low + scaled * (high - low)
-                    else:
-                        row = acc[m]
-                        for k in range(ROWS):
-                            row[k] = row[k] + value[k] * bilinear(cells[c, row_base[k] + column, i, j], fy[k], fx)
-                        acc[m] = row
-    height = out.shape[1]
-    width = out.shape[2]
-    for m in range(COLS):
-        if x + m < width:
-            for k in range(ROWS):
-                if y + k < height:
-                    out[bc, y + k, x + m] = acc[m, k]
-
-
-@wp.kernel
-def psf_backward_source(
-    padded_grad: wp.array3d(dtype=Any),
-    cells: wp.array4d(dtype=Any),
-    cells_x: int,
-    row_cell: wp.array(dtype=wp.int32),
-    row_frac: wp.array(dtype=Any),
-    col_cell: wp.array(dtype=wp.int32),
-    col_frac: wp.array(dtype=Any),
-    grad_source: wp.array3d(dtype=Any),
-):
-    """The image adjoint on padded sources. Thread (plane, row group, t): sources (s .. s + ROWS - 1, t), each
-    gathering the outputs it reached through its own PSF; the caller folds the padding back onto the border pixels.
-    In one cell, the taps are interpolated along x once and the y fraction is applied at the end."""
-    bc, group, t = wp.tid()
-    channels = cells.shape[0]
-    size = cells.shape[2]
-    c = bc % channels
-    s = group * ROWS
-    fx = col_frac[t]
-    column = col_cell[t]
-    fy = wp.vector(length=ROWS, dtype=padded_grad.dtype)
-    cell = wp.vector(length=ROWS, dtype=wp.int32)
-    for k in range(ROWS):
-        fy[k] = row_frac[s + k]
-        cell[k] = row_cell[s + k] * cells_x + column
-    grad = wp.vector(length=ROWS, dtype=padded_grad.dtype)
-    low_sum = wp.vector(length=ROWS, dtype=padded_grad.dtype)
-    slope_sum = wp.vector(length=ROWS, dtype=padded_grad.dtype)
-    if cell[0] == cell[ROWS - 1]:
-        for i in range(size):
-            for j in range(size):
-                low, high = along_x(cells[c, cell[0], i, j], fx)
-                for k in range(ROWS):
-                    grad[k] = padded_grad[bc, s + k + i, t + j]
-                low_sum += grad * low
-                slope_sum += grad * (high - low)
-        low_sum += wp.cw_mul(fy, slope_sum)
-    else:
-        for i in range(size):
-            for j in range(size):
-                for k in range(ROWS):
-                    tap = bilinear(cells[c, cell[k], i, j], fy[k], fx)
-                    low_sum[k] = low_sum[k] + padded_grad[bc, s + k + i, t + j] * tap
-    rows = grad_source.shape[1]
-    for k in range(ROWS):
-        if s + k < rows:
-            grad_source[bc, s + k, t] = low_sum[k]
 
 
 @wp.kernel
@@ -244,30 +135,34 @@ for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
     _cells = wp.array4d(dtype=_vec4)
     _table = wp.array(dtype=_float)
     _index = wp.array(dtype=wp.int32)
-    wp.overload(psf_forward, [_planes, _cells, int, _index, _table, _index, _table, _planes])
-    wp.overload(psf_backward_source, [_planes, _cells, int, _index, _table, _index, _table, _planes])
     wp.overload(psf_backward_cells, [_planes, _planes, _index, _table, _index, _table, int, int, int, int, int, int,
                                      wp.array4d(dtype=_vec4)])
 
 
-@functools.lru_cache(maxsize=None)
-def sliding_kernels(size: int) -> tuple[wp.Kernel, wp.Kernel]:
-    """The forward and image-adjoint kernels for PSFs of ``size`` x ``size`` taps, each thread sliding down one
-    column: (forward, image adjoint), float32 and float64 overloads, in a module of their own per size.
+class PsfKernels(NamedTuple):
+    forward: wp.Kernel
+    backward_source: wp.Kernel
 
-    Thread (plane, row group, column) keeps ROWS outputs (or source gradients) in registers, as the kernels above
-    do, and walks the tap columns j. For each it loads the WINDOW = size + ROWS - 1 values of its column that the
-    size x ROWS (tap row, output) pairs read into registers once, then runs every tap row from them: 0.18 loads
-    per tap and output at size 15, against 1 (image adjoint) and 0.3 (forward) above. ``size`` is a compile-time
-    constant, so the tap-row and window loops unroll and the window is indexed by constants (registers, not local
-    memory). Neighbouring threads hold neighbouring columns, so every load is coalesced and each tap's PSF value
-    is one warp-uniform load. Same arguments as `psf_forward` (plus ``row_bounds``) and `psf_backward_source`;
-    the forward's grid is (planes, row groups, width), one column per thread.
+
+@functools.lru_cache(maxsize=None)
+def psf_kernels(size: int) -> PsfKernels:
+    """The forward and image-adjoint kernels for PSFs of ``size`` x ``size`` taps (float32 and float64 overloads,
+    in a Warp module of their own per size).
+
+    Thread (plane, row group, column) keeps ROWS outputs (or source gradients) in registers and walks the tap
+    columns j. For each it loads the WINDOW = size + ROWS - 1 values of its column that the size x ROWS (tap row,
+    output) pairs read, once, then runs every tap row from registers: 0.18 loads per tap and output at size 15
+    (the register-tiled kernels before them: 0.3 in the forward, 1 in the image adjoint; 0.57x and 0.60x their
+    time on an H100, docs/benchmarks.md round 23). ``size`` is a compile-time constant, so the tap-row and window
+    loops unroll and the window is indexed by constants: registers, not local memory.
+
+    Grids: forward (planes, ceil(H / ROWS), W) over outputs; image adjoint (planes, ceil((H + 2r) / ROWS),
+    W + 2r) over padded sources, whose gradients the caller folds back onto the border pixels.
     """
     window = size + ROWS - 1
 
     @wp.kernel(module="unique", enable_backward=False)
-    def psf_forward_sliding(
+    def psf_forward(
         source: wp.array3d(dtype=Any),
         cells: wp.array4d(dtype=Any),
         cells_x: int,
@@ -337,7 +232,7 @@ def sliding_kernels(size: int) -> tuple[wp.Kernel, wp.Kernel]:
                 out[bc, y + k, x] = acc[k]
 
     @wp.kernel(module="unique", enable_backward=False)
-    def psf_backward_source_sliding(
+    def psf_backward_source(
         padded_grad: wp.array3d(dtype=Any),
         cells: wp.array4d(dtype=Any),
         cells_x: int,
@@ -384,6 +279,6 @@ def sliding_kernels(size: int) -> tuple[wp.Kernel, wp.Kernel]:
     for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
         planes, cells, table, index = (wp.array3d(dtype=_float), wp.array4d(dtype=_vec4), wp.array(dtype=_float),
                                        wp.array(dtype=wp.int32))
-        wp.overload(psf_forward_sliding, [planes, cells, int, index, table, index, index, table, planes])
-        wp.overload(psf_backward_source_sliding, [planes, cells, int, index, table, index, table, planes])
-    return psf_forward_sliding, psf_backward_source_sliding
+        wp.overload(psf_forward, [planes, cells, int, index, table, index, index, table, planes])
+        wp.overload(psf_backward_source, [planes, cells, int, index, table, index, table, planes])
+    return PsfKernels(psf_forward, psf_backward_source)

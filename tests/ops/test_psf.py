@@ -256,3 +256,23 @@ def test_fft_blend_reference_equals_the_direct_blend(grid, size):
     image = torch.rand(2, 3, 13, 22, dtype=torch.float64)
     psf = torch.rand(3, *grid, size, size, dtype=torch.float64)
     torch.testing.assert_close(psf_conv_blend_fft(image, psf), psf_conv_reference(image, psf), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("device", device_params())
+@pytest.mark.parametrize("height,grid", [(60, 3), (24, 5)])
+def test_windows_across_cell_boundaries_match_reference(device, height, grid):
+    """K = 15, as in the recipe: each forward thread's window of K + ROWS - 1 rows lies in one cell, in two, or (in
+    cells shorter than the window) in more, and each image-adjoint thread's ROWS rows in one cell or two. Every
+    case is present in these shapes (checked from the row tables) and equals the reference."""
+    from warpsense.kernels.psf import ROWS
+    from warpsense.ops.psf import source_axis
+
+    size = 15
+    cell = source_axis(height, grid, size // 2, ROWS - 1)[0]
+    window = size + ROWS - 1
+    spans = {int(cell[y + window - 1] - cell[y]) for y in range(0, height, ROWS)}
+    assert spans == ({0, 1} if grid == 3 else {2, 3})  # one cell and two (60 rows); more than two (24 rows)
+    image = torch.rand(1, 2, height, 20, dtype=torch.float64, device=device, requires_grad=True)
+    psf = random_psf(2, grid, 2, size, device=device).requires_grad_()
+    grad = torch.rand(1, 2, height, 20, dtype=torch.float64, device=device)
+    assert_matches_reference(psf_conv, psf_conv_reference, (image, psf), grad)

@@ -7,8 +7,8 @@
 #   data:   the training data path's cuda tests (scale fill, copy-paste on the GPU), ~1 minute
 #   render: the lens rendering's cuda tests, then tools/bench_render.py on the GPU (float32 with the whole camera,
 #           float64) -> $OUT/render_*.json, ~2 minutes (issue 27)
-#   psf:    the PSF op's cuda tests, then tools/bench_psf_layouts.py (the column-sliding kernels against the
-#           register-tiled ones, the codesign camera and batch-1 latency with each) -> $OUT/psf_layouts.json
+#   psf:    the PSF op's cuda tests, then tools/bench_psf.py, the codesign camera (tools/bench_render.py --camera)
+#           and the training step -> $OUT/psf.json, camera.json, step.json, ~3 minutes (issue 27)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -50,9 +50,7 @@ if [ "${1:-}" = psf ]; then
   timeout 240 python -m pytest -q -p no:warnings -m cuda tests/ops/test_psf.py tests/ops/test_custom_ops.py \
     > "$OUT/psf_cuda_tests.txt" 2>&1
   echo "psf cuda tests exit $?"; tail -2 "$OUT/psf_cuda_tests.txt"
-  python tools/bench_psf_layouts.py --device cuda --json "$OUT/psf_layouts.json" 2>&1 | grep -v -e Warning -e USDT
-  for layout in tiled sliding; do  # the codesign training step with each layout, one process each
-    WARPSENSE_PSF_LAYOUT=$layout python tools/bench_train_bound.py --config camvid_codesign --steps 60 \
-      --json "$OUT/step_$layout.json" 2>&1 | grep -v Warning
-  done
+  python tools/bench_psf.py --device cuda --json "$OUT/psf.json" 2>&1 | grep -v -e Warning -e USDT
+  python tools/bench_render.py --device cuda --camera --json "$OUT/camera.json" 2>&1 | grep -v -e Warning -e USDT
+  python tools/bench_train_bound.py --config camvid_codesign --steps 60 --json "$OUT/step.json" 2>&1 | grep -v Warning
 fi

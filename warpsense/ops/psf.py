@@ -9,7 +9,6 @@ edges), pixel q's centre at (q + 0.5) / size; between nodes the PSF is bilinear.
 from __future__ import annotations
 
 import functools
-import os
 import time
 
 import torch
@@ -20,8 +19,6 @@ from warpsense.kernels import psf as kernels
 from warpsense.ops._warp import Vectors, launch, prepare, save_inputs, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
 
-# TEMPORARY: the column-sliding kernels against the register-tiled ones, until a GPU decides
-SLIDING = os.environ.get("WARPSENSE_PSF_LAYOUT", "sliding") == "sliding"
 _THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill an H100; serial CPU)
 
 
@@ -78,15 +75,15 @@ def source_axis(size: int, nodes: int, radius: int, extra: int, dtype=torch.floa
 def _source_tables(image: torch.Tensor, grid_y: int, grid_x: int, radius: int):
     height, width = image.shape[-2:]
     rows = source_axis(height, grid_y, radius, kernels.ROWS - 1, image.dtype, image.device)
-    cols = source_axis(width, grid_x, radius, kernels.COLS - 1, image.dtype, image.device)
+    cols = source_axis(width, grid_x, radius, 0, image.dtype, image.device)
     return rows, cols
 
 
 def _padded_source(image: torch.Tensor, radius: int) -> torch.Tensor:
-    """[B, C, H, W] -> [B*C, H + 2r + ROWS - 1, W + 2r + COLS - 1], edge-replicated (the kernels' clamp-to-edge
+    """[B, C, H, W] -> [B*C, H + 2r + ROWS - 1, W + 2r], edge-replicated (the kernels' clamp-to-edge
     borders)."""
     batch, channels = image.shape[:2]
-    padded = F.pad(image, (radius, radius + kernels.COLS - 1, radius, radius + kernels.ROWS - 1), mode="replicate")
+    padded = F.pad(image, (radius, radius, radius, radius + kernels.ROWS - 1), mode="replicate")
     return padded.reshape(batch * channels, *padded.shape[-2:])
 
 
@@ -122,8 +119,7 @@ def _psf_backward_image(grad_out: torch.Tensor, cells: torch.Tensor, grid_y: int
     rows, cols = _source_tables(grad_out, grid_y, grid_x, radius)
     padded_grad = _padded_gradient(grad_out, radius, cells.dtype)
     grad_source = padded_grad.new_empty(batch * channels, height + 2 * radius, width + 2 * radius)
-    kernel = kernels.sliding_kernels(cells.shape[2])[1] if SLIDING else kernels.psf_backward_source
-    launch(kernel,
+    launch(kernels.psf_kernels(cells.shape[2]).backward_source,
            (batch * channels, -(-(height + 2 * radius) // kernels.ROWS), width + 2 * radius),
            [padded_grad, Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1], grad_source],
            grad_out.device)
@@ -175,14 +171,9 @@ def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_
     radius = cells.shape[2] // 2
     rows, cols = _source_tables(image, grid_y, grid_x, radius)
     out = torch.empty_like(image)
-    if SLIDING:
-        launch(kernels.sliding_kernels(cells.shape[2])[0], (batch * channels, -(-height // kernels.ROWS), width),
-               [_padded_source(image, radius), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], rows[2], cols[0],
-                cols[1], out.view(batch * channels, height, width)], image.device)
-        return out
-    launch(kernels.psf_forward, (batch * channels, -(-height // kernels.ROWS), -(-width // kernels.COLS)),
-           [_padded_source(image, radius), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1],
-            out.view(batch * channels, height, width)], image.device)
+    launch(kernels.psf_kernels(cells.shape[2]).forward, (batch * channels, -(-height // kernels.ROWS), width),
+           [_padded_source(image, radius), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], rows[2], cols[0],
+            cols[1], out.view(batch * channels, height, width)], image.device)
     return out
 
 
