@@ -3,18 +3,20 @@ CUDA-graph settings) for the network alone with cross-entropy, the network alone
 whole system (camera + network + losses), in one run (issue 11: an upper bound for the training throughput).
 
     python tools/bench_train_bound.py [--config camvid_codesign] [--set KEY=VALUE ...] [--device cuda]
-        [--size 352x480] [--batch 16] [--steps 60] [--json OUT]
+        [--size 352x480] [--batch 16] [--steps 60] [--json OUT] [--profile DIR]
 
 Inputs are random uint8 images and labels of the given size (the training crop); every step is a joint-phase
 step (camera parameters learn). Throughput is images per second over ``--steps`` steps after 8 warm-up steps
 (compilation and graph capture happen there). One JSON record per variant is printed; ``--json`` writes them with
-the device and versions.
+the device and versions. ``--profile DIR`` also runs 10 more steps of each variant under `torch.profiler` and
+writes the GPU kernels by total time to DIR/profile_<n>.txt (n: the variant's number, from 1).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 import torch
@@ -23,8 +25,10 @@ CROSS_ENTROPY_ONLY = ["loss.ohem_weight=1", "loss.ohem_fraction=1", "loss.lovasz
 WARM_UP_STEPS = 8
 
 
-def step_rate(config, device: torch.device, size: tuple[int, int], batch: int, steps: int, network_only: bool) -> float:
-    """Images per second of joint-phase training steps."""
+def step_rate(config, device: torch.device, size: tuple[int, int], batch: int, steps: int, network_only: bool,
+              profile: str | None = None) -> float:
+    """Images per second of joint-phase training steps; with ``profile``, the kernel table of 10 more steps
+    written there."""
     from warpsense.bench.train_suite import step_throughput
     from warpsense.system import SensingModel, build_system
     from warpsense.train.schedule import Schedule
@@ -49,7 +53,18 @@ def step_rate(config, device: torch.device, size: tuple[int, int], batch: int, s
     amp = config.train.amp and device.type == "cuda"
     step = TrainingStep(config.loss, optimizer, camera, 10_000, amp, config.train.camera_grad_clip,
                         config.train.compile, config.train.cuda_graph)
-    return step_throughput(step, model, batch, *size, steps, WARM_UP_STEPS, device)
+    rate = step_throughput(step, model, batch, *size, steps, WARM_UP_STEPS, device)
+    if profile:
+        from torch.profiler import ProfilerActivity
+        from torch.profiler import profile as profiler
+
+        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+        with profiler(activities=activities) as trace:
+            step_throughput(step, model, batch, *size, 10, 0, device)
+        sort = "cuda_time_total" if device.type == "cuda" else "cpu_time_total"
+        with open(profile, "w") as out:
+            out.write(trace.key_averages().table(sort_by=sort, row_limit=60, max_name_column_width=90))
+    return rate
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch", type=int, default=16)
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--json", metavar="OUT")
+    parser.add_argument("--profile", metavar="DIR", help="write each variant's GPU kernels by time to DIR")
     args = parser.parse_args(argv)
     try:
         height, width = (int(part) for part in args.size.lower().split("x"))
@@ -73,13 +89,17 @@ def main(argv: list[str] | None = None) -> int:
                 ("network only, the config's losses", [], True),
                 ("camera + network, the config's losses", [], False))
     records = []
-    for label, overrides, network_only in variants:
+    if args.profile:
+        os.makedirs(args.profile, exist_ok=True)
+    for number, (label, overrides, network_only) in enumerate(variants, 1):
         try:
             config = load_config(args.config, args.set + overrides)
         except ConfigError as error:
             print(f"bench_train_bound: {error}", file=sys.stderr)
             return 2
-        rate = step_rate(config, torch.device(args.device), (height, width), args.batch, args.steps, network_only)
+        profile = os.path.join(args.profile, f"profile_{number}.txt") if args.profile else None
+        rate = step_rate(config, torch.device(args.device), (height, width), args.batch, args.steps, network_only,
+                         profile)
         records.append({"variant": label, "config": args.config, "overrides": args.set + overrides,
                         "size": [height, width], "batch": args.batch, "images_per_s": round(rate, 1)})
         print(json.dumps(records[-1]), flush=True)
