@@ -203,6 +203,37 @@ def test_feature_deterministic_mode_takes_the_deterministic_resampling(name, mon
 
 
 @pytest.mark.parametrize("name", ["dsunet", "packunet"])
+def test_feature_fused_decoder_joins_are_the_torch_ones(name, monkeypatch):
+    """A channels-last network on a fused device joins its four decoder levels with `upsample_concat`: the same
+    logits and gradients (float64) as torch's resize and concatenation."""
+    from warpsense.models import dsunet
+
+    torch.manual_seed(4)
+    network = build_model(name, in_channels=1, num_classes=4, width=8, context="pyramid",
+                          channels_last=True).double()
+    image = torch.rand(2, 1, 40, 56, dtype=torch.float64)
+    target = torch.randn(2, 4, 40, 56, dtype=torch.float64)
+
+    def logits_and_gradients():
+        network.zero_grad()
+        logits = network(image)
+        (logits * target).sum().backward()
+        return logits.detach(), [p.grad.clone() for p in network.parameters()]
+
+    monkeypatch.setattr(dsunet, "FUSED_DEVICES", ())
+    reference_logits, reference_grads = logits_and_gradients()
+    calls = []
+    fused = dsunet.upsample_concat
+    monkeypatch.setattr(dsunet, "upsample_concat", lambda x, skip: calls.append(x.shape) or fused(x, skip))
+    monkeypatch.setattr(dsunet, "FUSED_DEVICES", ("cpu",))
+    logits, grads = logits_and_gradients()
+    assert len(calls) == 4
+    torch.testing.assert_close(logits, reference_logits, rtol=1e-10, atol=1e-12)
+    for grad, reference in zip(grads, reference_grads):
+        torch.testing.assert_close(grad, reference, rtol=1e-9, atol=1e-11)
+
+
+@pytest.mark.parametrize("name", ["dsunet", "packunet"])
 def test_feature_without_squeeze_is_the_network_with_its_se_gates_removed(name):
     """``squeeze=False`` builds the same network minus every squeeze-and-excitation: with the shared weights copied
     and each SE of the full network replaced by the identity, the two give the same logits."""

@@ -7,7 +7,7 @@ import torch
 from tests.conftest import device_params
 from warpsense.camera import Camera
 from warpsense.config import load_config
-from warpsense.ops import cfa, noise, psf, quantize, sensor, smoothness
+from warpsense.ops import cfa, noise, psf, quantize, sensor, smoothness, upsample
 
 DOUBLE = dict(dtype=torch.float64)
 
@@ -36,6 +36,7 @@ CASES = {
     "psf_conv_cudnn": (psf._psf_conv_cudnn, lambda: (_rand(2, 3, 6, 7), _rand(3, 3, 3))),
     "smoothness_map": (smoothness._smoothness_map,
                        lambda: (_rand(2, 4, 5, 3), _rand(2, 4, 5), torch.tensor([10.0, 0.1, 0.1], **DOUBLE))),
+    "upsample_concat": (upsample._upsample_concat, lambda: (_rand(2, 3, 4, 5), _rand(2, 6, 8, 2))),
 }
 # the backward ops, with the forward inputs (no grad) and a gradient of the forward output's shape
 BACKWARD_CASES = {
@@ -56,6 +57,7 @@ BACKWARD_CASES = {
     "smoothness_map_backward": (smoothness._smoothness_map_backward,
                                 lambda: (_rand(2, 4, 5, 3), _rand(2, 4, 5), torch.tensor([10.0, 0.1, 0.1], **DOUBLE),
                                          _rand(2, 4, 5))),
+    "upsample_concat_backward": (upsample._upsample_concat_backward, lambda: (_rand(2, 6, 8, 7), 5)),
 }
 
 

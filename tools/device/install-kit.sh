@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample]
 #   step:   the training step at Lovasz stride 1 and 2 (round 16)
 #   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
 #           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
@@ -9,6 +9,8 @@
 #           float64) -> $OUT/render_*.json, ~2 minutes (issue 27)
 #   psf:    the PSF op's cuda tests, then tools/bench_psf.py, the codesign camera (tools/bench_render.py --camera)
 #           and the training step -> $OUT/psf.json, camera.json, step.json, ~3 minutes (issue 27)
+#   upsample: the fused decoder join's cuda tests, then the step without and with it (dsunet.FUSED_DEVICES emptied
+#           for the first) -> $OUT/step_fused_{off,on}.json, ~3 minutes (issue 27)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -53,4 +55,19 @@ if [ "${1:-}" = psf ]; then
   python tools/bench_psf.py --device cuda --json "$OUT/psf.json" 2>&1 | grep -v -e Warning -e USDT
   python tools/bench_render.py --device cuda --camera --json "$OUT/camera.json" 2>&1 | grep -v -e Warning -e USDT
   python tools/bench_train_bound.py --config camvid_codesign --steps 60 --json "$OUT/step.json" 2>&1 | grep -v Warning
+fi
+if [ "${1:-}" = upsample ]; then
+  timeout 240 python -m pytest -q -p no:warnings -m cuda tests/ops/test_upsample.py tests/ops/test_custom_ops.py \
+    tests/models > "$OUT/upsample_cuda_tests.txt" 2>&1
+  echo "upsample cuda tests exit $?"; tail -2 "$OUT/upsample_cuda_tests.txt"
+  for fused in off on; do
+    python - "$fused" --config camvid_codesign --steps 60 --json "$OUT/step_fused_$fused.json" <<'PY' 2>&1 | grep -v Warning
+import runpy, sys
+import warpsense.models.dsunet as dsunet
+if sys.argv[1] == "off":
+    dsunet.FUSED_DEVICES = ()
+sys.argv = ["bench_train_bound.py"] + sys.argv[2:]
+runpy.run_path("tools/bench_train_bound.py", run_name="__main__")
+PY
+  done
 fi

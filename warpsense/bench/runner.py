@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from warpsense.bench import BENCH_SUITES
 from warpsense.bench.timing import _summary, _sync, time_cuda_graph, time_function
 from warpsense.files import environment, write_json
-from warpsense.ops import cfa_mosaic, poisson_gaussian, psf_conv, quantize_ste
+from warpsense.ops import cfa_mosaic, poisson_gaussian, psf_conv, quantize_ste, upsample_concat
 from warpsense.ops.psf import _conv2d_warp_gradient, psf_conv_fft, psf_conv_patch
 from warpsense.ops.reference import (
     cfa_mosaic_reference,
@@ -25,6 +25,7 @@ from warpsense.ops.reference import (
     poisson_gaussian_reference,
     psf_conv_reference,
     quantize_reference,
+    upsample_concat_reference,
 )
 from warpsense.ops.smoothness import edge_aware_smoothness
 
@@ -204,6 +205,17 @@ def _kernel_suite(device: str, quick: bool) -> list[dict]:
         shape = (batch, 11, height, width)
         bench.case("edge_smoothness", "warp", shape, edge_aware_smoothness, [probabilities, guide])
         bench.case("edge_smoothness", "torch_eager", shape, edge_aware_smoothness_reference, [probabilities, guide])
+    # the decoder's upsampling + skip concatenation, channels-last: DSUNet's join into full resolution (width 24)
+    up_sizes = [(1, 48, 48, 64)] if quick else ([(16, 48, 176, 240)] if device == "cuda" else [(1, 48, 96, 160)])
+    for batch, channels, height, width in up_sizes:
+        low = torch.rand(batch, channels, height, width, dtype=torch.float64, device=device)
+        low = low.contiguous(memory_format=torch.channels_last).requires_grad_()
+        skip = torch.rand(batch, channels // 2, 2 * height, 2 * width, dtype=torch.float64, device=device)
+        skip = skip.contiguous(memory_format=torch.channels_last).requires_grad_()
+        shape = (batch, channels, height, width)
+        bench.case("upsample_concat", "warp", shape, upsample_concat, [low, skip], precisions=precisions)
+        bench.case("upsample_concat", "torch_eager", shape, upsample_concat_reference, [low, skip],
+                   precisions=precisions)
     if not quick:
         _end_to_end(bench, device)
     return bench.records

@@ -7,6 +7,11 @@ from torch import nn
 from torch.nn import functional as F
 
 from warpsense.models.resample import adaptive_pool, resize
+from warpsense.ops import upsample_concat
+
+FUSED_DEVICES = ("cuda",)
+"""Devices where a channels-last network joins its decoder's upsampling and skips with `upsample_concat` (Warp's CPU
+backend runs a kernel on one thread, where torch's ops use every core)."""
 
 
 class SqueezeExcitation(nn.Module):
@@ -178,6 +183,15 @@ class DSUNet(nn.Module):
         with torch.autocast(x.device.type, enabled=False):
             return resize(x, like.shape[-2:])
 
+    def _up_cat(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        """``torch.cat([upsampled x, skip], dim=1)``: the decoder's bilinear x2 and skip connection. A channels-last
+        network on a `FUSED_DEVICES` device takes them in one pass forward and one backward (`upsample_concat`,
+        equal up to float rounding and deterministic; torch's NHWC resize backward was 3.0 ms and the
+        concatenations 1.4 ms of a 41 ms step on an H100, docs/benchmarks.md round 23)."""
+        if self.memory_format == torch.channels_last and x.device.type in FUSED_DEVICES:
+            return upsample_concat(x, skip)
+        return torch.cat([self._up(x, skip), skip], dim=1)
+
     def forward(self, raw: torch.Tensor) -> torch.Tensor:
         height, width = raw.shape[-2:]
         pad_h, pad_w = (-height) % 16, (-width) % 16
@@ -188,10 +202,10 @@ class DSUNet(nn.Module):
         s3 = self.enc3(s2)
         s4 = self.enc4(s3)
         s5 = self.context(self.enc5(s4))
-        d4 = self.dec4(torch.cat([self._up(s5, s4), s4], dim=1))
-        d3 = self.dec3(torch.cat([self._up(d4, s3), s3], dim=1))
-        d2 = self.dec2(torch.cat([self._up(d3, s2), s2], dim=1))
-        d1 = self.dec1(torch.cat([self._up(d2, s1), s1], dim=1))
+        d4 = self.dec4(self._up_cat(s5, s4))
+        d3 = self.dec3(self._up_cat(d4, s3))
+        d2 = self.dec2(self._up_cat(d3, s2))
+        d1 = self.dec1(self._up_cat(d2, s1))
         return self.head(d1)[..., :height, :width]
 
     def encode_high(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,5 +1,5 @@
-"""Differentiable camera ops, and the training loss's edge-aware smoothness: Warp kernels registered into torch
-autograd (functional API, docs/references.md)."""
+"""Differentiable camera ops, the training loss's edge-aware smoothness and the decoder's upsampling: Warp kernels
+registered into torch autograd (functional API, docs/references.md)."""
 
 from warpsense.ops.cfa import cfa_mosaic
 from warpsense.ops.exposure import exposure, exposure_gain
@@ -7,8 +7,9 @@ from warpsense.ops.noise import poisson_gaussian, poisson_gaussian_exact
 from warpsense.ops.psf import PSF_METHODS, psf_conv
 from warpsense.ops.quantize import QUANTIZE_MODES, quantize_ste
 from warpsense.ops.smoothness import edge_aware_smoothness
+from warpsense.ops.upsample import upsample_concat
 
 __all__ = [
     "cfa_mosaic", "edge_aware_smoothness", "exposure", "exposure_gain", "poisson_gaussian",
-    "poisson_gaussian_exact", "psf_conv", "quantize_ste", "PSF_METHODS", "QUANTIZE_MODES",
+    "poisson_gaussian_exact", "psf_conv", "quantize_ste", "upsample_concat", "PSF_METHODS", "QUANTIZE_MODES",
 ]

@@ -140,3 +140,10 @@ def edge_aware_smoothness_reference(probabilities: torch.Tensor, guide: torch.Te
     wx = torch.exp(-(guide[..., :, 1:] - guide[..., :, :-1]).abs() / sigma)
     wy = torch.exp(-(guide[..., 1:, :] - guide[..., :-1, :]).abs() / sigma)
     return 0.5 * ((wx * dx_p).mean() + (wy * dy_p).mean())
+
+
+def upsample_concat_reference(x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+    """`warpsense.ops.upsample_concat` in plain torch: bilinear x2 (``align_corners=False``) of x [B, C1, h, w],
+    then skip [B, C2, 2h, 2w] appended along the channels."""
+    up = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+    return torch.cat([up, skip], dim=1)
