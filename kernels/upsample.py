@@ -19,7 +19,7 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-GROUP = 8  # channels per thread: the launch's index arithmetic (64-bit divisions) paid once for GROUP elements
+RUN = 8  # pixels of one row per thread: the launch's index arithmetic (64-bit divisions) paid once for RUN elements
 
 
 @wp.func
@@ -58,25 +58,29 @@ def upsample_concat_forward(
     skip: wp.array4d(dtype=Any),
     out: wp.array4d(dtype=Any),
 ):
-    """Thread (b * 2h + Y, X, channel group): GROUP output channels of one pixel, its input rows, columns and
-    weights found once."""
-    row, col, group = wp.tid()
+    """Thread (b * 2h + Y, column group, c): channel c of RUN neighbouring output pixels. Neighbouring threads hold
+    neighbouring channels, so each load and store of a warp is one contiguous run."""
+    row, group, c = wp.tid()
     height = out.shape[1]
     b = row / height
     y = row % height
     channels = x.shape[3]
+    if c >= channels:
+        for m in range(RUN):
+            col = group * RUN + m
+            if col < out.shape[2]:
+                out[b, y, col, c] = skip[b, y, col, c - channels]
+        return
     i = y / 2
-    j = col / 2
     ni = neighbour(i, y % 2 == 1, x.shape[1])
-    nj = neighbour(j, col % 2 == 1, x.shape[2])
-    for k in range(GROUP):
-        c = group * GROUP + k
-        if c < channels:
+    for m in range(RUN):
+        col = group * RUN + m
+        if col < out.shape[2]:
+            j = col / 2
+            nj = neighbour(j, col % 2 == 1, x.shape[2])
             near = quarter(widen(x[b, i, j, c]), widen(x[b, i, nj, c]))
             far = quarter(widen(x[b, ni, j, c]), widen(x[b, ni, nj, c]))
             out[b, y, col, c] = out.dtype(quarter(near, far))
-        elif c < out.shape[3]:
-            out[b, y, col, c] = skip[b, y, col, c - channels]
 
 
 @wp.func
@@ -101,32 +105,29 @@ def upsample_concat_backward(
     grad_out: wp.array4d(dtype=Any),
     grad_x: wp.array4d(dtype=Any),
 ):
-    """Thread (b * h + i, j, channel group): input (i, j) of image b, GROUP channels, gathers outputs 2i - 1 ..
-    2i + 2 by 2j - 1 .. 2j + 2; their indices and weights found once."""
-    row, j, group = wp.tid()
+    """Thread (b * h + i, column group, c): channel c of RUN neighbouring inputs (i, j) of image b, each gathering
+    outputs 2i - 1 .. 2i + 2 by 2j - 1 .. 2j + 2; the rows and their weights found once."""
+    row, group, c = wp.tid()
     height = grad_x.shape[1]
     width = grad_x.shape[2]
     b = row / height
     i = row % height
     one = widen(grad_x.dtype(1.0))
     ys = wp.vector(length=4, dtype=int)
-    xs = wp.vector(length=4, dtype=int)
     wy = wp.vector(length=4, dtype=type(one))
-    wx = wp.vector(length=4, dtype=type(one))
     for o in range(4):
         ys[o] = wp.min(wp.max(2 * i - 1 + o, 0), 2 * height - 1)
-        xs[o] = wp.min(wp.max(2 * j - 1 + o, 0), 2 * width - 1)
         wy[o] = weight(o, i, height, one)
-        wx[o] = weight(o, j, width, one)
-    for k in range(GROUP):
-        c = group * GROUP + k
-        if c < grad_x.shape[3]:
+    for m in range(RUN):
+        j = group * RUN + m
+        if j < width:
             total = type(one)(0.0)
-            for oy in range(4):
-                line = type(one)(0.0)
-                for ox in range(4):
-                    line += wx[ox] * widen(grad_out[b, ys[oy], xs[ox], c])
-                total += wy[oy] * line
+            for ox in range(4):
+                x = wp.min(wp.max(2 * j - 1 + ox, 0), 2 * width - 1)
+                column = type(one)(0.0)
+                for oy in range(4):
+                    column += wy[oy] * widen(grad_out[b, ys[oy], x, c])
+                total += weight(ox, j, width, one) * column
             grad_x[b, i, j, c] = grad_x.dtype(total)
 
 

@@ -17,7 +17,7 @@ _DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' element
 def _upsample_concat_backward(grad_out: torch.Tensor, channels: int) -> torch.Tensor:
     batch, height, width = grad_out.shape[0], grad_out.shape[1] // 2, grad_out.shape[2] // 2
     grad_x = grad_out.new_empty(batch, height, width, channels)
-    launch(kernels.upsample_concat_backward, (batch * height, width, -(-channels // kernels.GROUP)), [grad_out, grad_x],
+    launch(kernels.upsample_concat_backward, (batch * height, -(-width // kernels.RUN), channels), [grad_out, grad_x],
            grad_out.device)
     return grad_x
 
@@ -40,7 +40,7 @@ def _fake(x, skip):
 def _upsample_concat(x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
     batch, height, width = skip.shape[:3]
     out = x.new_empty(batch, height, width, x.shape[3] + skip.shape[3])
-    launch(kernels.upsample_concat_forward, (batch * height, width, -(-out.shape[3] // kernels.GROUP)), [x, skip, out],
+    launch(kernels.upsample_concat_forward, (batch * height, -(-width // kernels.RUN), out.shape[3]), [x, skip, out],
            x.device)
     return out
 
