@@ -19,7 +19,7 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-RUN = 8  # pixels of one row per thread: the launch's index arithmetic (64-bit divisions) paid once for RUN elements
+RUN = 8  # pixels of one row per thread (even): loads shared between neighbours, index arithmetic paid once
 
 
 @wp.func
@@ -56,31 +56,42 @@ def neighbour(i: int, odd: bool, size: int):
 def upsample_concat_forward(
     x: wp.array4d(dtype=Any),
     skip: wp.array4d(dtype=Any),
+    groups: int,
     out: wp.array4d(dtype=Any),
 ):
-    """Thread (b * 2h + Y, column group, c): channel c of RUN neighbouring output pixels. Neighbouring threads hold
-    neighbouring channels, so each load and store of a warp is one contiguous run."""
-    row, group, c = wp.tid()
+    """Thread ((b * 2h + Y) * groups + group) * (C1 + C2) + c: channel c of the RUN output pixels of row Y from
+    column group * RUN on. Neighbouring threads hold neighbouring channels, so each load and store of a warp is
+    one contiguous run; a one-dimensional launch, so that the index arithmetic is 32-bit. The RUN / 2 + 2 input
+    columns the run reads are interpolated along y once each."""
+    t = wp.tid()
+    total = out.shape[3]
+    c = t % total
+    rest = t / total
+    group = rest % groups
+    row = rest / groups
     height = out.shape[1]
     b = row / height
     y = row % height
+    start = group * RUN
     channels = x.shape[3]
     if c >= channels:
         for m in range(RUN):
-            col = group * RUN + m
-            if col < out.shape[2]:
-                out[b, y, col, c] = skip[b, y, col, c - channels]
+            if start + m < out.shape[2]:
+                out[b, y, start + m, c] = skip[b, y, start + m, c - channels]
         return
     i = y / 2
     ni = neighbour(i, y % 2 == 1, x.shape[1])
-    for m in range(RUN):
-        col = group * RUN + m
+    first = start / 2 - 1  # input column of v[0]
+    last = x.shape[2] - 1
+    v = wp.vector(length=wp.static(RUN // 2 + 2), dtype=type(widen(x[b, i, 0, c])))
+    for k in range(wp.static(RUN // 2 + 2)):
+        column = wp.min(wp.max(first + k, 0), last)
+        v[k] = quarter(widen(x[b, i, column, c]), widen(x[b, ni, column, c]))
+    for q in range(wp.static(RUN // 2)):
+        col = start + 2 * q
         if col < out.shape[2]:
-            j = col / 2
-            nj = neighbour(j, col % 2 == 1, x.shape[2])
-            near = quarter(widen(x[b, i, j, c]), widen(x[b, i, nj, c]))
-            far = quarter(widen(x[b, ni, j, c]), widen(x[b, ni, nj, c]))
-            out[b, y, col, c] = out.dtype(quarter(near, far))
+            out[b, y, col, c] = out.dtype(quarter(v[q + 1], v[q]))
+            out[b, y, col + 1, c] = out.dtype(quarter(v[q + 1], v[q + 2]))
 
 
 @wp.func
@@ -103,35 +114,44 @@ def weight(offset: int, i: int, size: int, one: Any):
 @wp.kernel
 def upsample_concat_backward(
     grad_out: wp.array4d(dtype=Any),
+    groups: int,
     grad_x: wp.array4d(dtype=Any),
 ):
-    """Thread (b * h + i, column group, c): channel c of RUN neighbouring inputs (i, j) of image b, each gathering
-    outputs 2i - 1 .. 2i + 2 by 2j - 1 .. 2j + 2; the rows and their weights found once."""
-    row, group, c = wp.tid()
+    """Thread ((b * h + i) * groups + group) * C1 + c: channel c of the RUN inputs of row i from column group * RUN
+    on (the forward's layout). Each of the 2 RUN + 2 output columns they reach is summed over its 4 output rows
+    once; each input then takes 4 of those sums."""
+    t = wp.tid()
+    channels = grad_x.shape[3]
+    c = t % channels
+    rest = t / channels
+    group = rest % groups
+    row = rest / groups
     height = grad_x.shape[1]
     width = grad_x.shape[2]
     b = row / height
     i = row % height
+    start = group * RUN
     one = widen(grad_x.dtype(1.0))
     ys = wp.vector(length=4, dtype=int)
     wy = wp.vector(length=4, dtype=type(one))
     for o in range(4):
         ys[o] = wp.min(wp.max(2 * i - 1 + o, 0), 2 * height - 1)
         wy[o] = weight(o, i, height, one)
+    sums = wp.vector(length=wp.static(2 * RUN + 2), dtype=type(one))  # output columns 2 start - 1 on
+    for k in range(wp.static(2 * RUN + 2)):
+        column = wp.min(wp.max(2 * start - 1 + k, 0), 2 * width - 1)
+        for o in range(4):
+            sums[k] = sums[k] + wy[o] * widen(grad_out[b, ys[o], column, c])
     for m in range(RUN):
-        j = group * RUN + m
+        j = start + m
         if j < width:
-            total = type(one)(0.0)
-            for ox in range(4):
-                x = wp.min(wp.max(2 * j - 1 + ox, 0), 2 * width - 1)
-                column = type(one)(0.0)
-                for oy in range(4):
-                    column += wy[oy] * widen(grad_out[b, ys[oy], x, c])
-                total += weight(ox, j, width, one) * column
-            grad_x[b, i, j, c] = grad_x.dtype(total)
+            value = type(one)(0.0)
+            for o in range(4):
+                value += weight(o, j, width, one) * sums[2 * m + o]
+            grad_x[b, i, j, c] = grad_x.dtype(value)
 
 
 for _float in (wp.bfloat16, wp.float32, wp.float64):
     _planes = wp.array4d(dtype=_float)
-    wp.overload(upsample_concat_forward, [_planes, _planes, _planes])
-    wp.overload(upsample_concat_backward, [_planes, _planes])
+    wp.overload(upsample_concat_forward, [_planes, _planes, int, _planes])
+    wp.overload(upsample_concat_backward, [_planes, int, _planes])

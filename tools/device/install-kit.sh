@@ -9,8 +9,8 @@
 #           float64) -> $OUT/render_*.json, ~2 minutes (issue 27)
 #   psf:    the PSF op's cuda tests, then tools/bench_psf.py, the codesign camera (tools/bench_render.py --camera)
 #           and the training step -> $OUT/psf.json, camera.json, step.json, ~3 minutes (issue 27)
-#   upsample: the fused decoder join's cuda tests, then the step without and with it (dsunet.FUSED_DEVICES emptied
-#           for the first) -> $OUT/step_fused_{off,on}.json, ~3 minutes (issue 27)
+#   upsample: the fused decoder join's cuda tests, tools/bench_upsample.py, then the step without and with it
+#           (dsunet.FUSED_DEVICES emptied for the first) -> $OUT/step_fused_{off,on}.json, ~3 minutes (issue 27)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -60,6 +60,7 @@ if [ "${1:-}" = upsample ]; then
   timeout 240 python -m pytest -q -p no:warnings -m cuda tests/ops/test_upsample.py tests/ops/test_custom_ops.py \
     tests/models > "$OUT/upsample_cuda_tests.txt" 2>&1
   echo "upsample cuda tests exit $?"; tail -2 "$OUT/upsample_cuda_tests.txt"
+  python tools/bench_upsample.py --device cuda 2>&1 | grep -v Warning | tee "$OUT/upsample_joins.txt"
   for fused in off on; do
     python - "$fused" --config camvid_codesign --steps 60 --json "$OUT/step_fused_$fused.json" <<'PY' 2>&1 | grep -v Warning
 import runpy, sys

@@ -12,12 +12,20 @@ from warpsense.ops.arguments import check_same_device, check_tensor
 _DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' element types; others compute in float32
 
 
+def _threads(count: int) -> int:
+    """The kernels' one-dimensional launch size; their index arithmetic is 32-bit."""
+    if count >= 2**31:
+        raise ValueError(f"upsample_concat: {count} threads exceed the kernels' 32-bit indexing; split the batch")
+    return count
+
+
 @warp_op("upsample_concat_backward", lambda grad_out, channels: grad_out.new_empty(
     grad_out.shape[0], grad_out.shape[1] // 2, grad_out.shape[2] // 2, channels))
 def _upsample_concat_backward(grad_out: torch.Tensor, channels: int) -> torch.Tensor:
     batch, height, width = grad_out.shape[0], grad_out.shape[1] // 2, grad_out.shape[2] // 2
     grad_x = grad_out.new_empty(batch, height, width, channels)
-    launch(kernels.upsample_concat_backward, (batch * height, -(-width // kernels.RUN), channels), [grad_out, grad_x],
+    groups = -(-width // kernels.RUN)
+    launch(kernels.upsample_concat_backward, _threads(batch * height * groups * channels), [grad_out, groups, grad_x],
            grad_out.device)
     return grad_x
 
@@ -40,7 +48,8 @@ def _fake(x, skip):
 def _upsample_concat(x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
     batch, height, width = skip.shape[:3]
     out = x.new_empty(batch, height, width, x.shape[3] + skip.shape[3])
-    launch(kernels.upsample_concat_forward, (batch * height, -(-width // kernels.RUN), out.shape[3]), [x, skip, out],
+    groups = -(-width // kernels.RUN)
+    launch(kernels.upsample_concat_forward, _threads(batch * height * groups * out.shape[3]), [x, skip, groups, out],
            x.device)
     return out
 
