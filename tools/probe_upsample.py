@@ -59,7 +59,7 @@ def plain_copy(skip: wp.array(dtype=wp.bfloat16), out: wp.array(dtype=wp.bfloat1
 
 
 def main():
-    device = torch.device("cuda")
+    device = torch.device("cuda", 0)
     b, h, w = 16, 352, 480
     x = torch.randn(b, h // 2, w // 2, 48, device=device, dtype=torch.bfloat16)
     skip = torch.randn(b, h, w, 24, device=device, dtype=torch.bfloat16)
