@@ -7,7 +7,7 @@
 interpolate`, docs/references.md): along each axis output 2i takes 3/4 of input i and 1/4 of input i - 1, output
 2i + 1 takes 3/4 of i and 1/4 of i + 1, neighbours clamped at the edges. Layouts: x [B, h, w, C1], skip and the
 gradient of the skipped channels [B, 2h, 2w, C2], out [B, 2h, 2w, C1 + C2]; channels innermost, so neighbouring
-threads touch neighbouring addresses. Arithmetic is float32 for bfloat16 and float32 arrays, float64 for float64.
+threads touch neighbouring addresses. The kernels compute the upsampled channels; the op copies the skipped ones. Arithmetic is float32 for bfloat16 and float32 arrays, float64 for float64.
 
 The backward gathers: each input sums the 4 x 4 outputs it reached, with the same weights, in a fixed order. One
 writer per element, no atomics: deterministic (torch's CUDA backward of the resize scatters with atomic adds).
@@ -55,30 +55,25 @@ def neighbour(i: int, odd: bool, size: int):
 @wp.kernel
 def upsample_concat_forward(
     x: wp.array4d(dtype=Any),
-    skip: wp.array4d(dtype=Any),
     groups: int,
     out: wp.array4d(dtype=Any),
 ):
-    """Thread ((b * 2h + Y) * groups + group) * (C1 + C2) + c: channel c of the RUN output pixels of row Y from
-    column group * RUN on. Neighbouring threads hold neighbouring channels, so each load and store of a warp is
-    one contiguous run; a one-dimensional launch, so that the index arithmetic is 32-bit. The RUN / 2 + 2 input
-    columns the run reads are interpolated along y once each."""
+    """The upsampled channels c < C1 of ``out`` (the caller copies the skipped ones: a strided copy, which torch's
+    kernels do at full bandwidth; in this kernel the two kinds of thread shared warps and diverged). Thread
+    ((b * 2h + Y) * groups + group) * C1 + c: channel c of the RUN output pixels of row Y from column group * RUN
+    on. Neighbouring threads hold neighbouring channels, so each load and store of a warp is one contiguous run;
+    a one-dimensional launch, so that the index arithmetic is 32-bit. The RUN / 2 + 2 input columns the run reads
+    are interpolated along y once each."""
     t = wp.tid()
-    total = out.shape[3]
-    c = t % total
-    rest = t / total
+    channels = x.shape[3]
+    c = t % channels
+    rest = t / channels
     group = rest % groups
     row = rest / groups
     height = out.shape[1]
     b = row / height
     y = row % height
     start = group * RUN
-    channels = x.shape[3]
-    if c >= channels:
-        for m in range(RUN):
-            if start + m < out.shape[2]:
-                out[b, y, start + m, c] = skip[b, y, start + m, c - channels]
-        return
     i = y / 2
     ni = neighbour(i, y % 2 == 1, x.shape[1])
     first = start / 2 - 1  # input column of v[0]
@@ -153,5 +148,5 @@ def upsample_concat_backward(
 
 for _float in (wp.bfloat16, wp.float32, wp.float64):
     _planes = wp.array4d(dtype=_float)
-    wp.overload(upsample_concat_forward, [_planes, _planes, int, _planes])
+    wp.overload(upsample_concat_forward, [_planes, int, _planes])
     wp.overload(upsample_concat_backward, [_planes, int, _planes])

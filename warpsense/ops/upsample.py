@@ -49,8 +49,8 @@ def _upsample_concat(x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
     batch, height, width = skip.shape[:3]
     out = x.new_empty(batch, height, width, x.shape[3] + skip.shape[3])
     groups = -(-width // kernels.RUN)
-    launch(kernels.upsample_concat_forward, _threads(batch * height * groups * out.shape[3]), [x, skip, groups, out],
-           x.device)
+    launch(kernels.upsample_concat_forward, _threads(batch * height * groups * x.shape[3]), [x, groups, out], x.device)
+    out[..., x.shape[3]:].copy_(skip)
     return out
 
 
