@@ -1,13 +1,13 @@
-"""A UNet decoder's bilinear x2 upsampling fused with its skip concatenation, on channels-last planes, as Warp kernels.
+"""A UNet decoder's bilinear x2 upsampling, written straight into its skip concatenation, as Warp kernels.
 
-    out[b, Y, X, c] = up(x)[b, Y, X, c]          for c < C1
-                    = skip[b, Y, X, c - C1]     for C1 <= c < C1 + C2
+    out[b, Y, X, c] = up(x)[b, Y, X, c]          for c < C1   (these kernels)
+                    = skip[b, Y, X, c - C1]     for C1 <= c < C1 + C2   (copied by the op, `warpsense.ops.upsample`)
 
 ``up`` is torch's bilinear resize with ``align_corners=False`` to exactly twice the size (`torch.nn.functional.
 interpolate`, docs/references.md): along each axis output 2i takes 3/4 of input i and 1/4 of input i - 1, output
-2i + 1 takes 3/4 of i and 1/4 of i + 1, neighbours clamped at the edges. Layouts: x [B, h, w, C1], skip and the
-gradient of the skipped channels [B, 2h, 2w, C2], out [B, 2h, 2w, C1 + C2]; channels innermost, so neighbouring
-threads touch neighbouring addresses. The kernels compute the upsampled channels; the op copies the skipped ones. Arithmetic is float32 for bfloat16 and float32 arrays, float64 for float64.
+2i + 1 takes 3/4 of i and 1/4 of i + 1, neighbours clamped at the edges. Layouts: x and its gradient [B, h, w, C1],
+out and its gradient [B, 2h, 2w, C1 + C2]; channels innermost, so neighbouring threads touch neighbouring
+addresses. Arithmetic is float32 for bfloat16 and float32 arrays, float64 for float64.
 
 The backward gathers: each input sums the 4 x 4 outputs it reached, with the same weights, in a fixed order. One
 writer per element, no atomics: deterministic (torch's CUDA backward of the resize scatters with atomic adds).
