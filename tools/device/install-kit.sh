@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23]
 #   step:   the training step at Lovasz stride 1 and 2 (round 16)
 #   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
 #           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
@@ -11,6 +11,8 @@
 #           and the training step -> $OUT/psf.json, camera.json, step.json, ~3 minutes (issue 27)
 #   upsample: the fused decoder join's cuda tests, tools/bench_upsample.py, then the step without and with it
 #           (dsunet.FUSED_DEVICES emptied for the first) -> $OUT/step_fused_{off,on}.json, ~3 minutes (issue 27)
+#   round23: the cuda tests of the PSF op, the decoder join and the networks, then batch-1 latency, the camera alone,
+#           the training step and the joins, as the code stands -> $OUT/*.json, *.txt, ~5 minutes (issue 27)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -71,4 +73,13 @@ sys.argv = ["bench_train_bound.py"] + sys.argv[2:]
 runpy.run_path("tools/bench_train_bound.py", run_name="__main__")
 PY
   done
+fi
+if [ "${1:-}" = round23 ]; then
+  timeout 300 python -m pytest -q -p no:warnings -m cuda tests/ops/test_psf.py tests/ops/test_upsample.py \
+    tests/ops/test_custom_ops.py tests/models > "$OUT/cuda_tests.txt" 2>&1
+  echo "cuda tests exit $?"; tail -2 "$OUT/cuda_tests.txt"
+  python tools/bench_latency.py --device cuda --json "$OUT/latency.json" 2>&1 | grep -v -e Warning -e USDT
+  python tools/bench_render.py --device cuda --camera --json "$OUT/camera.json" 2>&1 | grep -v -e Warning -e USDT
+  python tools/bench_train_bound.py --config camvid_codesign --steps 60 --json "$OUT/step.json" 2>&1 | grep -v Warning
+  python tools/bench_upsample.py --device cuda 2>&1 | grep -v Warning > "$OUT/upsample_joins.txt"
 fi

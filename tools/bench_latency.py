@@ -1,0 +1,41 @@
+"""Batch-1 latency of the whole system (uint8 frame -> logits), warpsense against the plain-torch baseline, in one run.
+
+    python tools/bench_latency.py [--device cuda] [--size 192x640] [--json OUT]
+
+The train suite's latency records (`warpsense.bench.train_suite.latency`: the baseline's Gaussian camera, the same
+camera in warpsense, the codesign camera; DSUNet width 16, bf16 on CUDA), eager and (CUDA) replayed as a CUDA graph,
+without the suite's training runs. Medians of synchronised wall-clock ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from warpsense.bench.train_suite import latency
+from warpsense.files import write_json
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--size", default="192x640", help="HxW of the frame")
+    parser.add_argument("--json", metavar="OUT")
+    args = parser.parse_args()
+    height, width = (int(part) for part in args.size.lower().split("x"))
+    records = []
+    for method, camera in (("torch_baseline", "simple"), ("warpsense", "simple"), ("warpsense", "codesign")):
+        for graph in ((False, True) if args.device == "cuda" else (False,)):
+            timing = latency(method, camera, args.device, height, width, graph)
+            records.append({"method": method, "camera": camera, "mode": "graph" if graph else "eager",
+                            "shape": [1, 3, height, width], **timing})
+            print(f"{method:>15s} {camera:>9s} {'graph' if graph else 'eager':>5s} {timing['median_ms']:8.3f} ms "
+                  f"[IQR {timing['iqr_ms']:.3f}]", flush=True)
+    if args.json:
+        name = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
+        write_json(args.json, {"device": name, "records": records})
+
+
+if __name__ == "__main__":
+    main()
