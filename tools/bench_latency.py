@@ -1,20 +1,46 @@
 """Batch-1 latency of the whole system (uint8 frame -> logits), warpsense against the plain-torch baseline, in one run.
 
-    python tools/bench_latency.py [--device cuda] [--size 192x640] [--json OUT]
+    python tools/bench_latency.py [--device cuda] [--size 192x640] [--json OUT] [--profile DIR]
 
 The train suite's latency records (`warpsense.bench.train_suite.latency`: the baseline's Gaussian camera, the same
 camera in warpsense, the codesign camera; DSUNet width 16, bf16 on CUDA), eager and (CUDA) replayed as a CUDA graph,
-without the suite's training runs. Medians of synchronised wall-clock ms.
+without the suite's training runs. Medians of synchronised wall-clock ms. ``--profile DIR`` also writes each
+system's kernels by GPU time over 20 eager calls (`torch.profiler`) to DIR/latency_<method>_<camera>.txt.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 
 import torch
 
-from warpsense.bench.train_suite import latency
+from warpsense.bench.train_suite import build, latency
+from warpsense.data.color import srgb_to_linear
 from warpsense.files import write_json
+
+
+def profile_latency(method: str, camera_name: str, device: str, height: int, width: int, out: str) -> None:
+    """The kernels of 20 batch-1 inferences by GPU time (the graph replays the same kernels)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    camera, network = build(method, camera_name, device)
+    camera.eval(), network.eval()
+    frame = torch.randint(0, 256, (1, 3, height, width), dtype=torch.uint8, device=device)
+
+    def infer():
+        with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16):
+            return network(camera(srgb_to_linear(frame)))
+
+    for _ in range(3):
+        infer()
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as trace:
+        for _ in range(20):
+            infer()
+        torch.cuda.synchronize()
+    with open(out, "w") as file:
+        file.write(trace.key_averages().table(sort_by="cuda_time_total", row_limit=40, max_name_column_width=90))
 
 
 def main() -> None:
@@ -22,6 +48,7 @@ def main() -> None:
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--size", default="192x640", help="HxW of the frame")
     parser.add_argument("--json", metavar="OUT")
+    parser.add_argument("--profile", metavar="DIR", help="write each system's kernels by GPU time there (CUDA)")
     args = parser.parse_args()
     height, width = (int(part) for part in args.size.lower().split("x"))
     records = []
@@ -32,6 +59,10 @@ def main() -> None:
                             "shape": [1, 3, height, width], **timing})
             print(f"{method:>15s} {camera:>9s} {'graph' if graph else 'eager':>5s} {timing['median_ms']:8.3f} ms "
                   f"[IQR {timing['iqr_ms']:.3f}]", flush=True)
+        if args.profile and args.device == "cuda":
+            os.makedirs(args.profile, exist_ok=True)
+            profile_latency(method, camera, args.device, height, width,
+                            os.path.join(args.profile, f"latency_{method}_{camera}.txt"))
     if args.json:
         name = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
         write_json(args.json, {"device": name, "records": records})
