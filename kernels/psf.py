@@ -145,22 +145,21 @@ class PsfKernels(NamedTuple):
 
 
 @functools.lru_cache(maxsize=None)
-def psf_kernels(size: int, rows: int = ROWS) -> PsfKernels:
-    """The forward and image-adjoint kernels for PSFs of ``size`` x ``size`` taps, ``rows`` (1 .. ROWS) outputs per
-    thread (float32 and float64 overloads, in a Warp module of their own per size and rows).
+def psf_kernels(size: int) -> PsfKernels:
+    """The forward and image-adjoint kernels for PSFs of ``size`` x ``size`` taps (float32 and float64 overloads,
+    in a Warp module of their own per size).
 
-    Thread (plane, row group, column) keeps ``rows`` outputs (or source gradients) in registers and walks the tap
-    columns j. For each it loads the WINDOW = size + rows - 1 values of its column that the size x rows (tap row,
-    output) pairs read, once, then runs every tap row from registers: 0.18 loads per tap and output at size 15 and
-    8 rows (the register-tiled kernels before them: 0.3 in the forward, 1 in the image adjoint; 0.57x and 0.60x
-    their time on an H100, docs/benchmarks.md round 23). ``size`` is a compile-time constant, so the tap-row and window
+    Thread (plane, row group, column) keeps ROWS outputs (or source gradients) in registers and walks the tap
+    columns j. For each it loads the WINDOW = size + ROWS - 1 values of its column that the size x ROWS (tap row,
+    output) pairs read, once, then runs every tap row from registers: 0.18 loads per tap and output at size 15
+    (the register-tiled kernels before them: 0.3 in the forward, 1 in the image adjoint; 0.57x and 0.60x their
+    time on an H100, docs/benchmarks.md round 23). ``size`` is a compile-time constant, so the tap-row and window
     loops unroll and the window is indexed by constants: registers, not local memory.
 
-    Grids: forward (planes, ceil(H / rows), W) over outputs; image adjoint (planes, ceil((H + 2r) / rows),
-    W + 2r) over padded sources, whose gradients the caller folds back onto the border pixels. Fewer rows give more
-    threads, for launches too small to fill a GPU (a batch of one).
+    Grids: forward (planes, ceil(H / ROWS), W) over outputs; image adjoint (planes, ceil((H + 2r) / ROWS),
+    W + 2r) over padded sources, whose gradients the caller folds back onto the border pixels.
     """
-    window = size + rows - 1
+    window = size + ROWS - 1
 
     @wp.kernel(module="unique", enable_backward=False)
     def psf_forward(
@@ -176,7 +175,7 @@ def psf_kernels(size: int, rows: int = ROWS) -> PsfKernels:
     ):
         bc, group, x = wp.tid()
         c = bc % cells.shape[0]
-        y = group * rows
+        y = group * ROWS
         # the window: padded source rows y .. y + WINDOW - 1; output y + k reads window row size - 1 - i + k under
         # tap row i. Its rows lie in one grid cell, or in two split at `split` (cells taller than the window, as
         # in every image the size of the kernel's window or more per cell), or in more (`simple` false)
@@ -189,7 +188,7 @@ def psf_kernels(size: int, rows: int = ROWS) -> PsfKernels:
         if last != first:
             split = row_bounds[first + 1] - y
         simple = last - first <= 1
-        acc = wp.vector(length=wp.static(rows), dtype=source.dtype)
+        acc = wp.vector(length=ROWS, dtype=source.dtype)
         value = wp.vector(length=wp.static(window), dtype=source.dtype)
         if last == first:
             # the whole window in one cell (most threads): a loop without branches, small enough for the
@@ -204,7 +203,7 @@ def psf_kernels(size: int, rows: int = ROWS) -> PsfKernels:
                 for i in range(wp.static(size)):
                     low, high = along_x(cells[c, column, i, j], fx)
                     slope = high - low
-                    for k in range(wp.static(rows)):
+                    for k in range(wp.static(ROWS)):
                         acc[k] = acc[k] + value[size - 1 - i + k] * (low + fy[size - 1 - i + k] * slope)
         else:
             for j in range(cells.shape[2]):
@@ -215,20 +214,20 @@ def psf_kernels(size: int, rows: int = ROWS) -> PsfKernels:
                     value[r] = source[bc, y + r, t]
                 for i in range(wp.static(size)):
                     r0 = size - 1 - i
-                    if simple and (r0 + rows <= split or r0 >= split):
+                    if simple and (r0 + ROWS <= split or r0 >= split):
                         base = first
                         if r0 >= split:
                             base = last
                         low, high = along_x(cells[c, base * cells_x + column, i, j], fx)
                         slope = high - low
-                        for k in range(wp.static(rows)):
+                        for k in range(wp.static(ROWS)):
                             acc[k] = acc[k] + value[r0 + k] * (low + fy[r0 + k] * slope)
                     else:
-                        for k in range(wp.static(rows)):
+                        for k in range(wp.static(ROWS)):
                             node = cells[c, row_cell[y + r0 + k] * cells_x + column, i, j]
                             acc[k] = acc[k] + value[r0 + k] * bilinear(node, fy[r0 + k], fx)
         height = out.shape[1]
-        for k in range(wp.static(rows)):
+        for k in range(ROWS):
             if y + k < height:
                 out[bc, y + k, x] = acc[k]
 
@@ -245,36 +244,36 @@ def psf_kernels(size: int, rows: int = ROWS) -> PsfKernels:
     ):
         bc, group, t = wp.tid()
         c = bc % cells.shape[0]
-        s = group * rows
+        s = group * ROWS
         fx = col_frac[t]
         column = col_cell[t]
-        fy = wp.vector(length=wp.static(rows), dtype=padded_grad.dtype)
-        cell = wp.vector(length=wp.static(rows), dtype=wp.int32)
-        for k in range(wp.static(rows)):
+        fy = wp.vector(length=ROWS, dtype=padded_grad.dtype)
+        cell = wp.vector(length=ROWS, dtype=wp.int32)
+        for k in range(ROWS):
             fy[k] = row_frac[s + k]
             cell[k] = row_cell[s + k] * cells_x + column
-        acc = wp.vector(length=wp.static(rows), dtype=padded_grad.dtype)
+        acc = wp.vector(length=ROWS, dtype=padded_grad.dtype)
         # source s + k gathers padded_grad[s + k + i, t + j] under tap (i, j): window row i + k of column t + j
         grad = wp.vector(length=wp.static(window), dtype=padded_grad.dtype)
-        if cell[0] == cell[rows - 1]:
+        if cell[0] == cell[ROWS - 1]:
             for j in range(cells.shape[2]):
                 for r in range(wp.static(window)):
                     grad[r] = padded_grad[bc, s + r, t + j]
                 for i in range(wp.static(size)):
                     low, high = along_x(cells[c, cell[0], i, j], fx)
                     slope = high - low
-                    for k in range(wp.static(rows)):
+                    for k in range(wp.static(ROWS)):
                         acc[k] = acc[k] + grad[i + k] * (low + fy[k] * slope)
         else:
             for j in range(cells.shape[2]):
                 for r in range(wp.static(window)):
                     grad[r] = padded_grad[bc, s + r, t + j]
                 for i in range(wp.static(size)):
-                    for k in range(wp.static(rows)):
+                    for k in range(wp.static(ROWS)):
                         acc[k] = acc[k] + grad[i + k] * bilinear(cells[c, cell[k], i, j], fy[k], fx)
-        height = grad_source.shape[1]
-        for k in range(wp.static(rows)):
-            if s + k < height:
+        rows = grad_source.shape[1]
+        for k in range(ROWS):
+            if s + k < rows:
                 grad_source[bc, s + k, t] = acc[k]
 
     for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):

@@ -259,34 +259,20 @@ def test_fft_blend_reference_equals_the_direct_blend(grid, size):
 
 
 @pytest.mark.parametrize("device", device_params())
-@pytest.mark.parametrize("rows", [8, 4, 2])
 @pytest.mark.parametrize("height,grid", [(60, 3), (24, 5)])
-def test_windows_across_cell_boundaries_match_reference(device, height, grid, rows, monkeypatch):
-    """K = 15, as in the recipe: each forward thread's window of K + rows - 1 rows lies in one cell, in two, or (in
+def test_windows_across_cell_boundaries_match_reference(device, height, grid):
+    """K = 15, as in the recipe: each forward thread's window of K + ROWS - 1 rows lies in one cell, in two, or (in
     cells shorter than the window) in more, and each image-adjoint thread's ROWS rows in one cell or two. Every
-    case is present in these shapes (checked from the row tables) and equals the reference, with the forward's 8
-    rows per thread and with the 4 and 2 it takes for launches too small to fill a GPU."""
+    case is present in these shapes (checked from the row tables) and equals the reference."""
     from warpsense.kernels.psf import ROWS
-    from warpsense.ops import psf as psf_module
+    from warpsense.ops.psf import source_axis
 
-    monkeypatch.setattr(psf_module, "_forward_rows", lambda threads, device: rows)
     size = 15
-    cell = psf_module.source_axis(height, grid, size // 2, ROWS - 1)[0]
-    window = size + rows - 1
-    spans = {int(cell[y + window - 1] - cell[y]) for y in range(0, height, rows)}
-    assert {0, 1} <= spans if grid == 3 else max(spans) > 1  # one cell and two (60 rows); more than two (24 rows)
+    cell = source_axis(height, grid, size // 2, ROWS - 1)[0]
+    window = size + ROWS - 1
+    spans = {int(cell[y + window - 1] - cell[y]) for y in range(0, height, ROWS)}
+    assert spans == ({0, 1} if grid == 3 else {2, 3})  # one cell and two (60 rows); more than two (24 rows)
     image = torch.rand(1, 2, height, 20, dtype=torch.float64, device=device, requires_grad=True)
     psf = random_psf(2, grid, 2, size, device=device).requires_grad_()
     grad = torch.rand(1, 2, height, 20, dtype=torch.float64, device=device)
     assert_matches_reference(psf_conv, psf_conv_reference, (image, psf), grad)
-
-
-def test_forward_rows_fill_the_device():
-    """Launches that fill a GPU at 8 rows per thread keep them; a batch of one halves them until it does."""
-    from warpsense.ops.psf import _forward_rows
-
-    cuda = torch.device("cuda")
-    assert _forward_rows(16 * 3 * 480 * 44, cuda) == 8  # the recipe's training batch
-    assert _forward_rows(3 * 640 * 24, cuda) == 2  # one 192 x 640 frame
-    assert _forward_rows(3 * 480 * 45 * 2, cuda) == 4
-    assert _forward_rows(10, torch.device("cpu")) == 8  # one thread does it all on a CPU

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|rows]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23]
 #   step:   the training step at Lovasz stride 1 and 2 (round 16)
 #   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
 #           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
@@ -13,7 +13,6 @@
 #           (dsunet.FUSED_DEVICES emptied for the first) -> $OUT/step_fused_{off,on}.json, ~3 minutes (issue 27)
 #   round23: the cuda tests of the PSF op, the decoder join and the networks, then batch-1 latency, the camera alone,
 #           the training step and the joins, as the code stands -> $OUT/*.json, *.txt, ~5 minutes (issue 27)
-#   rows:   batch-1 latency with the PSF forward's rows per thread forced to 8, 4 and 2 (one process each)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -83,16 +82,4 @@ if [ "${1:-}" = round23 ]; then
   python tools/bench_render.py --device cuda --camera --json "$OUT/camera.json" 2>&1 | grep -v -e Warning -e USDT
   python tools/bench_train_bound.py --config camvid_codesign --steps 60 --json "$OUT/step.json" 2>&1 | grep -v Warning
   python tools/bench_upsample.py --device cuda 2>&1 | grep -v Warning > "$OUT/upsample_joins.txt"
-fi
-if [ "${1:-}" = rows ]; then
-  for threads in 1 262144 1048576; do  # _FORWARD_THREADS["cuda"]: 8 rows, 4 rows, 2 rows at one 192 x 640 frame
-    python - "$threads" --device cuda --json "$OUT/latency_rows_$threads.json" <<'PY' 2>&1 | grep -v Warning
-import runpy, sys
-import warpsense.ops.psf as psf
-psf._FORWARD_THREADS["cuda"] = int(sys.argv[1])
-print("forward rows at one frame:", psf._forward_rows(3 * 640 * 24, psf.torch.device("cuda")))
-sys.argv = ["bench_latency.py"] + sys.argv[2:]
-runpy.run_path("tools/bench_latency.py", run_name="__main__")
-PY
-  done
 fi

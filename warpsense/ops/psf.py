@@ -20,17 +20,6 @@ from warpsense.ops._warp import Vectors, launch, prepare, save_inputs, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
 
 _THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill an H100; serial CPU)
-_FORWARD_THREADS = {"cuda": 1 << 17, "cpu": 1}  # threads below which the forward takes fewer rows per thread
-
-
-def _forward_rows(threads: int, device: torch.device) -> int:
-    """Output rows per forward thread: `kernels.ROWS` when its launch has ``threads`` threads at that many rows, at
-    least the device's `_FORWARD_THREADS`; else as few as it takes to reach them (a batch of one on a GPU), down to 2."""
-    rows = kernels.ROWS
-    while rows > 2 and threads < _FORWARD_THREADS.get(device.type, 1):
-        rows //= 2
-        threads *= 2
-    return rows
 
 
 @functools.lru_cache(maxsize=64)
@@ -182,8 +171,7 @@ def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_
     radius = cells.shape[2] // 2
     rows, cols = _source_tables(image, grid_y, grid_x, radius)
     out = torch.empty_like(image)
-    per_thread = _forward_rows(batch * channels * width * -(-height // kernels.ROWS), image.device)
-    launch(kernels.psf_kernels(cells.shape[2], per_thread).forward, (batch * channels, -(-height // per_thread), width),
+    launch(kernels.psf_kernels(cells.shape[2]).forward, (batch * channels, -(-height // kernels.ROWS), width),
            [_padded_source(image, radius), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], rows[2], cols[0],
             cols[1], out.view(batch * channels, height, width)], image.device)
     return out
