@@ -52,6 +52,16 @@ def neighbour(i: int, odd: bool, size: int):
     return wp.max(i - 1, 0)
 
 
+@wp.func
+def run_of(t: int, channels: int, groups: int, height: int):
+    """Thread t of a one-dimensional launch over (image, row, run of RUN pixels, channel), channels fastest ->
+    (image, row, the run's first column, channel)."""
+    c = t % channels
+    rest = t / channels
+    row = rest / groups
+    return row / height, row % height, (rest % groups) * RUN, c
+
+
 @wp.kernel
 def upsample_concat_forward(
     x: wp.array4d(dtype=Any),
@@ -64,16 +74,7 @@ def upsample_concat_forward(
     on. Neighbouring threads hold neighbouring channels, so each load and store of a warp is one contiguous run;
     a one-dimensional launch, so that the index arithmetic is 32-bit. The RUN / 2 + 2 input columns the run reads
     are interpolated along y once each."""
-    t = wp.tid()
-    channels = x.shape[3]
-    c = t % channels
-    rest = t / channels
-    group = rest % groups
-    row = rest / groups
-    height = out.shape[1]
-    b = row / height
-    y = row % height
-    start = group * RUN
+    b, y, start, c = run_of(wp.tid(), x.shape[3], groups, out.shape[1])
     i = y / 2
     ni = neighbour(i, y % 2 == 1, x.shape[1])
     first = start / 2 - 1  # input column of v[0]
@@ -115,17 +116,9 @@ def upsample_concat_backward(
     """Thread ((b * h + i) * groups + group) * C1 + c: channel c of the RUN inputs of row i from column group * RUN
     on (the forward's layout). Each of the 2 RUN + 2 output columns they reach is summed over its 4 output rows
     once; each input then takes 4 of those sums."""
-    t = wp.tid()
-    channels = grad_x.shape[3]
-    c = t % channels
-    rest = t / channels
-    group = rest % groups
-    row = rest / groups
     height = grad_x.shape[1]
     width = grad_x.shape[2]
-    b = row / height
-    i = row % height
-    start = group * RUN
+    b, i, start, c = run_of(wp.tid(), grad_x.shape[3], groups, height)
     one = widen(grad_x.dtype(1.0))
     ys = wp.vector(length=4, dtype=int)
     wy = wp.vector(length=4, dtype=type(one))

@@ -167,6 +167,14 @@ def test_feature_decoder_stays_bfloat16_under_autocast():
     torch.testing.assert_close(upsampled.float(), reference, rtol=1e-2, atol=1e-2)
 
 
+def logits_and_gradients(network, image, target):
+    """The network's logits and its parameters' gradients for the loss (logits * target).sum()."""
+    network.zero_grad()
+    logits = network(image)
+    (logits * target).sum().backward()
+    return logits.detach(), [p.grad.clone() for p in network.parameters()]
+
+
 @pytest.mark.parametrize("name", ["dsunet", "packunet"])
 def test_feature_deterministic_mode_takes_the_deterministic_resampling(name, monkeypatch):
     """Under torch's deterministic algorithms (run.deterministic) the networks resize and pool through
@@ -177,14 +185,7 @@ def test_feature_deterministic_mode_takes_the_deterministic_resampling(name, mon
     torch.nn.init.normal_(network.context.norm.weight)
     image = torch.rand(2, 1, 40, 56, dtype=torch.float64)
     target = torch.randn(2, 4, 40, 56, dtype=torch.float64)
-
-    def logits_and_gradients():
-        network.zero_grad()
-        logits = network(image)
-        (logits * target).sum().backward()
-        return logits.detach(), [p.grad.clone() for p in network.parameters()]
-
-    reference_logits, reference_grads = logits_and_gradients()
+    reference_logits, reference_grads = logits_and_gradients(network, image, target)
 
     def refuse(*args, **kwargs):
         raise AssertionError("a nondeterministic torch op was used in deterministic mode")
@@ -194,7 +195,7 @@ def test_feature_deterministic_mode_takes_the_deterministic_resampling(name, mon
     previous = torch.are_deterministic_algorithms_enabled()
     torch.use_deterministic_algorithms(True)
     try:
-        logits, grads = logits_and_gradients()
+        logits, grads = logits_and_gradients(network, image, target)
     finally:
         torch.use_deterministic_algorithms(previous)
     torch.testing.assert_close(logits, reference_logits, rtol=1e-10, atol=1e-12)
@@ -213,20 +214,13 @@ def test_feature_fused_decoder_joins_are_the_torch_ones(name, monkeypatch):
                           channels_last=True).double()
     image = torch.rand(2, 1, 40, 56, dtype=torch.float64)
     target = torch.randn(2, 4, 40, 56, dtype=torch.float64)
-
-    def logits_and_gradients():
-        network.zero_grad()
-        logits = network(image)
-        (logits * target).sum().backward()
-        return logits.detach(), [p.grad.clone() for p in network.parameters()]
-
     monkeypatch.setattr(dsunet, "FUSED_DEVICES", ())
-    reference_logits, reference_grads = logits_and_gradients()
+    reference_logits, reference_grads = logits_and_gradients(network, image, target)
     calls = []
     fused = dsunet.upsample_concat
     monkeypatch.setattr(dsunet, "upsample_concat", lambda x, skip: calls.append(x.shape) or fused(x, skip))
     monkeypatch.setattr(dsunet, "FUSED_DEVICES", ("cpu",))
-    logits, grads = logits_and_gradients()
+    logits, grads = logits_and_gradients(network, image, target)
     assert len(calls) == 4
     torch.testing.assert_close(logits, reference_logits, rtol=1e-10, atol=1e-12)
     for grad, reference in zip(grads, reference_grads):
