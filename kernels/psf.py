@@ -142,7 +142,6 @@ for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
 class PsfKernels(NamedTuple):
     forward: wp.Kernel
     backward_source: wp.Kernel
-    backward_cells: wp.Kernel
 
 
 @functools.lru_cache(maxsize=None)
@@ -277,68 +276,9 @@ def psf_kernels(size: int) -> PsfKernels:
             if s + k < rows:
                 grad_source[bc, s + k, t] = acc[k]
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def psf_backward_cells_columns(
-        source: wp.array3d(dtype=Any),
-        padded_grad: wp.array3d(dtype=Any),
-        row_bounds: wp.array(dtype=wp.int32),
-        row_frac: wp.array(dtype=Any),
-        col_bounds: wp.array(dtype=wp.int32),
-        col_frac: wp.array(dtype=Any),
-        channels: int,
-        cells_x: int,
-        partials: wp.array4d(dtype=Any),
-    ):
-        group, lane = wp.tid()
-        cells_total = partials.shape[2]
-        j = group % size
-        rest = group / size
-        cell = rest % cells_total
-        bc = rest / cells_total
-        c = bc % channels
-        b = bc / channels
-        lanes = partials.shape[0] / (source.shape[0] / channels)
-        cy = cell / cells_x
-        cx = cell % cells_x
-        s_start = row_bounds[cy]
-        s_end = row_bounds[cy + 1]
-        one = source.dtype(1.0)
-        zero = source.dtype(0.0)
-        acc00 = wp.vector(length=wp.static(size), dtype=source.dtype)
-        acc01 = wp.vector(length=wp.static(size), dtype=source.dtype)
-        acc10 = wp.vector(length=wp.static(size), dtype=source.dtype)
-        acc11 = wp.vector(length=wp.static(size), dtype=source.dtype)
-        grad = wp.vector(length=wp.static(window), dtype=source.dtype)
-        for t in range(col_bounds[cx] + lane, col_bounds[cx + 1], lanes):
-            lower = wp.vector(length=wp.static(size), dtype=source.dtype)  # sum over rows of (1 - fy) x g
-            upper = wp.vector(length=wp.static(size), dtype=source.dtype)  # sum over rows of fy x g
-            for s0 in range(s_start, s_end, ROWS):
-                for r in range(wp.static(window)):
-                    grad[r] = padded_grad[bc, s0 + r, t + j]
-                for k in range(wp.static(ROWS)):
-                    value = zero
-                    if s0 + k < s_end:
-                        value = source[bc, s0 + k, t]
-                    high = value * row_frac[s0 + k]
-                    low = value - high
-                    for i in range(wp.static(size)):
-                        lower[i] = lower[i] + low * grad[k + i]
-                        upper[i] = upper[i] + high * grad[k + i]
-            fx = col_frac[t]
-            for i in range(wp.static(size)):
-                acc00[i] = acc00[i] + (one - fx) * lower[i]
-                acc01[i] = acc01[i] + fx * lower[i]
-                acc10[i] = acc10[i] + (one - fx) * upper[i]
-                acc11[i] = acc11[i] + fx * upper[i]
-        slot = b * lanes + lane
-        for i in range(wp.static(size)):
-            partials[slot, c, cell, i * size + j] = wp.vector(acc00[i], acc01[i], acc10[i], acc11[i])
-
     for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
         planes, cells, table, index = (wp.array3d(dtype=_float), wp.array4d(dtype=_vec4), wp.array(dtype=_float),
                                        wp.array(dtype=wp.int32))
         wp.overload(psf_forward, [planes, cells, int, index, table, index, index, table, planes])
         wp.overload(psf_backward_source, [planes, cells, int, index, table, index, table, planes])
-        wp.overload(psf_backward_cells_columns, [planes, planes, index, table, index, table, int, int,
-                                                 wp.array4d(dtype=_vec4)])
-    return PsfKernels(psf_forward, psf_backward_source, psf_backward_cells_columns)
+    return PsfKernels(psf_forward, psf_backward_source)

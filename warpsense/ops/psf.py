@@ -9,7 +9,6 @@ edges), pixel q's centre at (q + 0.5) / size; between nodes the PSF is bilinear.
 from __future__ import annotations
 
 import functools
-import os
 import time
 
 import torch
@@ -20,7 +19,6 @@ from warpsense.kernels import psf as kernels
 from warpsense.ops._warp import Vectors, launch, prepare, save_inputs, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
 
-COLUMN_CELLS = os.environ.get("WARPSENSE_PSF_CELLS", "columns") == "columns"  # TEMPORARY: until a GPU decides
 _THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill an H100; serial CPU)
 
 
@@ -150,13 +148,6 @@ def _psf_backward_cells(image: torch.Tensor, grad_out: torch.Tensor, cells: torc
     lanes = batch * cells_y * cells_x
     row_chunks, col_chunks = _chunks(-(-_THREADS_TARGET.get(image.device.type, 1) // (tap_groups * lanes)),
                                      -(-(height + 2 * radius) // cells_y), -(-(width + 2 * radius) // cells_x))
-    if COLUMN_CELLS:
-        lanes = 32
-        partials = image.new_empty(batch * lanes, channels, cells_y * cells_x, size * size, 4)
-        launch(kernels.psf_kernels(size).backward_cells, (batch * channels * cells_y * cells_x * size, lanes),
-               [_padded_source(image, radius), _padded_gradient(grad_out, radius, image.dtype), rows[2], rows[1],
-                cols[2], cols[1], channels, cells_x, Vectors(partials)], image.device)
-        return partials.sum(dim=0).view_as(cells)
     partials = image.new_empty(batch * row_chunks * col_chunks, channels, cells_y * cells_x, size * size, 4)
     launch(kernels.psf_backward_cells, (lanes * row_chunks * col_chunks, tap_groups),
            [_padded_source(image, radius), _padded_gradient(grad_out, radius, image.dtype), rows[2], rows[1],
