@@ -79,7 +79,7 @@ def upsample_concat_forward(
     ni = neighbour(i, y % 2 == 1, x.shape[1])
     first = start / 2 - 1  # input column of v[0]
     last = x.shape[2] - 1
-    v = wp.vector(length=wp.static(RUN // 2 + 2), dtype=type(widen(x[b, i, 0, c])))
+    v = wp.vector(length=wp.static(RUN // 2 + 2), dtype=type(widen(x.dtype(0.0))))
     for k in range(wp.static(RUN // 2 + 2)):
         column = wp.min(wp.max(first + k, 0), last)
         v[k] = quarter(widen(x[b, i, column, c]), widen(x[b, ni, column, c]))

@@ -26,6 +26,11 @@ def test_exception():
         upsample_concat(torch.rand(3, 4, 5), torch.rand(1, 2, 8, 10))
     with pytest.raises(TypeError, match="x must be floating point"):
         upsample_concat(torch.ones(1, 3, 4, 5, dtype=torch.int64), torch.rand(1, 2, 8, 10))
+    from warpsense.ops.upsample import _threads
+
+    with pytest.raises(ValueError, match="32-bit indexing"):  # a launch too large for the kernels' int32 thread ids
+        _threads(2**31)
+    assert _threads(2**31 - 1) == 2**31 - 1
 
 
 @pytest.mark.parametrize("shape,skip_channels", [((1, 1, 1, 1), 1), ((2, 3, 1, 4), 2), ((1, 4, 5, 3), 7)])
