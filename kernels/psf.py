@@ -156,8 +156,10 @@ def psf_kernels(size: int) -> PsfKernels:
     time on an H100, docs/benchmarks.md round 23). ``size`` is a compile-time constant, so the tap-row and window
     loops unroll and the window is indexed by constants: registers, not local memory.
 
-    Grids: forward (planes, ceil(H / ROWS), W) over outputs; image adjoint (planes, ceil((H + 2r) / ROWS),
-    W + 2r) over padded sources, whose gradients the caller folds back onto the border pixels.
+    Grids: forward (parts, planes, ceil(H / ROWS), W) over outputs, part p taking tap columns p * taps .. p * taps +
+    taps - 1 into out[p] (the caller sums the parts: one part, taps = size, unless a launch is too small to fill the
+    GPU); image adjoint (planes, ceil((H + 2r) / ROWS), W + 2r) over padded sources, whose gradients the caller folds
+    back onto the border pixels.
     """
     window = size + ROWS - 1
 
@@ -171,9 +173,12 @@ def psf_kernels(size: int) -> PsfKernels:
         row_bounds: wp.array(dtype=wp.int32),
         col_cell: wp.array(dtype=wp.int32),
         col_frac: wp.array(dtype=Any),
-        out: wp.array3d(dtype=Any),
+        taps: int,
+        out: wp.array4d(dtype=Any),
     ):
-        bc, group, x = wp.tid()
+        part, bc, group, x = wp.tid()
+        j_begin = part * taps  # this thread's share of the tap columns (all of them unless the launch is split)
+        j_end = wp.min(j_begin + taps, size)
         c = bc % cells.shape[0]
         y = group * ROWS
         # the window: padded source rows y .. y + WINDOW - 1; output y + k reads window row size - 1 - i + k under
@@ -194,7 +199,7 @@ def psf_kernels(size: int) -> PsfKernels:
             # the whole window in one cell (most threads): a loop without branches, small enough for the
             # instruction cache
             cell = first * cells_x
-            for j in range(cells.shape[2]):
+            for j in range(j_begin, j_end):
                 t = x + size - 1 - j  # output x reads source column t under tap column j
                 fx = col_frac[t]
                 column = cell + col_cell[t]
@@ -206,7 +211,7 @@ def psf_kernels(size: int) -> PsfKernels:
                     for k in range(wp.static(ROWS)):
                         acc[k] = acc[k] + value[size - 1 - i + k] * (low + fy[size - 1 - i + k] * slope)
         else:
-            for j in range(cells.shape[2]):
+            for j in range(j_begin, j_end):
                 t = x + size - 1 - j
                 fx = col_frac[t]
                 column = col_cell[t]
@@ -226,10 +231,10 @@ def psf_kernels(size: int) -> PsfKernels:
                         for k in range(wp.static(ROWS)):
                             node = cells[c, row_cell[y + r0 + k] * cells_x + column, i, j]
                             acc[k] = acc[k] + value[r0 + k] * bilinear(node, fy[r0 + k], fx)
-        height = out.shape[1]
+        height = out.shape[2]
         for k in range(ROWS):
             if y + k < height:
-                out[bc, y + k, x] = acc[k]
+                out[part, bc, y + k, x] = acc[k]
 
     @wp.kernel(module="unique", enable_backward=False)
     def psf_backward_source(
@@ -279,6 +284,7 @@ def psf_kernels(size: int) -> PsfKernels:
     for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
         planes, cells, table, index = (wp.array3d(dtype=_float), wp.array4d(dtype=_vec4), wp.array(dtype=_float),
                                        wp.array(dtype=wp.int32))
-        wp.overload(psf_forward, [planes, cells, int, index, table, index, index, table, planes])
+        wp.overload(psf_forward, [planes, cells, int, index, table, index, index, table, int,
+                                  wp.array4d(dtype=_float)])
         wp.overload(psf_backward_source, [planes, cells, int, index, table, index, table, planes])
     return PsfKernels(psf_forward, psf_backward_source)

@@ -259,13 +259,18 @@ def test_fft_blend_reference_equals_the_direct_blend(grid, size):
 
 
 @pytest.mark.parametrize("device", device_params())
+@pytest.mark.parametrize("parts", [1, 4, 15])
 @pytest.mark.parametrize("height,grid", [(60, 3), (24, 5)])
-def test_windows_across_cell_boundaries_match_reference(device, height, grid):
+def test_windows_across_cell_boundaries_match_reference(device, height, grid, parts, monkeypatch):
     """K = 15, as in the recipe: each forward thread's window of K + ROWS - 1 rows lies in one cell, in two, or (in
     cells shorter than the window) in more, and each image-adjoint thread's ROWS rows in one cell or two. Every
-    case is present in these shapes (checked from the row tables) and equals the reference."""
+    case is present in these shapes (checked from the row tables) and equals the reference, with the forward's
+    tap columns in one part and split into 4 (uneven) and 15 parts (a launch too small to fill a GPU)."""
     from warpsense.kernels.psf import ROWS
+    from warpsense.ops import psf as psf_module
     from warpsense.ops.psf import source_axis
+
+    monkeypatch.setattr(psf_module, "_forward_parts", lambda threads, size, device: parts)
 
     size = 15
     cell = source_axis(height, grid, size // 2, ROWS - 1)[0]
@@ -276,3 +281,15 @@ def test_windows_across_cell_boundaries_match_reference(device, height, grid):
     psf = random_psf(2, grid, 2, size, device=device).requires_grad_()
     grad = torch.rand(1, 2, height, 20, dtype=torch.float64, device=device)
     assert_matches_reference(psf_conv, psf_conv_reference, (image, psf), grad)
+
+
+def test_forward_parts_fill_the_device():
+    """A launch that fills a GPU keeps every tap column in one part; a batch of one splits them, at most K ways;
+    a CPU never splits (one thread)."""
+    from warpsense.ops.psf import _forward_parts
+
+    cuda = torch.device("cuda")
+    assert _forward_parts(16 * 3 * 44 * 480, 15, cuda) == 1  # the recipe's training batch
+    assert _forward_parts(3 * 24 * 640, 15, cuda) == 3  # one 192 x 640 frame
+    assert _forward_parts(10, 15, cuda) == 15
+    assert _forward_parts(10, 15, torch.device("cpu")) == 1

@@ -20,6 +20,15 @@ from warpsense.ops._warp import Vectors, launch, prepare, save_inputs, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
 
 _THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill an H100; serial CPU)
+_FORWARD_THREADS = {"cuda": 1 << 17, "cpu": 1}  # threads below which the forward splits its tap columns
+
+
+def _forward_parts(threads: int, size: int, device: torch.device) -> int:
+    """Parts the forward splits the tap columns into: 1 when its launch has at least the device's
+    `_FORWARD_THREADS`, else as many as it takes to reach them (a batch of one on a GPU), at most ``size``; the
+    parts' outputs are summed (a fixed order: deterministic)."""
+    wanted = _FORWARD_THREADS.get(device.type, 1)
+    return max(1, min(size, -(-wanted // max(threads, 1))))
 
 
 @functools.lru_cache(maxsize=64)
@@ -170,11 +179,16 @@ def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_
     batch, channels, height, width = image.shape
     radius = cells.shape[2] // 2
     rows, cols = _source_tables(image, grid_y, grid_x, radius)
-    out = torch.empty_like(image)
-    launch(kernels.psf_kernels(cells.shape[2]).forward, (batch * channels, -(-height // kernels.ROWS), width),
+    size = cells.shape[2]
+    threads = batch * channels * -(-height // kernels.ROWS) * width
+    parts = _forward_parts(threads, size, image.device)
+    taps = -(-size // parts)
+    parts = -(-size // taps)
+    out = image.new_empty(parts, batch, channels, height, width)
+    launch(kernels.psf_kernels(size).forward, (parts, batch * channels, -(-height // kernels.ROWS), width),
            [_padded_source(image, radius), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], rows[2], cols[0],
-            cols[1], out.view(batch * channels, height, width)], image.device)
-    return out
+            cols[1], taps, out.view(parts, batch * channels, height, width)], image.device)
+    return out[0] if parts == 1 else out.sum(dim=0)
 
 
 def _check(image: torch.Tensor, psf: torch.Tensor, method: str) -> None:
