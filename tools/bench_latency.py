@@ -15,32 +15,9 @@ import os
 
 import torch
 
-from warpsense.bench.train_suite import build, latency
-from warpsense.data.color import srgb_to_linear
+from warpsense.bench.timing import write_kernel_table
+from warpsense.bench.train_suite import inference, latency
 from warpsense.files import write_json
-
-
-def profile_latency(method: str, camera_name: str, device: str, height: int, width: int, out: str) -> None:
-    """The kernels of 20 batch-1 inferences by GPU time (the graph replays the same kernels)."""
-    from torch.profiler import ProfilerActivity, profile
-
-    camera, network = build(method, camera_name, device)
-    camera.eval(), network.eval()
-    frame = torch.randint(0, 256, (1, 3, height, width), dtype=torch.uint8, device=device)
-
-    def infer():
-        with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16):
-            return network(camera(srgb_to_linear(frame)))
-
-    for _ in range(3):
-        infer()
-    torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as trace:
-        for _ in range(20):
-            infer()
-        torch.cuda.synchronize()
-    with open(out, "w") as file:
-        file.write(trace.key_averages().table(sort_by="cuda_time_total", row_limit=40, max_name_column_width=90))
 
 
 def main() -> None:
@@ -61,8 +38,9 @@ def main() -> None:
                   f"[IQR {timing['iqr_ms']:.3f}]", flush=True)
         if args.profile and args.device == "cuda":
             os.makedirs(args.profile, exist_ok=True)
-            profile_latency(method, camera, args.device, height, width,
-                            os.path.join(args.profile, f"latency_{method}_{camera}.txt"))
+            infer = inference(method, camera, args.device, height, width)
+            write_kernel_table(lambda infer=infer: [infer() for _ in range(20)], args.device,
+                               os.path.join(args.profile, f"latency_{method}_{camera}.txt"), warmup=1, rows=40)
     if args.json:
         name = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
         write_json(args.json, {"device": name, "records": records})

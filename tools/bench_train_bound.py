@@ -55,15 +55,10 @@ def step_rate(config, device: torch.device, size: tuple[int, int], batch: int, s
                         config.train.compile, config.train.cuda_graph)
     rate = step_throughput(step, model, batch, *size, steps, WARM_UP_STEPS, device)
     if profile:
-        from torch.profiler import ProfilerActivity
-        from torch.profiler import profile as profiler
+        from warpsense.bench.timing import write_kernel_table
 
-        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-        with profiler(activities=activities) as trace:
-            step_throughput(step, model, batch, *size, 10, 0, device)
-        sort = "cuda_time_total" if device.type == "cuda" else "cpu_time_total"
-        with open(profile, "w") as out:
-            out.write(trace.key_averages().table(sort_by=sort, row_limit=60, max_name_column_width=90))
+        write_kernel_table(lambda: step_throughput(step, model, batch, *size, 10, 0, device), device, profile,
+                           warmup=0)
     return rate
 
 

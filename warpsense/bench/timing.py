@@ -1,4 +1,5 @@
-"""Timing helpers: median and IQR after warm-up, with the device synchronised around each repetition."""
+"""Timing helpers: median and IQR after warm-up, with the device synchronised around each repetition; the kernels
+of a call by time (`torch.profiler`)."""
 
 from __future__ import annotations
 
@@ -45,3 +46,21 @@ def time_cuda_graph(function, repeats: int = 50, warmup: int = 3) -> dict:
     with torch.cuda.graph(graph):
         function()
     return time_function(graph.replay, "cuda", repeats, warmup=2)
+
+
+def write_kernel_table(function, device, out: str, warmup: int = 3, rows: int = 60) -> None:
+    """Run ``function()`` once under `torch.profiler` (after ``warmup`` calls) and write its kernels by total time,
+    GPU time on CUDA, CPU time otherwise, ``rows`` of them, to the text file ``out``."""
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = torch.device(device).type == "cuda"
+    for _ in range(warmup):
+        function()
+    _sync(device)
+    with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as trace:
+        function()
+        _sync(device)
+    table = trace.key_averages().table(sort_by="cuda_time_total" if cuda else "cpu_time_total", row_limit=rows,
+                                       max_name_column_width=90)
+    with open(out, "w") as file:
+        file.write(table)

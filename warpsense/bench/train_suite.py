@@ -121,8 +121,9 @@ def step_throughput(step: TrainingStep, model, batch: int, height: int, width: i
     return steps * batch / (time.perf_counter() - start)
 
 
-def latency(method, camera_name, device, height, width, graph: bool) -> dict:
-    """Batch-1 end-to-end inference time (uint8 frame -> logits), eager or replayed as a CUDA graph."""
+def inference(method, camera_name, device, height, width):
+    """A batch-1 end-to-end inference (uint8 frame -> logits) of the system, as a function of no arguments: the
+    camera and network in eval mode, bf16 autocast on CUDA."""
     torch.manual_seed(0)
     camera, network = build(method, camera_name, device)
     camera.eval(), network.eval()
@@ -133,6 +134,12 @@ def latency(method, camera_name, device, height, width, graph: bool) -> dict:
         with torch.no_grad(), torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=amp):
             return network(camera(srgb_to_linear(frame)))
 
+    return infer
+
+
+def latency(method, camera_name, device, height, width, graph: bool) -> dict:
+    """Batch-1 end-to-end inference time (`inference`), eager or replayed as a CUDA graph."""
+    infer = inference(method, camera_name, device, height, width)
     return time_cuda_graph(infer, 100) if graph else time_function(infer, device, 50)
 
 
