@@ -26,6 +26,21 @@ print("torch", torch.__version__, "cuda", torch.version.cuda, "warp", wp.__versi
 import warpsense
 print("warpsense import ok")
 PY
+# cuda_tests NAME LIMIT PATH...: the cuda-marked tests of PATH... -> $OUT/NAME.txt, their exit status and summary
+cuda_tests() {
+  local name=$1 limit=$2
+  shift 2
+  timeout "$limit" python -m pytest -q -p no:warnings -m cuda "$@" > "$OUT/$name.txt" 2>&1
+  echo "$name exit $?"; tail -2 "$OUT/$name.txt"
+}
+# camera_bench OUT: the codesign camera forward + backward with the rendering in place, and the baseline's camera
+camera_bench() {
+  python tools/bench_render.py --device cuda --camera --json "$1" 2>&1 | grep -v -e Warning -e USDT
+}
+# step_bench OUT: the codesign training step (network alone and whole, tools/bench_train_bound.py)
+step_bench() {
+  python tools/bench_train_bound.py --config camvid_codesign --steps 60 --json "$1" 2>&1 | grep -v Warning
+}
 # the step with the Lovasz term at stride 1 and 2 (issue 27), one process each, same call
 if [ "${1:-}" = step ]; then
   for s in 1 2; do
@@ -45,23 +60,18 @@ if [ "${1:-}" = data ]; then
   python -m pytest -q -p no:warnings -m cuda tests/data/test_on_device.py
 fi
 if [ "${1:-}" = render ]; then
-  timeout 200 python -m pytest -q -p no:warnings -m cuda tests/optics > "$OUT/render_cuda_tests.txt" 2>&1
-  echo "optics cuda tests exit $?"; tail -2 "$OUT/render_cuda_tests.txt"
-  python tools/bench_render.py --device cuda --camera --json "$OUT/render_float32.json" 2>&1 | grep -v -e Warning -e USDT
+  cuda_tests render_cuda_tests 200 tests/optics
+  camera_bench "$OUT/render_float32.json"
   python tools/bench_render.py --device cuda --dtype float64 --json "$OUT/render_float64.json" 2>&1 | grep -v -e Warning -e USDT
 fi
 if [ "${1:-}" = psf ]; then
-  timeout 240 python -m pytest -q -p no:warnings -m cuda tests/ops/test_psf.py tests/ops/test_custom_ops.py \
-    > "$OUT/psf_cuda_tests.txt" 2>&1
-  echo "psf cuda tests exit $?"; tail -2 "$OUT/psf_cuda_tests.txt"
+  cuda_tests psf_cuda_tests 240 tests/ops/test_psf.py tests/ops/test_custom_ops.py
   python tools/bench_psf.py --device cuda --json "$OUT/psf.json" 2>&1 | grep -v -e Warning -e USDT
-  python tools/bench_render.py --device cuda --camera --json "$OUT/camera.json" 2>&1 | grep -v -e Warning -e USDT
-  python tools/bench_train_bound.py --config camvid_codesign --steps 60 --json "$OUT/step.json" 2>&1 | grep -v Warning
+  camera_bench "$OUT/camera.json"
+  step_bench "$OUT/step.json"
 fi
 if [ "${1:-}" = upsample ]; then
-  timeout 240 python -m pytest -q -p no:warnings -m cuda tests/ops/test_upsample.py tests/ops/test_custom_ops.py \
-    tests/models > "$OUT/upsample_cuda_tests.txt" 2>&1
-  echo "upsample cuda tests exit $?"; tail -2 "$OUT/upsample_cuda_tests.txt"
+  cuda_tests upsample_cuda_tests 240 tests/ops/test_upsample.py tests/ops/test_custom_ops.py tests/models
   python tools/bench_upsample.py --device cuda 2>&1 | grep -v Warning | tee "$OUT/upsample_joins.txt"
   for fused in off on; do
     python - "$fused" --config camvid_codesign --steps 60 --json "$OUT/step_fused_$fused.json" <<'PY' 2>&1 | grep -v Warning
@@ -75,11 +85,9 @@ PY
   done
 fi
 if [ "${1:-}" = round23 ]; then
-  timeout 300 python -m pytest -q -p no:warnings -m cuda tests/ops/test_psf.py tests/ops/test_upsample.py \
-    tests/ops/test_custom_ops.py tests/models > "$OUT/cuda_tests.txt" 2>&1
-  echo "cuda tests exit $?"; tail -2 "$OUT/cuda_tests.txt"
+  cuda_tests cuda_tests 300 tests/ops/test_psf.py tests/ops/test_upsample.py tests/ops/test_custom_ops.py tests/models
   python tools/bench_latency.py --device cuda --json "$OUT/latency.json" 2>&1 | grep -v -e Warning -e USDT
-  python tools/bench_render.py --device cuda --camera --json "$OUT/camera.json" 2>&1 | grep -v -e Warning -e USDT
-  python tools/bench_train_bound.py --config camvid_codesign --steps 60 --json "$OUT/step.json" 2>&1 | grep -v Warning
+  camera_bench "$OUT/camera.json"
+  step_bench "$OUT/step.json"
   python tools/bench_upsample.py --device cuda 2>&1 | grep -v Warning > "$OUT/upsample_joins.txt"
 fi

@@ -177,9 +177,9 @@ def _psf_backward(ctx, grad_out):
 def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_x: int) -> torch.Tensor:
     """Exact varying convolution with the PSF given per grid cell (`node_cells`)."""
     batch, channels, height, width = image.shape
-    radius = cells.shape[2] // 2
-    rows, cols = _source_tables(image, grid_y, grid_x, radius)
     size = cells.shape[2]
+    radius = size // 2
+    rows, cols = _source_tables(image, grid_y, grid_x, radius)
     threads = batch * channels * -(-height // kernels.ROWS) * width
     parts = _forward_parts(threads, size, image.device)
     taps = -(-size // parts)
