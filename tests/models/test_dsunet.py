@@ -2,6 +2,8 @@
 context module (pyramid pooling), the networks without squeeze-and-excitation, the full-resolution path's width and
 depth, the Anscombe input, and the network a config builds."""
 
+import copy
+
 import pytest
 import torch
 
@@ -204,27 +206,33 @@ def test_feature_deterministic_mode_takes_the_deterministic_resampling(name, mon
 
 
 @pytest.mark.parametrize("name", ["dsunet", "packunet"])
-def test_feature_fused_decoder_joins_are_the_torch_ones(name, monkeypatch):
-    """A channels-last network on a fused device joins its four decoder levels with `upsample_concat`: the same
-    logits and gradients (float64) as torch's resize and concatenation."""
+def test_feature_fused_ops_are_the_torch_ones(name, monkeypatch):
+    """A channels-last network on a fused device joins its four decoder levels with `upsample_concat` and runs
+    every batch norm followed by a ReLU (all but the context module's) as `batch_norm_relu`: the same logits,
+    gradients and running statistics (float64) as torch's ops."""
     from warpsense.models import dsunet
 
     torch.manual_seed(4)
     network = build_model(name, in_channels=1, num_classes=4, width=8, context="pyramid",
                           channels_last=True).double()
+    fused_network = copy.deepcopy(network)
     image = torch.rand(2, 1, 40, 56, dtype=torch.float64)
     target = torch.randn(2, 4, 40, 56, dtype=torch.float64)
     monkeypatch.setattr(dsunet, "FUSED_DEVICES", ())
     reference_logits, reference_grads = logits_and_gradients(network, image, target)
-    calls = []
-    fused = dsunet.upsample_concat
-    monkeypatch.setattr(dsunet, "upsample_concat", lambda x, skip: calls.append(x.shape) or fused(x, skip))
+    joins, norms = [], []
+    fused_join, fused_norm = dsunet.upsample_concat, dsunet.batch_norm_relu
+    monkeypatch.setattr(dsunet, "upsample_concat", lambda x, skip: joins.append(x.shape) or fused_join(x, skip))
+    monkeypatch.setattr(dsunet, "batch_norm_relu", lambda x, *args: norms.append(x.shape) or fused_norm(x, *args))
     monkeypatch.setattr(dsunet, "FUSED_DEVICES", ("cpu",))
-    logits, grads = logits_and_gradients(network, image, target)
-    assert len(calls) == 4
+    logits, grads = logits_and_gradients(fused_network, image, target)
+    assert len(joins) == 4
+    assert len(norms) == sum(isinstance(m, torch.nn.BatchNorm2d) for m in network.modules()) - 1
     torch.testing.assert_close(logits, reference_logits, rtol=1e-10, atol=1e-12)
     for grad, reference in zip(grads, reference_grads):
         torch.testing.assert_close(grad, reference, rtol=1e-9, atol=1e-11)
+    for (key, buffer), reference in zip(fused_network.state_dict().items(), network.state_dict().values()):
+        torch.testing.assert_close(buffer, reference, rtol=1e-12, atol=1e-14, msg=key)
 
 
 @pytest.mark.parametrize("name", ["dsunet", "packunet"])

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|bn]
 #   step:   the training step at Lovasz stride 1 and 2 (round 16)
 #   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
 #           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
@@ -13,6 +13,9 @@
 #           (dsunet.FUSED_DEVICES emptied for the first) -> $OUT/step_fused_{off,on}.json, ~3 minutes (issue 27)
 #   round23: the cuda tests of the PSF op, the decoder join and the networks, then batch-1 latency, the camera alone,
 #           the training step and the joins, as the code stands -> $OUT/*.json, *.txt, ~5 minutes (issue 27)
+#   bn:     the fused batch norm + ReLU's cuda tests (and the networks', the bitwise-repeat training test), then the
+#           step with torch's batch norm and ReLU (dsunet.norm_relu replaced) and with the op, the latter profiled
+#           -> $OUT/step_bn_{off,on}.json, bn_profile.tar.gz, ~6 minutes (issue 27)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -83,6 +86,24 @@ sys.argv = ["bench_train_bound.py"] + sys.argv[2:]
 runpy.run_path("tools/bench_train_bound.py", run_name="__main__")
 PY
   done
+fi
+if [ "${1:-}" = bn ]; then
+  cuda_tests bn_cuda_tests 240 tests/ops/test_batchnorm.py tests/ops/test_custom_ops.py tests/models \
+    tests/train/test_training.py
+  for fused in off on; do
+    profile=()
+    [ "$fused" = on ] && profile=(--profile /tmp/bn_profile)
+    python - "$fused" --config camvid_codesign --steps 60 --json "$OUT/step_bn_$fused.json" "${profile[@]}" \
+      <<'PY' 2>&1 | grep -v Warning
+import runpy, sys
+import warpsense.models.dsunet as dsunet
+if sys.argv[1] == "off":
+    dsunet.norm_relu = lambda norm, x: dsunet.F.relu(norm(x))
+sys.argv = ["bench_train_bound.py"] + sys.argv[2:]
+runpy.run_path("tools/bench_train_bound.py", run_name="__main__")
+PY
+  done
+  tar czf "$OUT/bn_profile.tar.gz" -C /tmp bn_profile
 fi
 if [ "${1:-}" = round23 ]; then
   cuda_tests cuda_tests 300 tests/ops/test_psf.py tests/ops/test_upsample.py tests/ops/test_custom_ops.py tests/models

@@ -7,11 +7,28 @@ from torch import nn
 from torch.nn import functional as F
 
 from warpsense.models.resample import adaptive_pool, resize
-from warpsense.ops import upsample_concat
+from warpsense.ops import batch_norm_relu, upsample_concat
 
 FUSED_DEVICES = ("cuda",)
-"""Devices where a channels-last network joins its decoder's upsampling and skips with `upsample_concat` (Warp's CPU
-backend runs a kernel on one thread, where torch's ops use every core)."""
+"""Devices where a channels-last network joins its decoder's upsampling and skips with `upsample_concat` and runs
+its training-mode batch norms with their ReLU as `batch_norm_relu` (Warp's CPU backend runs a kernel on one thread,
+where torch's ops use every core)."""
+
+
+def norm_relu(norm: nn.BatchNorm2d, x: torch.Tensor) -> torch.Tensor:
+    """``F.relu(norm(x))``. In training mode over channels-last x (bfloat16, float32 or float64, an even number of
+    channels) on a `FUSED_DEVICES` device, an nn.BatchNorm2d with affine parameters, running statistics and a fixed
+    momentum runs with its ReLU as one op (`batch_norm_relu`, equal up to float rounding, deterministic; the running
+    statistics and ``num_batches_tracked`` move as torch moves them). Torch's channels-last batch norm and ReLU were
+    ~13 ms of a 48 ms training step on an H100 (docs/benchmarks.md, round 24)."""
+    if (x.device.type in FUSED_DEVICES and norm.training and type(norm) is nn.BatchNorm2d and norm.affine
+            and norm.track_running_stats and norm.momentum is not None and x.dim() == 4 and x.shape[1] % 2 == 0
+            and x.dtype in (torch.bfloat16, torch.float32, torch.float64)
+            and x.is_contiguous(memory_format=torch.channels_last)):
+        norm.num_batches_tracked.add_(1)
+        return batch_norm_relu(x, norm.weight, norm.bias, norm.running_mean, norm.running_var, norm.momentum,
+                               norm.eps)
+    return F.relu(norm(x))
 
 
 class SqueezeExcitation(nn.Module):
@@ -42,8 +59,8 @@ class SeparableBlock(nn.Module):
         self.residual = stride == 1 and in_channels == out_channels
 
     def forward(self, x):
-        y = F.relu(self.norm1(self.depthwise(x)))
-        y = self.squeeze(F.relu(self.norm2(self.pointwise(y))))
+        y = norm_relu(self.norm1, self.depthwise(x))
+        y = self.squeeze(norm_relu(self.norm2, self.pointwise(y)))
         return x + y if self.residual else y
 
 
@@ -211,7 +228,8 @@ class DSUNet(nn.Module):
     def encode_high(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The features at full and half resolution (s1, s2) from the padded input; the rest of the UNet (1/4 to
         1/16 and the decoder) is shared with the networks built on this one."""
-        s1 = self.enc1(self.stem(raw))
+        convolution, norm, _ = self.stem  # conv, BN, ReLU (a Sequential for its checkpoint keys)
+        s1 = self.enc1(norm_relu(norm, convolution(raw)))
         s2 = self.down2(s1)
         if self.tile == 2:
             s2 = self.mix2(torch.cat([s2, F.pixel_unshuffle(raw, 2)], dim=1))

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from warpsense.models.dsunet import DSUNet, SeparableBlock, Stage, build_context, build_input_transform
+from warpsense.models.dsunet import DSUNet, SeparableBlock, Stage, build_context, build_input_transform, norm_relu
 
 
 class ConvBlock(nn.Module):
@@ -25,7 +25,7 @@ class ConvBlock(nn.Module):
         self.residual = stride == 1 and in_channels == out_channels
 
     def forward(self, x):
-        y = F.relu(self.norm(self.conv(x)))
+        y = norm_relu(self.norm, self.conv(x))
         return x + y if self.residual else y
 
 

@@ -1,6 +1,7 @@
-"""Differentiable camera ops, the training loss's edge-aware smoothness and the decoder's upsampling: Warp kernels
-registered into torch autograd (functional API, docs/references.md)."""
+"""Differentiable camera ops, the training loss's edge-aware smoothness, the decoder's upsampling and the network's
+batch norm + ReLU: Warp kernels registered into torch autograd (functional API, docs/references.md)."""
 
+from warpsense.ops.batchnorm import batch_norm_relu
 from warpsense.ops.cfa import cfa_mosaic
 from warpsense.ops.exposure import exposure, exposure_gain
 from warpsense.ops.noise import poisson_gaussian, poisson_gaussian_exact
@@ -10,6 +11,6 @@ from warpsense.ops.smoothness import edge_aware_smoothness
 from warpsense.ops.upsample import upsample_concat
 
 __all__ = [
-    "cfa_mosaic", "edge_aware_smoothness", "exposure", "exposure_gain", "poisson_gaussian",
+    "batch_norm_relu", "cfa_mosaic", "edge_aware_smoothness", "exposure", "exposure_gain", "poisson_gaussian",
     "poisson_gaussian_exact", "psf_conv", "quantize_ste", "upsample_concat", "PSF_METHODS", "QUANTIZE_MODES",
 ]

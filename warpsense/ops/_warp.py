@@ -95,16 +95,23 @@ def scalar_tensor(value: float | torch.Tensor, like: torch.Tensor) -> torch.Tens
     return torch.full((1,), float(value), device=like.device, dtype=like.dtype)
 
 
+def kernel_scalar(value: float, dtype: torch.dtype):
+    """``value`` as the Warp scalar of ``dtype`` (float32 or float64), for kernel arguments typed like the arrays'
+    elements (a Python float would select float32)."""
+    return (wp.float64 if dtype == torch.float64 else wp.float32)(value)
+
+
 OP_NAMESPACE = "warpsense"
 
 
-def warp_op(name: str, fake, backward=None, setup_context=None):
+def warp_op(name: str, fake, backward=None, setup_context=None, mutates_args: tuple[str, ...] = ()):
     """Decorator: register ``function`` (type-annotated, returns new tensors) as the custom op
     ``warpsense::<name>`` with the fake implementation ``fake`` and, optionally, its autograd formula
-    (``backward(ctx, *grads)`` and ``setup_context(ctx, inputs, output)``, as for `torch.library.register_autograd`)."""
+    (``backward(ctx, *grads)`` and ``setup_context(ctx, inputs, output)``, as for `torch.library.register_autograd`).
+    ``mutates_args`` names the tensor arguments the op writes in place (a batch norm's running statistics)."""
 
     def register(function):
-        op = torch.library.custom_op(f"{OP_NAMESPACE}::{name}", function, mutates_args=())
+        op = torch.library.custom_op(f"{OP_NAMESPACE}::{name}", function, mutates_args=mutates_args)
         op.register_fake(fake)
         if backward is not None:
             op.register_autograd(backward, setup_context=setup_context)

@@ -147,3 +147,9 @@ def upsample_concat_reference(x: torch.Tensor, skip: torch.Tensor) -> torch.Tens
     then skip [B, C2, 2h, 2w] appended along the channels."""
     up = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
     return torch.cat([up, skip], dim=1)
+
+
+def batch_norm_relu_reference(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, running_mean: torch.Tensor,
+                              running_var: torch.Tensor, momentum: float = 0.1, eps: float = 1e-5) -> torch.Tensor:
+    """`warpsense.ops.batch_norm_relu` in plain torch: batch norm with batch statistics (training mode), then ReLU."""
+    return F.relu(F.batch_norm(x, running_mean, running_var, weight, bias, training=True, momentum=momentum, eps=eps))
