@@ -11,11 +11,10 @@ torch.nn.functional.batch_norm followed by relu, docs/references.md). The backwa
 
 The ReLU's mask is recomputed from x (the same `affine` as the forward's), so neither y nor a mask is stored.
 
-Layout: each thread owns LANES = 8 neighbouring channels (8q .. 8q + 7) and walks the rows g, g + G, g + 2G, ... of
-x [R, C], so a warp's loads are one contiguous run of memory. bfloat16 data comes as int32 words [R, C / 2] and a
-thread's 8 channels of a row are one 16-byte load (`load_octet`; Warp's own bfloat16 loads are 2 bytes each, and
-4-byte loads of channel pairs left the reductions at a quarter of an H200's bandwidth); float32 and float64 data
-as [R, C], C a multiple of 8. Arithmetic is float32 for bfloat16 and float32, float64 for float64. The reductions write
+Layout: each thread owns a pair of channels (2p, 2p + 1) and walks the rows g, g + G, g + 2G, ... of x [R, C], so a
+warp's loads are one contiguous run of memory. bfloat16 data comes as int32 words [R, C / 2], one pair per 4-byte
+load (two bfloat16 loads would halve the bytes per instruction: torch's kernels load 8 at once); float32 and
+float64 data as [R, C]. Arithmetic is float32 for bfloat16 and float32, float64 for float64. The reductions write
 one partial sum per row group [G, 2, C] in a fixed order (the op adds them up): deterministic, no atomics. The
 statistics sum x - x[0] (a shift inside the data's range keeps E[x^2] - E[x]^2 from cancelling).
 """
@@ -26,94 +25,76 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-LANES = 8  # channels per thread: one 16-byte load of bfloat16
-UNROLL = 2  # rows a thread loads before it uses them
+UNROLL = 4  # rows a thread loads before it uses them: four loads in flight per thread
 
-octet32 = wp.types.vector(length=LANES, dtype=wp.float32)
-octet64 = wp.types.vector(length=LANES, dtype=wp.float64)
 
-# bit casts between float32 and its 32 bits, and 16-byte accesses: CUDA's intrinsics and vector types on the GPU,
-# memcpy (the defined form) on the CPU
-_NATIVE = """
+# bit casts between float32 and its 32 bits: CUDA's intrinsics on the GPU, memcpy (the defined form) on the CPU
+_BITS = """
 #if defined(__CUDA_ARCH__)
 #define WS_FLOAT_BITS(f) __float_as_uint(f)
 #define WS_BITS_FLOAT(u) __uint_as_float(u)
-#define WS_LOAD16(words, p) { const int4 w = *reinterpret_cast<const int4*>(p); \\
-    words[0] = (unsigned int)w.x; words[1] = (unsigned int)w.y; words[2] = (unsigned int)w.z; words[3] = (unsigned int)w.w; }
-#define WS_STORE16(p, words) { *reinterpret_cast<int4*>(p) = make_int4((int)words[0], (int)words[1], (int)words[2], (int)words[3]); }
 #else
 #define WS_FLOAT_BITS(f) ([](float v) { unsigned int u; __builtin_memcpy(&u, &v, 4); return u; }(f))
 #define WS_BITS_FLOAT(u) ([](unsigned int v) { float f; __builtin_memcpy(&f, &v, 4); return f; }(u))
-#define WS_LOAD16(words, p) __builtin_memcpy(words, p, 16)
-#define WS_STORE16(p, words) __builtin_memcpy(p, words, 16)
 #endif
 """
 
 
-@wp.func_native(_NATIVE + """unsigned int words[4];
-WS_LOAD16(words, wp::address(x, r, 4 * q));
-wp::vec_t<8, float> value;
-for (int i = 0; i < 4; ++i) {
-    value.c[2 * i] = WS_BITS_FLOAT(words[i] << 16u);              // the low half: the first channel (little-endian)
-    value.c[2 * i + 1] = WS_BITS_FLOAT(words[i] & 0xFFFF0000u);
+@wp.func_native(_BITS + "return WS_BITS_FLOAT(((unsigned int)word) << 16u);")
+def bf16_low(word: wp.int32) -> float:
+    """The bfloat16 in the low half of ``word`` (the pair's first channel, little-endian), as float32."""
+    ...
+
+
+@wp.func_native(_BITS + "return WS_BITS_FLOAT(((unsigned int)word) & 0xFFFF0000u);")
+def bf16_high(word: wp.int32) -> float:
+    """The bfloat16 in the high half of ``word`` (the pair's second channel), as float32."""
+    ...
+
+
+@wp.func_native(_BITS + """unsigned int bits[2] = {WS_FLOAT_BITS(low), WS_FLOAT_BITS(high)};
+for (int i = 0; i < 2; ++i) {
+    if ((bits[i] & 0x7FFFFFFFu) > 0x7F800000u) bits[i] = 0x7FC00000u;  // NaN stays NaN
+    else bits[i] += 0x7FFFu + ((bits[i] >> 16u) & 1u);                 // round to nearest, ties to even
 }
-return value;""")
-def load_octet(x: wp.array2d(dtype=wp.int32), r: int, q: int) -> octet32:
-    """Channels 8q .. 8q + 7 of row r of bfloat16 data (as int32 words [R, C / 2]), as float32: one 16-byte load."""
+return (int)((bits[1] & 0xFFFF0000u) | (bits[0] >> 16u));""")
+def bf16_pair(low: float, high: float) -> wp.int32:
+    """Two float32 values rounded to bfloat16 (nearest, ties to even, as torch's casts) and packed into one word."""
     ...
 
 
 @wp.func
-def load_octet(x: wp.array2d(dtype=wp.float32), r: int, q: int):  # noqa: F811  - overloads by the array's dtype
-    value = octet32()
-    for i in range(LANES):
-        value[i] = x[r, LANES * q + i]
-    return value
+def load_pair(x: wp.array2d(dtype=wp.int32), r: int, p: int):
+    """Channels 2p and 2p + 1 of row r, in the arithmetic type."""
+    word = x[r, p]
+    return wp.vec2f(bf16_low(word), bf16_high(word))
 
 
 @wp.func
-def load_octet(x: wp.array2d(dtype=wp.float64), r: int, q: int):  # noqa: F811
-    value = octet64()
-    for i in range(LANES):
-        value[i] = x[r, LANES * q + i]
-    return value
-
-
-@wp.func_native(_NATIVE + """unsigned int words[4];
-for (int i = 0; i < 4; ++i) {
-    unsigned int bits[2] = {WS_FLOAT_BITS(value.c[2 * i]), WS_FLOAT_BITS(value.c[2 * i + 1])};
-    for (int k = 0; k < 2; ++k) {
-        if ((bits[k] & 0x7FFFFFFFu) > 0x7F800000u) bits[k] = 0x7FC00000u;  // NaN stays NaN
-        else bits[k] += 0x7FFFu + ((bits[k] >> 16u) & 1u);                 // round to nearest, ties to even
-    }
-    words[i] = (bits[1] & 0xFFFF0000u) | (bits[0] >> 16u);
-}
-WS_STORE16(wp::address(y, r, 4 * q), words);""")
-def store_octet(y: wp.array2d(dtype=wp.int32), r: int, q: int, value: octet32):
-    """Channels 8q .. 8q + 7 of row r, rounded to bfloat16 (nearest, ties to even, as torch's casts): one 16-byte
-    store."""
-    ...
+def load_pair(x: wp.array2d(dtype=wp.float32), r: int, p: int):  # noqa: F811  - overloads by the array's dtype
+    return wp.vec2f(x[r, 2 * p], x[r, 2 * p + 1])
 
 
 @wp.func
-def store_octet(y: wp.array2d(dtype=wp.float32), r: int, q: int, value: octet32):  # noqa: F811
-    for i in range(LANES):
-        y[r, LANES * q + i] = value[i]
+def load_pair(x: wp.array2d(dtype=wp.float64), r: int, p: int):  # noqa: F811
+    return wp.vec2d(x[r, 2 * p], x[r, 2 * p + 1])
 
 
 @wp.func
-def store_octet(y: wp.array2d(dtype=wp.float64), r: int, q: int, value: octet64):  # noqa: F811
-    for i in range(LANES):
-        y[r, LANES * q + i] = value[i]
+def store_pair(y: wp.array2d(dtype=wp.int32), r: int, p: int, value: wp.vec2f):
+    y[r, p] = bf16_pair(value[0], value[1])
 
 
 @wp.func
-def octet_of(table: wp.array2d(dtype=Any), row: int, q: int, zero: Any):
-    """Channels 8q .. 8q + 7 of one row of a per-channel table [rows, C], typed like ``zero``."""
-    value = zero
-    for i in range(LANES):
-        value[i] = table[row, LANES * q + i]
-    return value
+def store_pair(y: wp.array2d(dtype=wp.float32), r: int, p: int, value: wp.vec2f):  # noqa: F811
+    y[r, 2 * p] = value[0]
+    y[r, 2 * p + 1] = value[1]
+
+
+@wp.func
+def store_pair(y: wp.array2d(dtype=wp.float64), r: int, p: int, value: wp.vec2d):  # noqa: F811
+    y[r, 2 * p] = value[0]
+    y[r, 2 * p + 1] = value[1]
 
 
 @wp.func
@@ -126,53 +107,61 @@ def affine(value: Any, mean: Any, scale: Any, bias: Any):
 @wp.func
 def relu_mask(value: Any, z: Any):
     """``value`` where z > 0, else 0, per channel."""
-    masked = value
-    for i in range(LANES):
-        if not z[i] > type(z[i])(0.0):
-            masked[i] = type(z[i])(0.0)
-    return masked
+    zero = type(z[0])(0.0)
+    return type(value)(wp.where(z[0] > zero, value[0], zero), wp.where(z[1] > zero, value[1], zero))
 
 
 @wp.func
-def octet_thread(t: int, octets: int):
-    """Thread t of a one-dimensional launch -> (row group, channel octet); octets fastest."""
-    return t / octets, t % octets
+def pair_thread(t: int, pairs: int):
+    """Thread t of a one-dimensional launch -> (row group, channel pair); pairs fastest."""
+    return t / pairs, t % pairs
 
 
 @wp.func
-def write_partials(partials: wp.array3d(dtype=Any), group: int, q: int, first: Any, second: Any):
-    for i in range(LANES):
-        partials[group, 0, LANES * q + i] = first[i]
-        partials[group, 1, LANES * q + i] = second[i]
+def write_partials(partials: wp.array3d(dtype=Any), group: int, p: int, first: Any, second: Any):
+    partials[group, 0, 2 * p] = first[0]
+    partials[group, 0, 2 * p + 1] = first[1]
+    partials[group, 1, 2 * p] = second[0]
+    partials[group, 1, 2 * p + 1] = second[1]
 
 
 @wp.func
-def load_rows(x: wp.array2d(dtype=Any), start: int, groups: int, q: int, zero: Any):
-    """Channels 8q .. 8q + 7 of rows start + u groups, u < UNROLL, as the rows of a matrix, all loaded before any
-    is used; rows past the end read as 0. ``zero`` is a zero octet of the arithmetic type."""
-    rows = wp.matrix(shape=(wp.static(UNROLL), wp.static(LANES)), dtype=type(zero[0]))
+def load_rows(x: wp.array2d(dtype=Any), start: int, groups: int, p: int, zero: Any):
+    """Channels 2p and 2p + 1 of rows start + u groups, u < UNROLL, all loaded before any is used; rows past the
+    end read as 0. ``zero`` is a zero pair of the arithmetic type."""
+    v = wp.vector(length=wp.static(2 * UNROLL), dtype=type(zero[0]))
     for u in range(wp.static(UNROLL)):
         r = start + u * groups
         if r < x.shape[0]:
-            rows[u] = load_octet(x, r, q)
-    return rows
+            value = load_pair(x, r, p)
+            v[2 * u] = value[0]
+            v[2 * u + 1] = value[1]
+    return v
+
+
+@wp.func
+def pair_at(v: Any, u: int, zero: Any):
+    """Row u's pair of a `load_rows` vector."""
+    return type(zero)(v[2 * u], v[2 * u + 1])
 
 
 @wp.kernel
-def batch_sums(x: wp.array2d(dtype=Any), octets: int, groups: int, partials: wp.array3d(dtype=Any)):
+def batch_sums(x: wp.array2d(dtype=Any), pairs: int, groups: int, partials: wp.array3d(dtype=Any)):
     """partials[g, 0] = sum (x - x[0]), partials[g, 1] = sum (x - x[0])^2 over row group g's rows."""
-    group, q = octet_thread(wp.tid(), octets)
-    shift = load_octet(x, 0, q)
-    first = shift - shift
-    second = shift - shift
+    group, p = pair_thread(wp.tid(), pairs)
+    shift = load_pair(x, 0, p)
+    zero = shift - shift
+    first = zero
+    second = zero
     for start in range(group, x.shape[0], groups * UNROLL):
-        rows = load_rows(x, start, groups, q, first)
+        v = load_rows(x, start, groups, p, zero)
         for u in range(wp.static(UNROLL)):
-            if start + u * groups < x.shape[0]:
-                value = rows[u] - shift
+            r = start + u * groups
+            if r < x.shape[0]:
+                value = pair_at(v, u, zero) - shift
                 first += value
                 second += wp.cw_mul(value, value)
-    write_partials(partials, group, q, first, second)
+    write_partials(partials, group, p, first, second)
 
 
 @wp.kernel
@@ -183,7 +172,7 @@ def batch_statistics(x: wp.array2d(dtype=Any), sums: wp.array2d(dtype=Any), weig
     c = wp.tid()
     count = type(sums[0, c])(x.shape[0])
     shifted = sums[0, c] / count
-    mean = load_octet(x, 0, c / LANES)[c % LANES] + shifted
+    mean = load_pair(x, 0, c / 2)[c % 2] + shifted
     var = wp.max(sums[1, c] / count - shifted * shifted, type(count)(0.0))
     invstd = type(count)(1.0) / wp.sqrt(var + eps)
     scale = weight[c] * invstd
@@ -206,53 +195,48 @@ def update_running(stats: wp.array2d(dtype=Any), rows: int, momentum: Any, runni
 
 
 @wp.func
-def zero_like(table: wp.array2d(dtype=wp.float32)):
-    """The zero octet of a table's arithmetic type."""
-    return octet32()
-
-
-@wp.func
-def zero_like(table: wp.array2d(dtype=wp.float64)):  # noqa: F811
-    return octet64()
+def pair_of(stats: wp.array2d(dtype=Any), row: int, p: int):
+    """Channels 2p and 2p + 1 of row ``row`` of a per-channel table [rows, C]."""
+    return wp.vector(stats[row, 2 * p], stats[row, 2 * p + 1])
 
 
 @wp.kernel
-def normalize_relu(x: wp.array2d(dtype=Any), octets: int, groups: int, stats: wp.array2d(dtype=Any),
+def normalize_relu(x: wp.array2d(dtype=Any), pairs: int, groups: int, stats: wp.array2d(dtype=Any),
                    y: wp.array2d(dtype=Any)):
     """y = max(a (x - mean) + bias, 0) for row group g's rows."""
-    group, q = octet_thread(wp.tid(), octets)
-    zero = zero_like(stats)
-    mean = octet_of(stats, 0, q, zero)
-    scale = octet_of(stats, 2, q, zero)
-    bias = octet_of(stats, 3, q, zero)
+    group, p = pair_thread(wp.tid(), pairs)
+    mean = pair_of(stats, 0, p)
+    scale = pair_of(stats, 2, p)
+    bias = pair_of(stats, 3, p)
+    zero = scale - scale
     for start in range(group, x.shape[0], groups * UNROLL):
-        rows = load_rows(x, start, groups, q, zero)
+        v = load_rows(x, start, groups, p, zero)
         for u in range(wp.static(UNROLL)):
             r = start + u * groups
             if r < x.shape[0]:
-                store_octet(y, r, q, wp.max(affine(rows[u], mean, scale, bias), zero))
+                store_pair(y, r, p, wp.max(affine(pair_at(v, u, zero), mean, scale, bias), zero))
 
 
 @wp.kernel
-def gradient_sums(grad_y: wp.array2d(dtype=Any), x: wp.array2d(dtype=Any), octets: int, groups: int,
+def gradient_sums(grad_y: wp.array2d(dtype=Any), x: wp.array2d(dtype=Any), pairs: int, groups: int,
                   stats: wp.array2d(dtype=Any), partials: wp.array3d(dtype=Any)):
     """partials[g, 0] = sum g, partials[g, 1] = sum g (x - mean) over row group g's rows (g: dy through the ReLU)."""
-    group, q = octet_thread(wp.tid(), octets)
-    zero = zero_like(stats)
-    mean = octet_of(stats, 0, q, zero)
-    scale = octet_of(stats, 2, q, zero)
-    bias = octet_of(stats, 3, q, zero)
+    group, p = pair_thread(wp.tid(), pairs)
+    mean = pair_of(stats, 0, p)
+    scale = pair_of(stats, 2, p)
+    bias = pair_of(stats, 3, p)
+    zero = mean - mean
     first = zero
     second = zero
     for start in range(group, x.shape[0], groups * UNROLL):
-        rows = load_rows(x, start, groups, q, zero)
-        grads = load_rows(grad_y, start, groups, q, zero)
+        v = load_rows(x, start, groups, p, zero)
+        d = load_rows(grad_y, start, groups, p, zero)
         for u in range(wp.static(UNROLL)):
-            value = rows[u]
-            g = relu_mask(grads[u], affine(value, mean, scale, bias))  # rows past the end: dy = 0
+            value = pair_at(v, u, zero)
+            g = relu_mask(pair_at(d, u, zero), affine(value, mean, scale, bias))  # rows past the end: d = 0
             first += g
             second += wp.cw_mul(g, value - mean)
-    write_partials(partials, group, q, first, second)
+    write_partials(partials, group, p, first, second)
 
 
 @wp.kernel
@@ -270,25 +254,25 @@ def gradient_coefficients(sums: wp.array2d(dtype=Any), rows: int, stats: wp.arra
 
 
 @wp.kernel
-def gradient_input(grad_y: wp.array2d(dtype=Any), x: wp.array2d(dtype=Any), octets: int, groups: int,
+def gradient_input(grad_y: wp.array2d(dtype=Any), x: wp.array2d(dtype=Any), pairs: int, groups: int,
                    stats: wp.array2d(dtype=Any), coefficients: wp.array2d(dtype=Any), grad_x: wp.array2d(dtype=Any)):
     """dx = a g + k1 (x - mean) + k0 for row group g's rows."""
-    group, q = octet_thread(wp.tid(), octets)
-    zero = zero_like(stats)
-    mean = octet_of(stats, 0, q, zero)
-    scale = octet_of(stats, 2, q, zero)
-    bias = octet_of(stats, 3, q, zero)
-    k1 = octet_of(coefficients, 0, q, zero)
-    k0 = octet_of(coefficients, 1, q, zero)
+    group, p = pair_thread(wp.tid(), pairs)
+    mean = pair_of(stats, 0, p)
+    scale = pair_of(stats, 2, p)
+    bias = pair_of(stats, 3, p)
+    k1 = pair_of(coefficients, 0, p)
+    k0 = pair_of(coefficients, 1, p)
+    zero = mean - mean
     for start in range(group, x.shape[0], groups * UNROLL):
-        rows = load_rows(x, start, groups, q, zero)
-        grads = load_rows(grad_y, start, groups, q, zero)
+        v = load_rows(x, start, groups, p, zero)
+        d = load_rows(grad_y, start, groups, p, zero)
         for u in range(wp.static(UNROLL)):
             r = start + u * groups
             if r < x.shape[0]:
-                value = rows[u]
-                g = relu_mask(grads[u], affine(value, mean, scale, bias))
-                store_octet(grad_x, r, q, wp.cw_mul(scale, g) + wp.cw_mul(k1, value - mean) + k0)
+                value = pair_at(v, u, zero)
+                g = relu_mask(pair_at(d, u, zero), affine(value, mean, scale, bias))
+                store_pair(grad_x, r, p, wp.cw_mul(scale, g) + wp.cw_mul(k1, value - mean) + k0)
 
 
 for _data, _float in ((wp.int32, wp.float32), (wp.float32, wp.float32), (wp.float64, wp.float64)):

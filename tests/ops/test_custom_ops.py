@@ -21,10 +21,10 @@ def _seeds(batch):
 
 
 CASES = {
-    "batch_norm_relu": (batchnorm._batch_norm_relu, lambda: (_rand(30, 8), _rand(8), _rand(8), 1e-5)),
+    "batch_norm_relu": (batchnorm._batch_norm_relu, lambda: (_rand(30, 4), _rand(4), _rand(4), 1e-5)),
     "batch_norm_update_running": (batchnorm._update_running,
-                                  lambda: (_rand(5, 8, grad=False), 30, 0.1, _rand(8, grad=False),
-                                           _rand(8, grad=False))),
+                                  lambda: (_rand(5, 4, grad=False), 30, 0.1, _rand(4, grad=False),
+                                           _rand(4, grad=False))),
     "cfa_mosaic": (cfa._cfa_mosaic, lambda: (_rand(2, 3, 5, 6), _rand(2, 2, 3))),
     "poisson_gaussian": (noise._poisson_gaussian,
                          lambda: (_rand(2, 1, 4, 5), _rand(1) * 0.1, _rand(1) * 0.1, _seeds(2), 0)),
@@ -45,7 +45,7 @@ CASES = {
 # the backward ops, with the forward inputs (no grad) and a gradient of the forward output's shape
 BACKWARD_CASES = {
     "batch_norm_relu_backward": (batchnorm._batch_norm_relu_backward,
-                                 lambda: (_rand(30, 8), _rand(30, 8), _rand(5, 8))),
+                                 lambda: (_rand(30, 4), _rand(30, 4), _rand(5, 4))),
     "cfa_mosaic_backward": (cfa._cfa_mosaic_backward,
                             lambda: (_rand(2, 3, 5, 6), _rand(2, 2, 3), _rand(2, 1, 5, 6), True)),
     "poisson_gaussian_backward": (noise._poisson_gaussian_backward,

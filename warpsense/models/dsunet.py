@@ -16,13 +16,13 @@ where torch's ops use every core)."""
 
 
 def norm_relu(norm: nn.BatchNorm2d, x: torch.Tensor) -> torch.Tensor:
-    """``F.relu(norm(x))``. In training mode over channels-last x (bfloat16, float32 or float64, a multiple of 8
+    """``F.relu(norm(x))``. In training mode over channels-last x (bfloat16, float32 or float64, an even number of
     channels) on a `FUSED_DEVICES` device, an nn.BatchNorm2d with affine parameters, running statistics and a fixed
     momentum runs with its ReLU as one op (`batch_norm_relu`, equal up to float rounding, deterministic; the running
     statistics and ``num_batches_tracked`` move as torch moves them). Torch's channels-last batch norm and ReLU were
     ~13 ms of a 48 ms training step on an H100 (docs/benchmarks.md, round 24)."""
     if (x.device.type in FUSED_DEVICES and norm.training and type(norm) is nn.BatchNorm2d and norm.affine
-            and norm.track_running_stats and norm.momentum is not None and x.dim() == 4 and x.shape[1] % 8 == 0
+            and norm.track_running_stats and norm.momentum is not None and x.dim() == 4 and x.shape[1] % 2 == 0
             and x.dtype in (torch.bfloat16, torch.float32, torch.float64)
             and x.is_contiguous(memory_format=torch.channels_last)):
         norm.num_batches_tracked.add_(1)

@@ -15,20 +15,15 @@ _CPU_GROUPS = 16  # Warp's CPU backend runs a launch on one thread: few partial 
 
 
 def _words(tensor: torch.Tensor) -> torch.Tensor:
-    """bfloat16 [R, C] as the int32 words [R, C / 2] the kernels load 8 channels from at once (16 bytes, which
-    must be aligned: a view at an odd offset is copied); other dtypes as they are."""
-    if tensor.dtype != torch.bfloat16:
-        return tensor
-    if tensor.data_ptr() % 16:
-        tensor = tensor.clone()
-    return tensor.view(torch.int32)
+    """bfloat16 [R, C] as the int32 words [R, C / 2] the kernels load a channel pair from; other dtypes as they are."""
+    return tensor.view(torch.int32) if tensor.dtype == torch.bfloat16 else tensor
 
 
-def _groups(rows: int, octets: int, device: torch.device) -> int:
-    """Row groups per launch (each thread walks one group's rows for 8 channels): enough threads to fill the
+def _groups(rows: int, pairs: int, device: torch.device) -> int:
+    """Row groups per launch (each thread walks one group's rows for one channel pair): enough threads to fill the
     device, each with at least 2 UNROLL rows, so that the partial sums [G, 2, C] stay small against x."""
     threads = _THREADS.get(device.type)
-    groups = threads // octets if threads else _CPU_GROUPS
+    groups = threads // pairs if threads else _CPU_GROUPS
     return max(1, min(groups, -(-rows // (2 * kernels.UNROLL))))
 
 
@@ -41,18 +36,18 @@ def _accumulator(dtype: torch.dtype) -> torch.dtype:
 def _batch_norm_relu_backward(grad_y: torch.Tensor, x: torch.Tensor,
                               stats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     rows, channels = x.shape
-    octets = channels // kernels.LANES
-    groups = _groups(rows, octets, x.device)
+    pairs = channels // 2
+    groups = _groups(rows, pairs, x.device)
     partials = stats.new_empty(groups, 2, channels)
-    launch(kernels.gradient_sums, groups * octets, [_words(grad_y), _words(x), octets, groups, stats, partials],
+    launch(kernels.gradient_sums, groups * pairs, [_words(grad_y), _words(x), pairs, groups, stats, partials],
            x.device)
     grad_affine = stats.new_empty(2, channels)
     coefficients = stats.new_empty(2, channels)
     launch(kernels.gradient_coefficients, channels, [partials.sum(0), rows, stats, grad_affine, coefficients],
            x.device)
     grad_x = torch.empty_like(x)
-    launch(kernels.gradient_input, groups * octets,
-           [_words(grad_y), _words(x), octets, groups, stats, coefficients, _words(grad_x)], x.device)
+    launch(kernels.gradient_input, groups * pairs,
+           [_words(grad_y), _words(x), pairs, groups, stats, coefficients, _words(grad_x)], x.device)
     return grad_x, grad_affine
 
 
@@ -75,15 +70,15 @@ def _fake(x, weight, bias, eps):
 def _batch_norm_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor,
                      eps: float) -> tuple[torch.Tensor, torch.Tensor]:
     rows, channels = x.shape
-    octets = channels // kernels.LANES
-    groups = _groups(rows, octets, x.device)
+    pairs = channels // 2
+    groups = _groups(rows, pairs, x.device)
     data = _words(x)
     partials = weight.new_empty(groups, 2, channels)
-    launch(kernels.batch_sums, groups * octets, [data, octets, groups, partials], x.device)
+    launch(kernels.batch_sums, groups * pairs, [data, pairs, groups, partials], x.device)
     stats = weight.new_empty(5, channels)  # mean, 1 / sqrt(var + eps), a, bias, var
     launch(kernels.batch_statistics, channels, [data, partials.sum(0), weight, bias, kernel_scalar(eps, weight.dtype), stats], x.device)
     y = torch.empty_like(x)
-    launch(kernels.normalize_relu, groups * octets, [data, octets, groups, stats, _words(y)], x.device)
+    launch(kernels.normalize_relu, groups * pairs, [data, pairs, groups, stats, _words(y)], x.device)
     return y, stats
 
 
@@ -103,7 +98,7 @@ def batch_norm_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, r
     float rounding; the running statistics move the same way (``running_var`` towards the unbiased variance).
 
     Args:
-        x: [B, C, H, W] activations, C a multiple of 8, B H W > 1.
+        x: [B, C, H, W] activations, C even, B H W > 1.
         weight, bias: [C] affine parameters (gamma, beta).
         running_mean, running_var: [C] running statistics, updated in place; float64 for float64 x, else float32.
         momentum: the running statistics' update rate in [0, 1] (torch's BatchNorm momentum).
@@ -117,9 +112,9 @@ def batch_norm_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, r
     op = "batch_norm_relu"
     check_tensor(op, "x", x, 4, "[B, C, H, W] tensor")
     batch, channels, height, width = x.shape
-    if channels % kernels.LANES:
-        raise ValueError(f"{op}: x must have a multiple of {kernels.LANES} channels (the kernels read 8 at once), "
-                         f"got {channels}")
+    if channels % 2:
+        raise ValueError(f"{op}: x must have an even number of channels (the kernels read them in pairs), got "
+                         f"{channels}")
     if batch * height * width < 2:
         raise ValueError(f"{op}: batch statistics need more than one value per channel, got x {tuple(x.shape)}")
     if not 0.0 <= momentum <= 1.0 or not eps > 0.0:
