@@ -10,7 +10,7 @@ from warpsense.ops._warp import kernel_scalar, launch, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
 
 _DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' element types; others compute in float32
-_THREADS = {"cuda": 2**18}  # threads per reduction launch: enough loads in flight to fill an H100's memory system
+_THREADS = {"cuda": 2**17}  # threads per launch (tools/bench_batchnorm.py on an H200: 2^17 beat 2^16 and 2^18 at UNROLL 4)
 _CPU_GROUPS = 16  # Warp's CPU backend runs a launch on one thread: few partial sums
 
 
