@@ -207,9 +207,10 @@ def test_feature_deterministic_mode_takes_the_deterministic_resampling(name, mon
 
 @pytest.mark.parametrize("name", ["dsunet", "packunet"])
 def test_feature_fused_ops_are_the_torch_ones(name, monkeypatch):
-    """A channels-last network on a fused device joins its four decoder levels with `upsample_concat` and runs
-    every batch norm followed by a ReLU (all but the context module's) as `batch_norm_relu`: the same logits,
-    gradients and running statistics (float64) as torch's ops."""
+    """A channels-last network on a fused device joins its four decoder levels with `upsample_concat`, runs every
+    batch norm followed by a ReLU (all but the context module's) as `batch_norm_relu` and every squeeze-and-
+    excitation gate (with its block's residual) as `channel_gate`: the same logits, gradients and running
+    statistics (float64) as torch's ops."""
     from warpsense.models import dsunet
 
     torch.manual_seed(4)
@@ -220,14 +221,16 @@ def test_feature_fused_ops_are_the_torch_ones(name, monkeypatch):
     target = torch.randn(2, 4, 40, 56, dtype=torch.float64)
     monkeypatch.setattr(dsunet, "FUSED_DEVICES", ())
     reference_logits, reference_grads = logits_and_gradients(network, image, target)
-    joins, norms = [], []
-    fused_join, fused_norm = dsunet.upsample_concat, dsunet.batch_norm_relu
+    joins, norms, gates = [], [], []
+    fused_join, fused_norm, fused_gate = dsunet.upsample_concat, dsunet.batch_norm_relu, dsunet.channel_gate
     monkeypatch.setattr(dsunet, "upsample_concat", lambda x, skip: joins.append(x.shape) or fused_join(x, skip))
     monkeypatch.setattr(dsunet, "batch_norm_relu", lambda x, *args: norms.append(x.shape) or fused_norm(x, *args))
+    monkeypatch.setattr(dsunet, "channel_gate", lambda x, *args: gates.append(x.shape) or fused_gate(x, *args))
     monkeypatch.setattr(dsunet, "FUSED_DEVICES", ("cpu",))
     logits, grads = logits_and_gradients(fused_network, image, target)
     assert len(joins) == 4
     assert len(norms) == sum(isinstance(m, torch.nn.BatchNorm2d) for m in network.modules()) - 1
+    assert len(gates) == sum(isinstance(m, SqueezeExcitation) for m in network.modules()) > 0
     torch.testing.assert_close(logits, reference_logits, rtol=1e-10, atol=1e-12)
     for grad, reference in zip(grads, reference_grads):
         torch.testing.assert_close(grad, reference, rtol=1e-9, atol=1e-11)

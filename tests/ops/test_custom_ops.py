@@ -7,7 +7,7 @@ import torch
 from tests.conftest import device_params
 from warpsense.camera import Camera
 from warpsense.config import load_config
-from warpsense.ops import batchnorm, cfa, noise, psf, quantize, sensor, smoothness, upsample
+from warpsense.ops import batchnorm, cfa, gate, noise, psf, quantize, sensor, smoothness, upsample
 
 DOUBLE = dict(dtype=torch.float64)
 
@@ -25,6 +25,8 @@ CASES = {
     "batch_norm_update_running": (batchnorm._update_running,
                                   lambda: (_rand(5, 4, grad=False), 30, 0.1, _rand(4, grad=False),
                                            _rand(4, grad=False))),
+    "channel_gate": (gate._channel_gate, lambda: (_rand(2, 12, 4), _rand(2, 4), _rand(2, 12, 4))),
+    "channel_gate_no_residual": (gate._channel_gate, lambda: (_rand(2, 12, 4), _rand(2, 4), None)),
     "cfa_mosaic": (cfa._cfa_mosaic, lambda: (_rand(2, 3, 5, 6), _rand(2, 2, 3))),
     "poisson_gaussian": (noise._poisson_gaussian,
                          lambda: (_rand(2, 1, 4, 5), _rand(1) * 0.1, _rand(1) * 0.1, _seeds(2), 0)),
@@ -46,6 +48,7 @@ CASES = {
 BACKWARD_CASES = {
     "batch_norm_relu_backward": (batchnorm._batch_norm_relu_backward,
                                  lambda: (_rand(30, 4), _rand(30, 4), _rand(5, 4))),
+    "channel_gate_backward": (gate._channel_gate_backward, lambda: (_rand(2, 12, 4), _rand(2, 12, 4), _rand(2, 4))),
     "cfa_mosaic_backward": (cfa._cfa_mosaic_backward,
                             lambda: (_rand(2, 3, 5, 6), _rand(2, 2, 3), _rand(2, 1, 5, 6), True)),
     "poisson_gaussian_backward": (noise._poisson_gaussian_backward,

@@ -7,12 +7,21 @@ from torch import nn
 from torch.nn import functional as F
 
 from warpsense.models.resample import adaptive_pool, resize
-from warpsense.ops import batch_norm_relu, upsample_concat
+from warpsense.ops import batch_norm_relu, channel_gate, upsample_concat
 
 FUSED_DEVICES = ("cuda",)
-"""Devices where a channels-last network joins its decoder's upsampling and skips with `upsample_concat` and runs
-its training-mode batch norms with their ReLU as `batch_norm_relu` (Warp's CPU backend runs a kernel on one thread,
-where torch's ops use every core)."""
+"""Devices where a channels-last network joins its decoder's upsampling and skips with `upsample_concat`, runs its
+training-mode batch norms with their ReLU as `batch_norm_relu` and its squeeze-and-excitation gates with the
+blocks' residuals as `channel_gate` (Warp's CPU backend runs a kernel on one thread, where torch's ops use every
+core)."""
+
+
+def _fused(x: torch.Tensor) -> bool:
+    """Whether x can go through the fused ops: channels-last on a `FUSED_DEVICES` device, bfloat16, float32 or
+    float64, an even number of channels."""
+    return (x.device.type in FUSED_DEVICES and x.dim() == 4 and x.shape[1] % 2 == 0
+            and x.dtype in (torch.bfloat16, torch.float32, torch.float64)
+            and x.is_contiguous(memory_format=torch.channels_last))
 
 
 def norm_relu(norm: nn.BatchNorm2d, x: torch.Tensor) -> torch.Tensor:
@@ -21,10 +30,8 @@ def norm_relu(norm: nn.BatchNorm2d, x: torch.Tensor) -> torch.Tensor:
     momentum runs with its ReLU as one op (`batch_norm_relu`, equal up to float rounding, deterministic; the running
     statistics and ``num_batches_tracked`` move as torch moves them). Torch's channels-last batch norm and ReLU were
     ~13 ms of a 48 ms training step on an H100 (docs/benchmarks.md, round 24)."""
-    if (x.device.type in FUSED_DEVICES and norm.training and type(norm) is nn.BatchNorm2d and norm.affine
-            and norm.track_running_stats and norm.momentum is not None and x.dim() == 4 and x.shape[1] % 2 == 0
-            and x.dtype in (torch.bfloat16, torch.float32, torch.float64)
-            and x.is_contiguous(memory_format=torch.channels_last)):
+    if (norm.training and type(norm) is nn.BatchNorm2d and norm.affine and norm.track_running_stats
+            and norm.momentum is not None and _fused(x)):
         norm.num_batches_tracked.add_(1)
         return batch_norm_relu(x, norm.weight, norm.bias, norm.running_mean, norm.running_var, norm.momentum,
                                norm.eps)
@@ -32,7 +39,11 @@ def norm_relu(norm: nn.BatchNorm2d, x: torch.Tensor) -> torch.Tensor:
 
 
 class SqueezeExcitation(nn.Module):
-    """Channel attention (Hu et al. 2018): global pool -> bottleneck MLP -> sigmoid gate."""
+    """Channel attention (Hu et al. 2018): global pool -> bottleneck MLP -> sigmoid gate; with ``residual``, the
+    gated features plus it (the block's residual connection). Channels-last x (bfloat16, float32 or float64, an
+    even number of channels, a residual of the same dtype and layout) on a `FUSED_DEVICES` device takes the gate
+    and the residual in one pass forward and one backward (`channel_gate`, equal up to float rounding,
+    deterministic; torch's broadcast multiply, add and their backward, docs/benchmarks.md round 24)."""
 
     def __init__(self, channels: int, reduction: int = 4):
         super().__init__()
@@ -40,9 +51,11 @@ class SqueezeExcitation(nn.Module):
         self.reduce = nn.Conv2d(channels, hidden, 1)
         self.expand = nn.Conv2d(hidden, channels, 1)
 
-    def forward(self, x):
+    def forward(self, x, residual=None):
         gate = torch.sigmoid(self.expand(F.relu(self.reduce(x.mean(dim=(2, 3), keepdim=True)))))
-        return x * gate
+        if _fused(x) and (residual is None or (residual.dtype == x.dtype and _fused(residual))):
+            return channel_gate(x, gate, residual)
+        return x * gate if residual is None else residual + x * gate
 
 
 class SeparableBlock(nn.Module):
@@ -60,8 +73,11 @@ class SeparableBlock(nn.Module):
 
     def forward(self, x):
         y = norm_relu(self.norm1, self.depthwise(x))
-        y = self.squeeze(norm_relu(self.norm2, self.pointwise(y)))
-        return x + y if self.residual else y
+        y = norm_relu(self.norm2, self.pointwise(y))
+        residual = x if self.residual else None
+        if isinstance(self.squeeze, SqueezeExcitation):
+            return self.squeeze(y, residual)  # the gate and the residual in one op where fused
+        return y if residual is None else x + y
 
 
 class PyramidPooling(nn.Module):

@@ -95,6 +95,13 @@ def scalar_tensor(value: float | torch.Tensor, like: torch.Tensor) -> torch.Tens
     return torch.full((1,), float(value), device=like.device, dtype=like.dtype)
 
 
+def bfloat16_words(tensor: torch.Tensor) -> torch.Tensor:
+    """A contiguous bfloat16 tensor [..., C] (C even) as the int32 words [..., C / 2] that kernels load two
+    channels from at once (Warp's bfloat16 loads are 2 bytes each; `kernels/batchnorm.py` unpacks the halves);
+    tensors of other dtypes as they are."""
+    return tensor.view(torch.int32) if tensor.dtype == torch.bfloat16 else tensor
+
+
 def kernel_scalar(value: float, dtype: torch.dtype):
     """``value`` as the Warp scalar of ``dtype`` (float32 or float64), for kernel arguments typed like the arrays'
     elements (a Python float would select float32)."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import batchnorm as kernels
+from warpsense.ops._warp import bfloat16_words as _words
 from warpsense.ops._warp import kernel_scalar, launch, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
 
@@ -14,21 +15,12 @@ _THREADS = {"cuda": 2**17}  # threads per launch (tools/bench_batchnorm.py on an
 _CPU_GROUPS = 16  # Warp's CPU backend runs a launch on one thread: few partial sums
 
 
-def _words(tensor: torch.Tensor) -> torch.Tensor:
-    """bfloat16 [R, C] as the int32 words [R, C / 2] the kernels load a channel pair from; other dtypes as they are."""
-    return tensor.view(torch.int32) if tensor.dtype == torch.bfloat16 else tensor
-
-
 def _groups(rows: int, pairs: int, device: torch.device) -> int:
     """Row groups per launch (each thread walks one group's rows for one channel pair): enough threads to fill the
     device, each with at least 2 UNROLL rows, so that the partial sums [G, 2, C] stay small against x."""
     threads = _THREADS.get(device.type)
     groups = threads // pairs if threads else _CPU_GROUPS
     return max(1, min(groups, -(-rows // (2 * kernels.UNROLL))))
-
-
-def _accumulator(dtype: torch.dtype) -> torch.dtype:
-    return torch.float64 if dtype == torch.float64 else torch.float32
 
 
 @warp_op("batch_norm_relu_backward", lambda grad_y, x, stats: (torch.empty_like(x),
@@ -120,7 +112,7 @@ def batch_norm_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, r
     if not 0.0 <= momentum <= 1.0 or not eps > 0.0:
         raise ValueError(f"{op}: momentum must be in [0, 1] and eps > 0, got {momentum!r} and {eps!r}")
     dtype = x.dtype if x.dtype in _DTYPES else torch.float32
-    accumulator = _accumulator(dtype)
+    accumulator = torch.float64 if dtype == torch.float64 else torch.float32  # the kernels' arithmetic
     for name, tensor in (("weight", weight), ("bias", bias), ("running_mean", running_mean),
                          ("running_var", running_var)):
         check_tensor(op, name, tensor, 1, f"[{channels}] tensor")

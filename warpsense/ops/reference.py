@@ -153,3 +153,9 @@ def batch_norm_relu_reference(x: torch.Tensor, weight: torch.Tensor, bias: torch
                               running_var: torch.Tensor, momentum: float = 0.1, eps: float = 1e-5) -> torch.Tensor:
     """`warpsense.ops.batch_norm_relu` in plain torch: batch norm with batch statistics (training mode), then ReLU."""
     return F.relu(F.batch_norm(x, running_mean, running_var, weight, bias, training=True, momentum=momentum, eps=eps))
+
+
+def channel_gate_reference(x: torch.Tensor, gate: torch.Tensor, residual: torch.Tensor | None = None) -> torch.Tensor:
+    """`warpsense.ops.channel_gate` in plain torch: x times its per-image channel gates, plus the residual."""
+    out = x * gate.reshape(gate.shape[0], gate.shape[1], 1, 1)
+    return out if residual is None else residual + out
