@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|bn]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|bn|gate]
 #   step:   the training step at Lovasz stride 1 and 2 (round 16)
 #   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
 #           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
@@ -16,6 +16,9 @@
 #   bn:     the fused batch norm + ReLU's cuda tests (and the networks', the bitwise-repeat training test), then the
 #           step with torch's batch norm and ReLU (dsunet.norm_relu replaced) and with the op, the latter profiled
 #           -> $OUT/step_bn_{off,on}.json, bn_profile.tar.gz, ~6 minutes (issue 27)
+#   gate:   the fused squeeze-and-excitation gate's cuda tests (and the networks', the training tests), then the step
+#           and batch-1 latency with the gate through torch and through the op (tools/device/ab.py)
+#           -> $OUT/step_gate_{off,on}.json, latency_gate_{off,on}.json, ~6 minutes (issue 27)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -104,6 +107,18 @@ runpy.run_path("tools/bench_train_bound.py", run_name="__main__")
 PY
   done
   tar czf "$OUT/bn_profile.tar.gz" -C /tmp bn_profile
+fi
+if [ "${1:-}" = gate ]; then
+  cuda_tests gate_cuda_tests 240 tests/ops/test_gate.py tests/ops/test_batchnorm.py tests/ops/test_custom_ops.py \
+    tests/models tests/train/test_training.py
+  for ab in off:torch-gate on:fused; do
+    python tools/device/ab.py "${ab#*:}" tools/bench_train_bound.py --config camvid_codesign --steps 60 \
+      --json "$OUT/step_gate_${ab%%:*}.json" 2>&1 | grep -v -e Warning -e warn
+  done
+  for ab in off:torch-gate on:fused; do
+    python tools/device/ab.py "${ab#*:}" tools/bench_latency.py --device cuda --json "$OUT/latency_gate_${ab%%:*}.json" \
+      2>&1 | grep -v -e Warning -e USDT -e warn
+  done
 fi
 if [ "${1:-}" = round23 ]; then
   cuda_tests cuda_tests 300 tests/ops/test_psf.py tests/ops/test_upsample.py tests/ops/test_custom_ops.py tests/models
