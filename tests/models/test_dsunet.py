@@ -236,6 +236,11 @@ def test_feature_fused_ops_are_the_torch_ones(name, monkeypatch):
         torch.testing.assert_close(grad, reference, rtol=1e-9, atol=1e-11)
     for (key, buffer), reference in zip(fused_network.state_dict().items(), network.state_dict().values()):
         torch.testing.assert_close(buffer, reference, rtol=1e-12, atol=1e-14, msg=key)
+    norms.clear()
+    gates.clear()
+    with torch.no_grad():  # evaluation: running statistics and torch's gate (faster at batch 1 under graph replay)
+        fused_network.eval()(image)
+    assert not norms and not gates
 
 
 @pytest.mark.parametrize("name", ["dsunet", "packunet"])

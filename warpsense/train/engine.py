@@ -249,17 +249,20 @@ def _run_epoch(training_step, model, batches, steps: int, step: int, joint: bool
     return step
 
 
-def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: bool, ema=None) -> None:
+def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: bool, is_resume_point: bool,
+                 ema=None) -> None:
     """Append the epoch's record to metrics.jsonl, then write the checkpoints: the best one when the epoch scored
-    best, and the last one (with optimizer and RNG state, for resuming) always. With a weight average (``ema``) the
+    best, and the last one (with optimizer and RNG state, for resuming) when the epoch is a resume point
+    (``train.checkpoint_every``; a resume drops the records after it). With a weight average (``ema``) the
     checkpoints' model is the average; the last one also holds the training weights."""
     with open(run_dir / METRICS, "a") as log:
         log.write(json.dumps(state["record"]) + "\n")
-    live = ema.live_tensors() if ema is not None else None
+    live = ema.live_tensors() if ema is not None and is_resume_point else None
     with averaged(ema):
         if is_best:
             save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
-        save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state(), live)
+        if is_resume_point:
+            save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state(), live)
 
 
 def _epoch_line(record: dict, schedule: Schedule, config) -> str:
@@ -386,7 +389,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             state = {"epoch": epoch, "step": step, "best_miou": best_miou, "num_classes": num_classes,
                      "class_names": list(datasets.train.classes), "record": record, "environment": versions,
                      "schedule": {**schedule.to_dict(), "requested": [requested.epochs, requested.warmup_epochs]}}
-            _write_epoch(run_dir, model, optimizer, config, state, is_best, ema)
+            resume_point = (epoch + 1) % config.train.checkpoint_every == 0 or epoch == schedule.epochs - 1
+            _write_epoch(run_dir, model, optimizer, config, state, is_best, resume_point, ema)
             print(_epoch_line(record, schedule, config), flush=True)
         context.barrier()
         epoch += 1
