@@ -307,3 +307,22 @@ def test_feature_anscombe_input_is_the_linear_network_on_the_transformed_input(n
 def test_exception_unknown_input_transform():
     with pytest.raises(KeyError, match="anscombe, linear"):
         build_input_transform("log", 0.01)
+
+
+def test_feature_torch_ops_context_runs_no_warp_op(monkeypatch):
+    """`dsunet.torch_ops` (the benchmarks' plain-torch baseline) keeps a network on a fused device off every Warp
+    op, and restores the fused ops after."""
+    from warpsense.models import dsunet
+
+    monkeypatch.setattr(dsunet, "FUSED_DEVICES", ("cpu",))
+    calls = []
+    for name in ("upsample_concat", "batch_norm_relu", "channel_gate"):
+        fused = getattr(dsunet, name)
+        monkeypatch.setattr(dsunet, name, lambda *args, fused=fused, name=name: calls.append(name) or fused(*args))
+    network = build_model("dsunet", in_channels=1, num_classes=4, width=8, channels_last=True).double()
+    image = torch.rand(2, 1, 32, 32, dtype=torch.float64)
+    with dsunet.torch_ops():
+        network(image)
+    assert calls == [] and dsunet.FUSED_DEVICES == ("cpu",)
+    network(image)
+    assert set(calls) == {"upsample_concat", "batch_norm_relu", "channel_gate"}

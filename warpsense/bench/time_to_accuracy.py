@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from warpsense.bench.train_suite import BASELINE_SMOOTHNESS, BaselineCamera
+from warpsense.bench.train_suite import BASELINE_SMOOTHNESS, BaselineCamera, network_ops
 from warpsense.camera.camera import set_finite_check
 from warpsense.config import load_config
 from warpsense.data import build_dataset
@@ -93,20 +93,21 @@ def baseline_curve(config, device: torch.device) -> tuple[list[dict], dict]:
     step = TrainingStep(config.loss, optimizer, [], total, amp, smoothness_pairs=BASELINE_SMOOTHNESS)
     curve, index = [], 0
     start = {"setup_s": time.perf_counter() - started, "network_parameters": count_parameters(model.network)}
-    for epoch in range(config.train.epochs):
-        batches.set_epoch(epoch)
-        model.train()
-        epoch_started = time.perf_counter()
-        for _, (images, labels) in zip(range(steps), batches):
-            step(model, images.to(device), labels.to(device), index, joint=True)
-            index += 1
-        if epoch == 0:
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            start["first_epoch_s"] = time.perf_counter() - epoch_started
-        if (epoch + 1) % config.train.eval_every == 0 or epoch == config.train.epochs - 1:
-            metrics = evaluate(model, val_set, device, max(1, config.data.batch_size // 2), amp=amp)
-            curve.append({"epoch": epoch, "wall_s": time.perf_counter() - started, "val_miou": metrics["miou"]})
+    with network_ops("torch_baseline"):  # a plain PyTorch script: the network through torch's own ops
+        for epoch in range(config.train.epochs):
+            batches.set_epoch(epoch)
+            model.train()
+            epoch_started = time.perf_counter()
+            for _, (images, labels) in zip(range(steps), batches):
+                step(model, images.to(device), labels.to(device), index, joint=True)
+                index += 1
+            if epoch == 0:
+                if device.type == "cuda":
+                    torch.cuda.synchronize(device)
+                start["first_epoch_s"] = time.perf_counter() - epoch_started
+            if (epoch + 1) % config.train.eval_every == 0 or epoch == config.train.epochs - 1:
+                metrics = evaluate(model, val_set, device, max(1, config.data.batch_size // 2), amp=amp)
+                curve.append({"epoch": epoch, "wall_s": time.perf_counter() - started, "val_miou": metrics["miou"]})
     return curve, start
 
 

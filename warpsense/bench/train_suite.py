@@ -1,6 +1,6 @@
 """`warpsense bench --suite train`: the training step and batch-1 latency of the whole system (sensor + network),
 warpsense against the plain-torch baseline (docs/references.md, convention 5) built from `warpsense.ops.reference` and the same
-network, in one run.
+network run through torch's own ops (`dsunet.torch_ops`: none of warpsense's Warp network ops), in one run.
 
 Cameras: "simple" = the baseline's camera (one 7x7 Gaussian PSF, exposure, 2x2 softmax CFA, Poisson-Gaussian
 noise, 10-bit ADC); "codesign" = the camvid_codesign preset's camera (learnable 80/68 deg lens rendered every step,
@@ -10,6 +10,7 @@ noise, 10-bit ADC); "codesign" = the camvid_codesign preset's camera (learnable 
 
 from __future__ import annotations
 
+import contextlib
 import time
 
 import torch
@@ -22,6 +23,7 @@ from warpsense.config import load_config
 from warpsense.data.color import srgb_to_linear
 from warpsense.errors import first_line
 from warpsense.models import build_model
+from warpsense.models.dsunet import torch_ops
 from warpsense.ops import psf_conv
 from warpsense.ops.reference import (
     cfa_mosaic_reference,
@@ -84,6 +86,12 @@ def build(method: str, camera_name: str, device, channels_last: bool = True) -> 
     return camera.to(device), network.to(device)
 
 
+def network_ops(method: str):
+    """The context a method's network runs in: torch's own ops for the plain-torch baseline, warpsense's fused Warp
+    ops (on CUDA) for warpsense."""
+    return torch_ops() if method == "torch_baseline" else contextlib.nullcontext()
+
+
 def training_throughput(method, camera_name, loss_name, device, batch, height, width, steps, warmup,
                         compile_mode: str = "off", cuda_graph: bool = False) -> float:
     """Images per second of full training steps (the training engine's `TrainingStep`: sensor + network forward,
@@ -101,7 +109,8 @@ def training_throughput(method, camera_name, loss_name, device, batch, height, w
     step = TrainingStep(loss_config, optimizer, [], steps + warmup, amp=cuda, compile_mode=compile_mode,
                         cuda_graph=cuda_graph,
                         smoothness_pairs=BASELINE_SMOOTHNESS if method == "torch_baseline" else None)
-    return step_throughput(step, system, batch, height, width, steps, warmup, device)
+    with network_ops(method):
+        return step_throughput(step, system, batch, height, width, steps, warmup, device)
 
 
 def step_throughput(step: TrainingStep, model, batch: int, height: int, width: int, steps: int, warmup: int,
@@ -131,7 +140,8 @@ def inference(method, camera_name, device, height, width):
     amp = torch.device(device).type == "cuda"
 
     def infer():
-        with torch.no_grad(), torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=amp):
+        with network_ops(method), torch.no_grad(), torch.autocast(torch.device(device).type, dtype=torch.bfloat16,
+                                                                   enabled=amp):
             return network(camera(srgb_to_linear(frame)))
 
     return infer

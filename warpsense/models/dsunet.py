@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -14,6 +16,18 @@ FUSED_DEVICES = ("cuda",)
 training-mode batch norms with their ReLU as `batch_norm_relu` and its squeeze-and-excitation gates with the
 blocks' residuals as `channel_gate` (Warp's CPU backend runs a kernel on one thread, where torch's ops use every
 core)."""
+
+
+@contextlib.contextmanager
+def torch_ops():
+    """Within this context the networks run torch's own ops on every device, no Warp op (the benchmarks'
+    plain-torch baseline: the same network as a plain PyTorch script runs it)."""
+    global FUSED_DEVICES
+    saved, FUSED_DEVICES = FUSED_DEVICES, ()
+    try:
+        yield
+    finally:
+        FUSED_DEVICES = saved
 
 
 def _fused(x: torch.Tensor) -> bool:
