@@ -3,8 +3,8 @@
     y = max(a (x - mean) + bias, 0),   a = weight / sqrt(var + eps),
 
 mean and the biased var per channel over the R = B H W rows of x [R, C] (Ioffe and Szegedy 2015, training mode;
-torch.nn.functional.batch_norm followed by relu, docs/references.md). The backward, with g = dy where a (x - mean) + bias > 0
-(else 0, torch's threshold_backward) and the sums over the rows,
+torch.nn.functional.batch_norm followed by relu, docs/references.md). The backward, with g = dy where
+a (x - mean) + bias > 0 (else 0, torch's threshold_backward) and the sums over the rows,
 
     dbias = sum g,   dweight = invstd sum g (x - mean),
     dx = a g + k1 (x - mean) + k0,   k1 = -a invstd^2 sum g (x - mean) / R,   k0 = -a sum g / R.
@@ -13,8 +13,8 @@ The ReLU's mask is recomputed from x (the same `affine` as the forward's), so ne
 
 Layout: each thread owns a pair of channels (2p, 2p + 1) and walks the rows g, g + G, g + 2G, ... of x [R, C], so a
 warp's loads are one contiguous run of memory. bfloat16 data comes as int32 words [R, C / 2], one pair per 4-byte
-load (two bfloat16 loads would halve the bytes per instruction: torch's kernels load 8 at once); float32 and
-float64 data as [R, C]. Arithmetic is float32 for bfloat16 and float32, float64 for float64. The reductions write
+load (two bfloat16 loads would halve the bytes per instruction; 8 channels per thread in one 16-byte load were
+slower, at 64-96 registers a thread: docs/benchmarks.md round 24); float32 and float64 data as [R, C]. Arithmetic is float32 for bfloat16 and float32, float64 for float64. The reductions write
 one partial sum per row group [G, 2, C] in a fixed order (the op adds them up): deterministic, no atomics. The
 statistics sum x - x[0] (a shift inside the data's range keeps E[x^2] - E[x]^2 from cancelling).
 """

@@ -13,6 +13,6 @@ from warpsense.ops.smoothness import edge_aware_smoothness
 from warpsense.ops.upsample import upsample_concat
 
 __all__ = [
-    "batch_norm_relu", "cfa_mosaic", "channel_gate", "edge_aware_smoothness", "exposure", "exposure_gain", "poisson_gaussian",
-    "poisson_gaussian_exact", "psf_conv", "quantize_ste", "upsample_concat", "PSF_METHODS", "QUANTIZE_MODES",
+    "batch_norm_relu", "cfa_mosaic", "channel_gate", "edge_aware_smoothness", "exposure", "exposure_gain",
+    "poisson_gaussian", "poisson_gaussian_exact", "psf_conv", "quantize_ste", "upsample_concat", "PSF_METHODS", "QUANTIZE_MODES",
 ]

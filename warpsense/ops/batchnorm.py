@@ -11,7 +11,8 @@ from warpsense.ops._warp import kernel_scalar, launch, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
 
 _DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' element types; others compute in float32
-_THREADS = {"cuda": 2**17}  # threads per launch (tools/bench_batchnorm.py on an H200: 2^17 beat 2^16 and 2^18 at UNROLL 4)
+# threads per launch on CUDA: 2^17 beat 2^16 and 2^18 at UNROLL 4 (tools/bench_batchnorm.py, an H200)
+_THREADS = {"cuda": 2**17}
 _CPU_GROUPS = 16  # Warp's CPU backend runs a launch on one thread: few partial sums
 
 
@@ -68,7 +69,8 @@ def _batch_norm_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor,
     partials = weight.new_empty(groups, 2, channels)
     launch(kernels.batch_sums, groups * pairs, [data, pairs, groups, partials], x.device)
     stats = weight.new_empty(5, channels)  # mean, 1 / sqrt(var + eps), a, bias, var
-    launch(kernels.batch_statistics, channels, [data, partials.sum(0), weight, bias, kernel_scalar(eps, weight.dtype), stats], x.device)
+    launch(kernels.batch_statistics, channels,
+           [data, partials.sum(0), weight, bias, kernel_scalar(eps, weight.dtype), stats], x.device)
     y = torch.empty_like(x)
     launch(kernels.normalize_relu, groups * pairs, [data, pairs, groups, stats, _words(y)], x.device)
     return y, stats
@@ -78,16 +80,17 @@ def _batch_norm_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor,
          mutates_args=("running_mean", "running_var"))
 def _update_running(stats: torch.Tensor, rows: int, momentum: float, running_mean: torch.Tensor,
                     running_var: torch.Tensor) -> None:
-    launch(kernels.update_running, stats.shape[1], [stats, rows, kernel_scalar(momentum, stats.dtype), running_mean, running_var],
-           stats.device)
+    launch(kernels.update_running, stats.shape[1],
+           [stats, rows, kernel_scalar(momentum, stats.dtype), running_mean, running_var], stats.device)
 
 
 def batch_norm_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, running_mean: torch.Tensor,
                     running_var: torch.Tensor, momentum: float = 0.1, eps: float = 1e-5) -> torch.Tensor:
-    """``relu(F.batch_norm(x, running_mean, running_var, weight, bias, training=True, momentum, eps))`` in two passes
-    over x forward (statistics, then normalise + ReLU) and two backward, deterministic (`kernels/batchnorm.py`).
-    torch runs five forward (statistics, transform, ReLU) and seven backward. Equal to the torch expression up to
-    float rounding; the running statistics move the same way (``running_var`` towards the unbiased variance).
+    """``relu(F.batch_norm(x, running_mean, running_var, weight, bias, training=True, momentum, eps))``,
+    deterministic (`kernels/batchnorm.py`): three passes over memory forward (the statistics; normalise + ReLU) and
+    five backward (the gradient sums; the input gradient), where torch's batch norm and ReLU take five and eight.
+    Equal to the torch expression up to float rounding; the running statistics move the same way (``running_var``
+    towards the unbiased variance).
 
     Args:
         x: [B, C, H, W] activations, C even, B H W > 1.

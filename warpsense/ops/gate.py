@@ -98,6 +98,7 @@ def channel_gate(x: torch.Tensor, gate: torch.Tensor, residual: torch.Tensor | N
     def pixels(tensor):  # [B, H W, C]: a view of channels-last memory, a copy of any other
         return tensor.to(dtype).permute(0, 2, 3, 1).contiguous().view(batch, height * width, channels)
 
-    out = _channel_gate(pixels(x), gate.reshape(batch, channels).to(torch.float64 if dtype == torch.float64 else torch.float32).contiguous(),
+    accumulator = torch.float64 if dtype == torch.float64 else torch.float32  # the kernels' arithmetic
+    out = _channel_gate(pixels(x), gate.reshape(batch, channels).to(accumulator).contiguous(),
                         None if residual is None else pixels(residual))
     return out.view(batch, height, width, channels).permute(0, 3, 1, 2)
