@@ -42,8 +42,8 @@ def norm_relu(norm: nn.BatchNorm2d, x: torch.Tensor) -> torch.Tensor:
     """``F.relu(norm(x))``. In training mode over channels-last x (bfloat16, float32 or float64, an even number of
     channels) on a `FUSED_DEVICES` device, an nn.BatchNorm2d with affine parameters, running statistics and a fixed
     momentum runs with its ReLU as one op (`batch_norm_relu`, equal up to float rounding, deterministic; the running
-    statistics and ``num_batches_tracked`` move as torch moves them). Torch's channels-last batch norm and ReLU were
-    ~13 ms of a 48 ms training step on an H100 (docs/benchmarks.md, round 24)."""
+    statistics and ``num_batches_tracked`` move as torch moves them). Torch's channels-last batch norms and ReLUs of
+    the recipe network take 13.6 ms forward + backward a step on an H100, the op 8.4 (docs/benchmarks.md round 24)."""
     if (norm.training and type(norm) is nn.BatchNorm2d and norm.affine and norm.track_running_stats
             and norm.momentum is not None and _fused(x)):
         norm.num_batches_tracked.add_(1)
@@ -207,7 +207,8 @@ class DSUNet(nn.Module):
         w = width
         f = full_width or w
         self.tile = tile if in_channels == 1 and tile > 1 else 0
-        self.stem = nn.Sequential(nn.Conv2d(in_channels, f, 3, 1, 1, bias=False), nn.BatchNorm2d(f), nn.ReLU(inplace=True))
+        # conv and BN; the ReLU is applied with the BN (`norm_relu`); a Sequential for its checkpoint keys
+        self.stem = nn.Sequential(nn.Conv2d(in_channels, f, 3, 1, 1, bias=False), nn.BatchNorm2d(f))
         self.enc1 = Stage(f, f, full_depth, 1, squeeze)
         shuffle_channels = in_channels * self.tile * self.tile if self.tile else 0
         self.down2 = SeparableBlock(f, 2 * w, stride=2, squeeze=squeeze)
@@ -259,7 +260,7 @@ class DSUNet(nn.Module):
     def encode_high(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The features at full and half resolution (s1, s2) from the padded input; the rest of the UNet (1/4 to
         1/16 and the decoder) is shared with the networks built on this one."""
-        convolution, norm, _ = self.stem  # conv, BN, ReLU (a Sequential for its checkpoint keys)
+        convolution, norm = self.stem
         s1 = self.enc1(norm_relu(norm, convolution(raw)))
         s2 = self.down2(s1)
         if self.tile == 2:
