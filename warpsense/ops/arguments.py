@@ -30,6 +30,16 @@ def check_tensor(op: str, name: str, value, ndim: int | None = None, layout: str
                          f"{tuple(value.shape)}")
 
 
+def check_channel_pairs(op: str, x) -> tuple[int, int, int, int]:
+    """``x`` must be a floating [B, C, H, W] tensor with an even number of channels (kernels that read channels in
+    pairs); its shape."""
+    check_tensor(op, "x", x, 4, "[B, C, H, W] tensor")
+    if x.shape[1] % 2:
+        raise ValueError(f"{op}: x must have an even number of channels (the kernels read them in pairs), got "
+                         f"{x.shape[1]}")
+    return tuple(x.shape)
+
+
 def check_same_device(op: str, **tensors: torch.Tensor) -> None:
     devices = {name: tensor.device for name, tensor in tensors.items()}
     if len(set(devices.values())) > 1:

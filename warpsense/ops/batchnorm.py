@@ -8,7 +8,7 @@ import torch
 from warpsense.kernels import batchnorm as kernels
 from warpsense.ops._warp import bfloat16_words as _words
 from warpsense.ops._warp import kernel_scalar, launch, warp_op
-from warpsense.ops.arguments import check_same_device, check_tensor
+from warpsense.ops.arguments import check_channel_pairs, check_same_device, check_tensor
 
 _DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' element types; others compute in float32
 # threads per launch on CUDA: 2^17 beat 2^16 and 2^18 at UNROLL 4 (tools/bench_batchnorm.py, an H200)
@@ -105,11 +105,7 @@ def batch_norm_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, r
         place; other layouts are copied to it once.
     """
     op = "batch_norm_relu"
-    check_tensor(op, "x", x, 4, "[B, C, H, W] tensor")
-    batch, channels, height, width = x.shape
-    if channels % 2:
-        raise ValueError(f"{op}: x must have an even number of channels (the kernels read them in pairs), got "
-                         f"{channels}")
+    batch, channels, height, width = check_channel_pairs(op, x)
     if batch * height * width < 2:
         raise ValueError(f"{op}: batch statistics need more than one value per channel, got x {tuple(x.shape)}")
     if not 0.0 <= momentum <= 1.0 or not eps > 0.0:

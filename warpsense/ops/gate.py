@@ -8,7 +8,7 @@ import torch
 from warpsense.kernels import gate as kernels
 from warpsense.ops._warp import bfloat16_words as _words
 from warpsense.ops._warp import launch, warp_op
-from warpsense.ops.arguments import check_same_device, check_tensor
+from warpsense.ops.arguments import check_channel_pairs, check_same_device, check_tensor
 
 _DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' element types
 _THREADS = {"cuda": 2**17}  # threads per launch, as for batch_norm_relu
@@ -77,11 +77,7 @@ def channel_gate(x: torch.Tensor, gate: torch.Tensor, residual: torch.Tensor | N
         it once.
     """
     op = "channel_gate"
-    check_tensor(op, "x", x, 4, "[B, C, H, W] tensor")
-    batch, channels, height, width = x.shape
-    if channels % 2:
-        raise ValueError(f"{op}: x must have an even number of channels (the kernels read them in pairs), got "
-                         f"{channels}")
+    batch, channels, height, width = check_channel_pairs(op, x)
     check_tensor(op, "gate", gate)
     if gate.numel() != batch * channels or gate.shape[:2] != (batch, channels):
         raise ValueError(f"{op}: gate must be [B, C, 1, 1] or [B, C] = [{batch}, {channels}] for x "
