@@ -85,6 +85,7 @@ def test_int_accepted_for_float_and_save_round_trip(tmp_path):
     ("quantize.bits=64", "quantize.bits: must be <= 24"),
     ("data.crop_height=0", "data.crop_height: must be >= 1"),
     ("train.eval_every=0", "train.eval_every: must be >= 1"),
+    ("train.checkpoint_every=0", "train.checkpoint_every: must be >= 1"),
     ("noise.shot=-1", "noise.shot: must be >= 0"),
     ("run.name=../../etc", "run.name must be a plain folder name"),
     ("train.warmup_epochs=20", "train.warmup_epochs \\(20\\) must be <= train.epochs"),
