@@ -143,42 +143,38 @@ def test_resume_continues_interrupted_run(tmp_path, extra):
 
 
 def test_resume_points_every_n_epochs(tmp_path, monkeypatch):
-    """train.checkpoint_every = 2 writes the resume point after epochs 2 and 4 and at the last (5); a run stopped in
-    epoch 3, after its record was logged, resumes from epoch 2's point, drops epoch 3's record and repeats the
-    uninterrupted run."""
+    """train.checkpoint_every = 2 writes the resume point after epochs 2 and 4 (the last) of 4; a run stopped in
+    epoch 3, after its record was logged, resumes from epoch 2's point and drops epoch 3's record (that a resume
+    repeats the uninterrupted run is test_resume_continues_interrupted_run's)."""
     import warpsense.train.engine as engine
 
-    base = TINY + ["train.epochs=5", "train.warmup_epochs=1", "train.checkpoint_every=2", f"run.output_dir={tmp_path}"]
+    config = load_config(None, TINY + ["train.epochs=4", "train.warmup_epochs=1", "train.checkpoint_every=2",
+                                       f"run.output_dir={tmp_path}", "run.name=cut"])
     written = []
-    original = engine.save_checkpoint
+    save_checkpoint, write_epoch = engine.save_checkpoint, engine._write_epoch
 
     def spy(path, model, config_dict, state, *args, **kwargs):
-        original(path, model, config_dict, state, *args, **kwargs)
+        save_checkpoint(path, model, config_dict, state, *args, **kwargs)
         if str(path).endswith("checkpoint_last.safetensors"):
             written.append(state["epoch"])
-
-    monkeypatch.setattr(engine, "save_checkpoint", spy)
-    full = train(load_config(None, base + ["run.name=full"]), progress=False)
-    assert written == [1, 3, 4]
-    expected = [json.loads(line) for line in (full / "metrics.jsonl").read_text().splitlines()]
-
-    write_epoch = engine._write_epoch
 
     def stop_in_epoch_3(run_dir, model, optimizer, config, state, *args, **kwargs):
         write_epoch(run_dir, model, optimizer, config, state, *args, **kwargs)
         if state["epoch"] == 2:
             raise KeyboardInterrupt
 
+    monkeypatch.setattr(engine, "save_checkpoint", spy)
     monkeypatch.setattr(engine, "_write_epoch", stop_in_epoch_3)
     with pytest.raises(KeyboardInterrupt):
-        train(load_config(None, base + ["run.name=cut"]), progress=False)
+        train(config, progress=False)
+    run = tmp_path / "cut"
+    assert written == [1] and len((run / "metrics.jsonl").read_text().splitlines()) == 3
     monkeypatch.setattr(engine, "_write_epoch", write_epoch)
-    resumed = train(load_config(None, base + ["run.name=cut"]), resume=True, progress=False)
-    got = [json.loads(line) for line in (resumed / "metrics.jsonl").read_text().splitlines()]
-    assert [r["epoch"] for r in got] == [0, 1, 2, 3, 4]
-    assert ["setup_s" in r for r in got] == [True, False, True, False, False]  # epoch 3 again, in the new process
-    for a, b in zip(got, expected):
-        assert a["train_loss"] == pytest.approx(b["train_loss"], rel=1e-5)
+    train(config, resume=True, progress=False)
+    assert written == [1, 3]
+    got = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in got] == [0, 1, 2, 3]
+    assert ["setup_s" in r for r in got] == [True, False, True, False]  # epoch 3 again, in the new process
 
 
 def test_checkpoint_round_trip(tmp_path):
