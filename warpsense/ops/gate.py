@@ -12,7 +12,7 @@ from warpsense.ops.arguments import check_channel_pairs, check_same_device, chec
 
 _DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' element types
 _THREADS = {"cuda": 2**17}  # threads per launch, as for batch_norm_relu
-_CPU_GROUPS = 4
+_CPU_GROUPS = 4  # pixel groups per image on the CPU, whose backend runs a launch on one thread
 
 
 def _groups(batch: int, pixels: int, pairs: int, device: torch.device) -> int:
