@@ -311,7 +311,7 @@ def test_exception_unknown_input_transform():
 
 def test_feature_torch_ops_context_runs_no_warp_op(monkeypatch):
     """`dsunet.torch_ops` (the benchmarks' plain-torch baseline) keeps a network on a fused device off every Warp
-    op, and restores the fused ops after."""
+    op, or off the named ones, and restores the fused ops after."""
     from warpsense.models import dsunet
 
     monkeypatch.setattr(dsunet, "FUSED_DEVICES", ("cpu",))
@@ -326,3 +326,10 @@ def test_feature_torch_ops_context_runs_no_warp_op(monkeypatch):
     assert calls == [] and dsunet.FUSED_DEVICES == ("cpu",)
     network(image)
     assert set(calls) == {"upsample_concat", "batch_norm_relu", "channel_gate"}
+    calls.clear()
+    with dsunet.torch_ops("norm"):  # one op off, the others as shipped
+        network(image)
+    assert set(calls) == {"upsample_concat", "channel_gate"}
+    with pytest.raises(KeyError, match="valid: joins, norm, gate"):
+        with dsunet.torch_ops("relu"):
+            pass

@@ -10,11 +10,11 @@
 #   psf:    the PSF op's cuda tests, then tools/bench_psf.py, the codesign camera (tools/bench_render.py --camera)
 #           and the training step -> $OUT/psf.json, camera.json, step.json, ~3 minutes (issue 27)
 #   upsample: the fused decoder join's cuda tests, tools/bench_upsample.py, then the step without and with it
-#           (dsunet.FUSED_DEVICES emptied for the first) -> $OUT/step_fused_{off,on}.json, ~3 minutes (issue 27)
+#           (tools/device/ab.py torch-joins for the first) -> $OUT/step_fused_{off,on}.json, ~3 minutes (issue 27)
 #   round23: the cuda tests of the PSF op, the decoder join and the networks, then batch-1 latency, the camera alone,
 #           the training step and the joins, as the code stands -> $OUT/*.json, *.txt, ~5 minutes (issue 27)
 #   bn:     the fused batch norm + ReLU's cuda tests (and the networks', the bitwise-repeat training test), then the
-#           step with torch's batch norm and ReLU (dsunet.norm_relu replaced) and with the op, the latter profiled
+#           step with torch's batch norm and ReLU (tools/device/ab.py torch-norm) and with the op, the latter profiled
 #           -> $OUT/step_bn_{off,on}.json, bn_profile.tar.gz, ~6 minutes (issue 27)
 #   gate:   the fused squeeze-and-excitation gate's cuda tests (and the networks', the training tests), then the step
 #           and batch-1 latency with the gate through torch and through the op (tools/device/ab.py)
@@ -79,32 +79,19 @@ fi
 if [ "${1:-}" = upsample ]; then
   cuda_tests upsample_cuda_tests 240 tests/ops/test_upsample.py tests/ops/test_custom_ops.py tests/models
   python tools/bench_upsample.py --device cuda 2>&1 | grep -v Warning | tee "$OUT/upsample_joins.txt"
-  for fused in off on; do
-    python - "$fused" --config camvid_codesign --steps 60 --json "$OUT/step_fused_$fused.json" <<'PY' 2>&1 | grep -v Warning
-import runpy, sys
-import warpsense.models.dsunet as dsunet
-if sys.argv[1] == "off":
-    dsunet.FUSED_DEVICES = ()
-sys.argv = ["bench_train_bound.py"] + sys.argv[2:]
-runpy.run_path("tools/bench_train_bound.py", run_name="__main__")
-PY
+  for ab in off:torch-joins on:fused; do
+    python tools/device/ab.py "${ab#*:}" tools/bench_train_bound.py --config camvid_codesign --steps 60 \
+      --json "$OUT/step_fused_${ab%%:*}.json" 2>&1 | grep -v Warning
   done
 fi
 if [ "${1:-}" = bn ]; then
   cuda_tests bn_cuda_tests 240 tests/ops/test_batchnorm.py tests/ops/test_custom_ops.py tests/models \
     tests/train/test_training.py
-  for fused in off on; do
+  for ab in off:torch-norm on:fused; do
     profile=()
-    [ "$fused" = on ] && profile=(--profile /tmp/bn_profile)
-    python - "$fused" --config camvid_codesign --steps 60 --json "$OUT/step_bn_$fused.json" "${profile[@]}" \
-      <<'PY' 2>&1 | grep -v Warning
-import runpy, sys
-import warpsense.models.dsunet as dsunet
-if sys.argv[1] == "off":
-    dsunet.norm_relu = lambda norm, x: dsunet.F.relu(norm(x))
-sys.argv = ["bench_train_bound.py"] + sys.argv[2:]
-runpy.run_path("tools/bench_train_bound.py", run_name="__main__")
-PY
+    [ "${ab%%:*}" = on ] && profile=(--profile /tmp/bn_profile)
+    python tools/device/ab.py "${ab#*:}" tools/bench_train_bound.py --config camvid_codesign --steps 60 \
+      --json "$OUT/step_bn_${ab%%:*}.json" "${profile[@]}" 2>&1 | grep -v Warning
   done
   tar czf "$OUT/bn_profile.tar.gz" -C /tmp bn_profile
 fi

@@ -18,22 +18,33 @@ blocks' residuals as `channel_gate` (Warp's CPU backend runs a kernel on one thr
 core)."""
 
 
+FUSED_OPS = ("joins", "norm", "gate")
+"""The network's Warp ops, by name: the decoder joins (`upsample_concat`), batch norm + ReLU (`batch_norm_relu`),
+the squeeze-and-excitation gate + residual (`channel_gate`). `torch_ops` turns them off by these names."""
+_torch_ops: frozenset = frozenset()  # the ones turned off (`torch_ops`)
+
+
 @contextlib.contextmanager
-def torch_ops():
-    """Within this context the networks run torch's own ops on every device, no Warp op (the benchmarks'
-    plain-torch baseline: the same network as a plain PyTorch script runs it)."""
-    global FUSED_DEVICES
-    saved, FUSED_DEVICES = FUSED_DEVICES, ()
+def torch_ops(*names: str):
+    """Within this context the networks run the named fused ops (`FUSED_OPS`; all of them when none is named) as
+    torch's own ops on every device: the benchmarks' plain-torch baseline runs the same network as a plain PyTorch
+    script does, and an A/B (tools/device/ab.py) turns one op off. Unknown names raise a KeyError listing the valid
+    ones."""
+    global _torch_ops
+    unknown = set(names) - set(FUSED_OPS)
+    if unknown:
+        raise KeyError(f"unknown fused op(s) {', '.join(sorted(unknown))}; valid: {', '.join(FUSED_OPS)}")
+    saved, _torch_ops = _torch_ops, _torch_ops | frozenset(names or FUSED_OPS)
     try:
         yield
     finally:
-        FUSED_DEVICES = saved
+        _torch_ops = saved
 
 
-def _fused(x: torch.Tensor) -> bool:
-    """Whether x can go through the fused ops: channels-last on a `FUSED_DEVICES` device, bfloat16, float32 or
-    float64, an even number of channels."""
-    return (x.device.type in FUSED_DEVICES and x.dim() == 4 and x.shape[1] % 2 == 0
+def _fused(op: str, x: torch.Tensor) -> bool:
+    """Whether x can go through the fused op ``op`` (`FUSED_OPS`): not turned off by `torch_ops`, channels-last on
+    a `FUSED_DEVICES` device, bfloat16, float32 or float64, an even number of channels."""
+    return (op not in _torch_ops and x.device.type in FUSED_DEVICES and x.dim() == 4 and x.shape[1] % 2 == 0
             and x.dtype in (torch.bfloat16, torch.float32, torch.float64)
             and x.is_contiguous(memory_format=torch.channels_last))
 
@@ -45,7 +56,7 @@ def norm_relu(norm: nn.BatchNorm2d, x: torch.Tensor) -> torch.Tensor:
     statistics and ``num_batches_tracked`` move as torch moves them). Torch's channels-last batch norms and ReLUs of
     the recipe network take 13.6 ms forward + backward a step on an H100, the op 8.4 (docs/benchmarks.md round 24)."""
     if (norm.training and type(norm) is nn.BatchNorm2d and norm.affine and norm.track_running_stats
-            and norm.momentum is not None and _fused(x)):
+            and norm.momentum is not None and _fused("norm", x)):
         norm.num_batches_tracked.add_(1)
         return batch_norm_relu(x, norm.weight, norm.bias, norm.running_mean, norm.running_var, norm.momentum,
                                norm.eps)
@@ -68,7 +79,8 @@ class SqueezeExcitation(nn.Module):
 
     def forward(self, x, residual=None):
         gate = torch.sigmoid(self.expand(F.relu(self.reduce(x.mean(dim=(2, 3), keepdim=True)))))
-        if self.training and _fused(x) and (residual is None or (residual.dtype == x.dtype and _fused(residual))):
+        residual_fits = residual is None or (residual.dtype == x.dtype and _fused("gate", residual))
+        if self.training and _fused("gate", x) and residual_fits:
             return channel_gate(x, gate, residual)
         return x * gate if residual is None else residual + x * gate
 
@@ -237,7 +249,8 @@ class DSUNet(nn.Module):
         network on a `FUSED_DEVICES` device takes them in one pass forward and one backward (`upsample_concat`,
         equal up to float rounding and deterministic; torch's NHWC resize backward was 3.0 ms and the
         concatenations 1.4 ms of a 41 ms step on an H100, docs/benchmarks.md round 23)."""
-        if self.memory_format == torch.channels_last and x.device.type in FUSED_DEVICES:
+        if (self.memory_format == torch.channels_last and x.device.type in FUSED_DEVICES
+                and "joins" not in _torch_ops):
             return upsample_concat(x, skip)
         return torch.cat([self._up(x, skip), skip], dim=1)
 
