@@ -16,11 +16,12 @@ _THREADS = {"cuda": 2**17}
 _CPU_GROUPS = 16  # Warp's CPU backend runs a launch on one thread: few partial sums
 
 
-def _groups(rows: int, pairs: int, device: torch.device) -> int:
-    """Row groups per launch (each thread walks one group's rows for one channel pair): enough threads to fill the
-    device, each with at least 2 UNROLL rows, so that the partial sums [G, 2, C] stay small against x."""
+def row_groups(rows: int, lanes: int, device: torch.device, cpu_groups: int = _CPU_GROUPS) -> int:
+    """Row groups per launch of the kernels that walk rows (here and `warpsense.ops.gate`), each thread one group's
+    rows for one of ``lanes`` channel pairs (and images): enough threads to fill the device, each with at least
+    2 UNROLL rows, so that the partial sums, one per group, stay small against the data; ``cpu_groups`` on a CPU."""
     threads = _THREADS.get(device.type)
-    groups = threads // pairs if threads else _CPU_GROUPS
+    groups = threads // lanes if threads else cpu_groups
     return max(1, min(groups, -(-rows // (2 * kernels.UNROLL))))
 
 
@@ -30,7 +31,7 @@ def _batch_norm_relu_backward(grad_y: torch.Tensor, x: torch.Tensor,
                               stats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     rows, channels = x.shape
     pairs = channels // 2
-    groups = _groups(rows, pairs, x.device)
+    groups = row_groups(rows, pairs, x.device)
     partials = stats.new_empty(groups, 2, channels)
     launch(kernels.gradient_sums, groups * pairs, [_words(grad_y), _words(x), pairs, groups, stats, partials],
            x.device)
@@ -64,7 +65,7 @@ def _batch_norm_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor,
                      eps: float) -> tuple[torch.Tensor, torch.Tensor]:
     rows, channels = x.shape
     pairs = channels // 2
-    groups = _groups(rows, pairs, x.device)
+    groups = row_groups(rows, pairs, x.device)
     data = _words(x)
     partials = weight.new_empty(groups, 2, channels)
     launch(kernels.batch_sums, groups * pairs, [data, pairs, groups, partials], x.device)

@@ -9,17 +9,15 @@ from warpsense.kernels import gate as kernels
 from warpsense.ops._warp import bfloat16_words as _words
 from warpsense.ops._warp import launch, warp_op
 from warpsense.ops.arguments import check_channel_pairs, check_same_device, check_tensor
+from warpsense.ops.batchnorm import row_groups
 
 _DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' element types
-_THREADS = {"cuda": 2**17}  # threads per launch, as for batch_norm_relu
 _CPU_GROUPS = 4  # pixel groups per image on the CPU, whose backend runs a launch on one thread
 
 
 def _groups(batch: int, pixels: int, pairs: int, device: torch.device) -> int:
     """Pixel groups per image (each thread walks one group's pixels of one image for one channel pair)."""
-    threads = _THREADS.get(device.type)
-    groups = max(1, threads // (batch * pairs)) if threads else _CPU_GROUPS
-    return max(1, min(groups, -(-pixels // (2 * kernels.UNROLL))))
+    return row_groups(pixels, batch * pairs, device, _CPU_GROUPS)
 
 
 @warp_op("channel_gate_backward", lambda grad_out, x, gate: (torch.empty_like(x), torch.empty_like(gate)))
