@@ -7,7 +7,7 @@ import torch
 from tests.conftest import device_params
 from warpsense.camera import Camera
 from warpsense.config import load_config
-from warpsense.ops import batchnorm, cfa, gate, noise, psf, quantize, sensor, smoothness, upsample
+from warpsense.ops import batchnorm, cfa, gate, lovasz, noise, psf, quantize, sensor, smoothness, upsample
 
 DOUBLE = dict(dtype=torch.float64)
 
@@ -28,6 +28,9 @@ CASES = {
     "channel_gate": (gate._channel_gate, lambda: (_rand(2, 12, 4), _rand(2, 4), _rand(2, 12, 4))),
     "channel_gate_no_residual": (gate._channel_gate, lambda: (_rand(2, 12, 4), _rand(2, 4), None)),
     "cfa_mosaic": (cfa._cfa_mosaic, lambda: (_rand(2, 3, 5, 6), _rand(2, 2, 3))),
+    "lovasz_softmax_terms": (lovasz._lovasz_terms, lambda: (torch.softmax(_rand(2, 4, 5, 3, grad=False), 1)
+                                                            .requires_grad_(),
+                                                            torch.randint(0, 4, (2, 5, 3), dtype=torch.int32), 255)),
     "poisson_gaussian": (noise._poisson_gaussian,
                          lambda: (_rand(2, 1, 4, 5), _rand(1) * 0.1, _rand(1) * 0.1, _seeds(2), 0)),
     "poisson_gaussian_exact": (noise._poisson_gaussian_exact,

@@ -46,7 +46,7 @@ def test_lovasz_grad_equals_the_papers_algorithm_row_by_row():
     """Berman et al. 2018, alg. 1, per row in NumPy: the flattened int32 running count must give each row's own."""
     import numpy as np
 
-    from warpsense.train.losses import lovasz_grad
+    from warpsense.ops.reference import lovasz_grad
 
     generator = torch.Generator().manual_seed(3)
     labels = (torch.rand(2, 5, 257, generator=generator) < 0.3).float()

@@ -1,26 +1,31 @@
-"""Run a tool with some of the network's fused Warp ops in their torch form, for an A/B in one call:
+"""Run a tool with some of the fused Warp ops of the network or the loss in their torch form, for an A/B in one call:
 
     python tools/device/ab.py SWITCH tools/bench_train_bound.py ARGS...
 
-SWITCH: "fused" (as shipped), "torch-joins", "torch-norm" or "torch-gate" (that op through torch: the decoder's
-upsampling and concatenation, batch norm + ReLU, the squeeze-and-excitation gate and residual), "torch-all" (all
-three). The script runs inside `warpsense.models.dsunet.torch_ops`, the switch the benchmarks' baseline uses.
+SWITCH: "fused" (as shipped); "torch-joins", "torch-norm", "torch-gate" (that network op through torch: the
+decoder's upsampling and concatenation, batch norm + ReLU, the squeeze-and-excitation gate and residual);
+"torch-lovasz", "torch-smoothness" (that loss term's plain-torch reference); "torch-network" (the three network
+ops), "torch-loss" (the two loss ops), "torch-all" (all five). The script runs inside the switches the benchmarks'
+baseline uses (`warpsense.models.dsunet.NETWORK_OPS`, `warpsense.train.losses.LOSS_OPS`).
 """
 
+import contextlib
 import runpy
 import sys
 
-from warpsense.models.dsunet import FUSED_OPS, torch_ops
+from warpsense.models.dsunet import NETWORK_OPS
+from warpsense.train.losses import LOSS_OPS
 
-SWITCHES = {"fused": None, "torch-all": (), **{f"torch-{name}": (name,) for name in FUSED_OPS}}
+SWITCHES = {"fused": {}, "torch-network": {NETWORK_OPS: ()}, "torch-loss": {LOSS_OPS: ()},
+            "torch-all": {NETWORK_OPS: (), LOSS_OPS: ()},
+            **{f"torch-{name}": {ops: (name,)} for ops in (NETWORK_OPS, LOSS_OPS) for name in ops.names}}
 
 if __name__ == "__main__":
     switch, script = sys.argv[1], sys.argv[2]
     if switch not in SWITCHES:
         raise SystemExit(f"unknown switch {switch!r}; valid: {', '.join(SWITCHES)}")
     sys.argv = [script] + sys.argv[3:]
-    if SWITCHES[switch] is None:
+    with contextlib.ExitStack() as stack:
+        for ops, names in SWITCHES[switch].items():
+            stack.enter_context(ops.torch_ops(*names))
         runpy.run_path(script, run_name="__main__")
-    else:
-        with torch_ops(*SWITCHES[switch]):
-            runpy.run_path(script, run_name="__main__")

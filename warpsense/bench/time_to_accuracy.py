@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from warpsense.bench.train_suite import BASELINE_SMOOTHNESS, BaselineCamera, network_ops
+from warpsense.bench.train_suite import BaselineCamera, method_ops
 from warpsense.camera.camera import set_finite_check
 from warpsense.config import load_config
 from warpsense.data import build_dataset
@@ -90,10 +90,10 @@ def baseline_curve(config, device: torch.device) -> tuple[list[dict], dict]:
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.train.lr, weight_decay=config.train.weight_decay)
     amp = config.train.amp and device.type == "cuda"
     total = config.train.epochs * steps
-    step = TrainingStep(config.loss, optimizer, [], total, amp, smoothness_pairs=BASELINE_SMOOTHNESS)
+    step = TrainingStep(config.loss, optimizer, [], total, amp)
     curve, index = [], 0
     start = {"setup_s": time.perf_counter() - started, "network_parameters": count_parameters(model.network)}
-    with network_ops("torch_baseline"):  # a plain PyTorch script: the network through torch's own ops
+    with method_ops("torch_baseline"):  # a plain PyTorch script: the network and loss through torch's own ops
         for epoch in range(config.train.epochs):
             batches.set_epoch(epoch)
             model.train()
@@ -123,11 +123,13 @@ def process_warmup(config, device: torch.device) -> float:
     images = torch.randint(0, 256, shape, dtype=torch.uint8, device=device)
     labels = torch.randint(0, classes, (shape[0], *shape[2:]), device=device)
     amp = config.train.amp and device.type == "cuda"
-    for model, pairs in ((build_system(config, classes), None), (baseline_system(config, classes), BASELINE_SMOOTHNESS)):
+    for method, model in (("warpsense", build_system(config, classes)),
+                          ("torch_baseline", baseline_system(config, classes))):
         model = model.to(device).train()
-        logits, sensed = model(images, amp)
-        loss, _ = segmentation_loss(logits, labels, sensed, config.loss, smoothness_pairs=pairs)
-        loss.backward()
+        with method_ops(method):
+            logits, sensed = model(images, amp)
+            loss, _ = segmentation_loss(logits, labels, sensed, config.loss)
+            loss.backward()
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     return time.perf_counter() - started

@@ -1,6 +1,6 @@
 """`warpsense bench --suite train`: the training step and batch-1 latency of the whole system (sensor + network),
 warpsense against the plain-torch baseline (docs/references.md, convention 5) built from `warpsense.ops.reference` and the same
-network run through torch's own ops (`dsunet.torch_ops`: none of warpsense's Warp network ops), in one run.
+network and loss run through torch's own ops (`method_ops`: none of warpsense's Warp network or loss ops), in one run.
 
 Cameras: "simple" = the baseline's camera (one 7x7 Gaussian PSF, exposure, 2x2 softmax CFA, Poisson-Gaussian
 noise, 10-bit ADC); "codesign" = the camvid_codesign preset's camera (learnable 80/68 deg lens rendered every step,
@@ -27,17 +27,13 @@ from warpsense.models.dsunet import torch_ops
 from warpsense.ops import psf_conv
 from warpsense.ops.reference import (
     cfa_mosaic_reference,
-    edge_aware_smoothness_reference,
     poisson_gaussian_reference,
     psf_conv_reference,
     quantize_reference,
 )
 from warpsense.system import SensingModel
+from warpsense.train.losses import LOSS_OPS
 from warpsense.train.step import TrainingStep
-
-# the baseline's loss is the same formula in plain torch: its smoothness term from shifted slices, not the fused op
-BASELINE_SMOOTHNESS = edge_aware_smoothness_reference
-
 
 def gaussian_psf(size: int = 7, sigma: float = 1.2, channels: int = 3) -> torch.Tensor:
     """[C, 1, 1, K, K] isotropic Gaussian PSF summing to 1."""
@@ -86,10 +82,16 @@ def build(method: str, camera_name: str, device, channels_last: bool = True) -> 
     return camera.to(device), network.to(device)
 
 
-def network_ops(method: str):
-    """The context a method's network runs in: torch's own ops for the plain-torch baseline, warpsense's fused Warp
-    ops (on CUDA) for warpsense."""
-    return torch_ops() if method == "torch_baseline" else contextlib.nullcontext()
+@contextlib.contextmanager
+def method_ops(method: str):
+    """The context a method's network and loss run in: torch's own ops for the plain-torch baseline (the network's
+    through `dsunet.torch_ops`, the loss's plain-torch references through `LOSS_OPS`), warpsense's fused Warp ops
+    for warpsense."""
+    if method != "torch_baseline":
+        yield
+        return
+    with torch_ops(), LOSS_OPS.torch_ops():
+        yield
 
 
 def training_throughput(method, camera_name, loss_name, device, batch, height, width, steps, warmup,
@@ -107,9 +109,8 @@ def training_throughput(method, camera_name, loss_name, device, batch, height, w
                               ["loss.ohem_fraction=1.0", "loss.lovasz_weight=0.0", "loss.smooth_weight=0.0"]).loss
     torch._dynamo.reset()
     step = TrainingStep(loss_config, optimizer, [], steps + warmup, amp=cuda, compile_mode=compile_mode,
-                        cuda_graph=cuda_graph,
-                        smoothness_pairs=BASELINE_SMOOTHNESS if method == "torch_baseline" else None)
-    with network_ops(method):
+                        cuda_graph=cuda_graph)
+    with method_ops(method):
         return step_throughput(step, system, batch, height, width, steps, warmup, device)
 
 
@@ -140,7 +141,7 @@ def inference(method, camera_name, device, height, width):
     amp = torch.device(device).type == "cuda"
 
     def infer():
-        with network_ops(method), torch.no_grad(), torch.autocast(torch.device(device).type, dtype=torch.bfloat16,
+        with method_ops(method), torch.no_grad(), torch.autocast(torch.device(device).type, dtype=torch.bfloat16,
                                                                    enabled=amp):
             return network(camera(srgb_to_linear(frame)))
 

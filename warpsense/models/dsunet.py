@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import contextlib
-
 import torch
 from torch import nn
 from torch.nn import functional as F
 
 from warpsense.models.resample import adaptive_pool, resize
 from warpsense.ops import batch_norm_relu, channel_gate, upsample_concat
+from warpsense.ops.switch import OpSwitch
 
 FUSED_DEVICES = ("cuda",)
 """Devices where a channels-last network joins its decoder's upsampling and skips with `upsample_concat`, runs its
@@ -18,33 +17,19 @@ blocks' residuals as `channel_gate` (Warp's CPU backend runs a kernel on one thr
 core)."""
 
 
-FUSED_OPS = ("joins", "norm", "gate")
+NETWORK_OPS = OpSwitch(("joins", "norm", "gate"))
 """The network's Warp ops, by name: the decoder joins (`upsample_concat`), batch norm + ReLU (`batch_norm_relu`),
-the squeeze-and-excitation gate + residual (`channel_gate`). `torch_ops` turns them off by these names."""
-_torch_ops: frozenset = frozenset()  # the ones turned off (`torch_ops`)
-
-
-@contextlib.contextmanager
-def torch_ops(*names: str):
-    """Within this context the networks run the named fused ops (`FUSED_OPS`; all of them when none is named) as
-    torch's own ops on every device: the benchmarks' plain-torch baseline runs the same network as a plain PyTorch
-    script does, and an A/B (tools/device/ab.py) turns one op off. Unknown names raise a KeyError listing the valid
-    ones."""
-    global _torch_ops
-    unknown = set(names) - set(FUSED_OPS)
-    if unknown:
-        raise KeyError(f"unknown fused op(s) {', '.join(sorted(unknown))}; valid: {', '.join(FUSED_OPS)}")
-    saved, _torch_ops = _torch_ops, _torch_ops | frozenset(names or FUSED_OPS)
-    try:
-        yield
-    finally:
-        _torch_ops = saved
+the squeeze-and-excitation gate + residual (`channel_gate`). Within `torch_ops` the networks run the named ones (all
+when none is named) as torch's own ops on every device: the benchmarks' plain-torch baseline runs the same network
+as a plain PyTorch script does, and an A/B (tools/device/ab.py) turns one op off."""
+FUSED_OPS = NETWORK_OPS.names
+torch_ops = NETWORK_OPS.torch_ops
 
 
 def _fused(op: str, x: torch.Tensor) -> bool:
     """Whether x can go through the fused op ``op`` (`FUSED_OPS`): not turned off by `torch_ops`, channels-last on
     a `FUSED_DEVICES` device, bfloat16, float32 or float64, an even number of channels."""
-    return (op not in _torch_ops and x.device.type in FUSED_DEVICES and x.dim() == 4 and x.shape[1] % 2 == 0
+    return (NETWORK_OPS.fused(op) and x.device.type in FUSED_DEVICES and x.dim() == 4 and x.shape[1] % 2 == 0
             and x.dtype in (torch.bfloat16, torch.float32, torch.float64)
             and x.is_contiguous(memory_format=torch.channels_last))
 
@@ -250,7 +235,7 @@ class DSUNet(nn.Module):
         equal up to float rounding and deterministic; torch's NHWC resize backward was 3.0 ms and the
         concatenations 1.4 ms of a 41 ms step on an H100, docs/benchmarks.md round 23)."""
         if (self.memory_format == torch.channels_last and x.device.type in FUSED_DEVICES
-                and "joins" not in _torch_ops):
+                and NETWORK_OPS.fused("joins")):
             return upsample_concat(x, skip)
         return torch.cat([self._up(x, skip), skip], dim=1)
 

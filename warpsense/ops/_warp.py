@@ -41,6 +41,8 @@ def _init_warp() -> None:
 
 
 _init_warp()
+# tiled kernels (`launch`'s block_dim) run their blocks' threads on the CPU too (Warp's cooperative CPU fibers)
+wp.config.enable_cpu_blocks = True
 _KERNEL_DTYPES = (torch.float32, torch.float64)
 
 
@@ -166,8 +168,9 @@ def _array_ctype(tensor):
                          strides=tuple(stride * item for stride in tensor.stride()))
 
 
-def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.device) -> None:
-    """Launch a Warp kernel on ``device`` (torch's current stream on CUDA).
+def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.device, block_dim: int = 0) -> None:
+    """Launch a Warp kernel on ``device`` (torch's current stream on CUDA); ``block_dim`` > 0: a tiled launch
+    (`wp.launch_tiled`: ``dim`` blocks of ``block_dim`` threads, the tile functions' block).
 
     The first launch for a (kernel, device, dim, argument types) signature goes through `wp.launch` (overload
     resolution, from_torch wrapping) and is recorded; later ones replay the recorded launch with the new tensors'
@@ -180,11 +183,16 @@ def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.dev
         return
     signature = tuple((x.dtype, x.dim()) if isinstance(x, torch.Tensor) else
                       x.signature if isinstance(x, Vectors) else type(x) for x in inputs)
-    key = (kernel, device, dim, signature)
+    key = (kernel, device, dim, signature, block_dim)
     command = _LAUNCH_CACHE.get(key)
     if command is None:
         arguments = [to_warp(x) if isinstance(x, (torch.Tensor, Vectors)) else x for x in inputs]
-        command = wp.launch(kernel, dim=dim, inputs=arguments, device=wp.device_from_torch(device), record_cmd=True)
+        if block_dim:
+            command = wp.launch_tiled(kernel, dim=dim, inputs=arguments, device=wp.device_from_torch(device),
+                                      block_dim=block_dim, record_cmd=True)
+        else:
+            command = wp.launch(kernel, dim=dim, inputs=arguments, device=wp.device_from_torch(device),
+                                record_cmd=True)
         command.fwd_args = None  # drop the first call's arrays: a cached launch must not keep tensors alive
         _LAUNCH_CACHE[key] = command
         if len(_LAUNCH_CACHE) > _LAUNCH_CACHE_SIZE:

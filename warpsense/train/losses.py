@@ -6,7 +6,11 @@ import torch
 from torch.nn import functional as F
 
 from warpsense.data.labels import IGNORE_INDEX
+from warpsense.ops.lovasz import MAX_CLASSES
+from warpsense.ops.lovasz import lovasz_softmax as fused_lovasz
+from warpsense.ops.reference import edge_aware_smoothness_reference, lovasz_softmax_reference
 from warpsense.ops.smoothness import edge_aware_smoothness as fused_smoothness
+from warpsense.ops.switch import OpSwitch
 
 
 def class_balance_weights(counts: torch.Tensor, power: float) -> torch.Tensor:
@@ -46,74 +50,47 @@ def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: flo
     return (ranked * kept).sum() / keep
 
 
-# run eagerly under torch.compile: inductor (torch 2.11) fails to generate the split scan of a cumsum over a gather
-# of this length (InductorError in SplitScan codegen); its input has no gradient, so the island costs nothing else
-@torch.compiler.disable
-def lovasz_grad(sorted_labels: torch.Tensor) -> torch.Tensor:
-    """Gradient of the Lovasz extension of the Jaccard loss w.r.t. sorted errors (Berman et al. 2018, alg. 1).
-
-    One running count of the foreground, over all rows flattened into one int32 sequence, gives every row's counts
-    (each row's offset subtracted): exact for up to 2^31 pixels in all. A cumulative sum along the rows would
-    parallelise over the rows only; with the classes as rows (11 rows of 2.7M pixels at the CamVid recipe's batch)
-    it took 57% of the loss's time on an H100.
-
-    Args:
-        sorted_labels: [..., P] ground-truth indicator (0/1) of pixels sorted by decreasing error, per row.
-    """
-    pixels = sorted_labels.shape[-1]
-    rows = sorted_labels.reshape(-1, pixels).to(torch.int32)
-    running = rows.reshape(-1).cumsum(0, dtype=torch.int32).view(rows.shape)
-    foreground_so_far = running - (running[:, :1] - rows[:, :1])  # minus the count before each row
-    gts = foreground_so_far[:, -1:]
-    rank = torch.arange(1, pixels + 1, device=rows.device, dtype=torch.int32)
-    intersection = (gts - foreground_so_far).to(sorted_labels.dtype)
-    union = (gts + rank - foreground_so_far).to(sorted_labels.dtype)  # foreground + background so far
-    jaccard = 1.0 - intersection / union
-    if pixels > 1:
-        jaccard = torch.cat([jaccard[:, :1], jaccard[:, 1:] - jaccard[:, :-1]], dim=-1)
-    return jaccard.view(sorted_labels.shape)
+LOSS_OPS = OpSwitch(("lovasz", "smoothness"))
+"""The loss's Warp ops, by name: the Lovasz term from one sort of all classes (`warpsense.ops.lovasz_softmax`) and
+the edge-aware smoothness term in one pass (`warpsense.ops.edge_aware_smoothness`). Within ``LOSS_OPS.torch_ops``
+they run as their plain-torch references (`warpsense.ops.reference`), as in the benchmarks' plain-torch baseline."""
+LOVASZ_DEVICES = ("cuda",)
+"""Devices where the Lovasz term takes the fused op: on a CPU its tiles run as Warp's cooperative fibers, ~18x
+slower than torch's sort there (tools/bench_loss.py --device cpu)."""
 
 
 def lovasz_softmax(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
-    """Lovasz-softmax loss (Berman, Rannen Triki, Blaschko, CVPR 2018), averaged over the classes present in the
-    batch's labels. All classes are sorted at once and absent ones masked out, so no host round trip; ignored
-    pixels get error 0 and foreground 0, which adds nothing to the loss. Returns 0 when no pixel is valid."""
+    """Lovasz-softmax loss (Berman, Rannen Triki, Blaschko, CVPR 2018) of logits [B, K, H, W] and labels [B, H, W],
+    averaged over the classes present in the batch's labels (no host round trip). Returns 0 when no pixel is
+    valid."""
     return _lovasz_of_probabilities(torch.softmax(logits.float(), dim=1), target, ignore_index)
 
 
 def _lovasz_of_probabilities(probabilities: torch.Tensor, target: torch.Tensor,
                              ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
-    """`lovasz_softmax` of class probabilities [B, K, H, W]."""
-    num_classes = probabilities.shape[1]
-    probabilities = probabilities.transpose(0, 1).reshape(num_classes, -1)
-    labels = target.reshape(-1)
-    valid = labels != ignore_index
-    classes = torch.arange(num_classes, device=labels.device)[:, None]
-    foreground = ((labels[None] == classes) & valid).float()
-    errors = (foreground - probabilities).abs() * valid
-    errors_sorted, order = errors.sort(dim=1, descending=True)
-    losses = (errors_sorted * lovasz_grad(foreground.gather(1, order))).sum(dim=1)
-    present = (foreground.sum(dim=1) > 0).float()
-    return (losses * present).sum() / present.sum().clamp_min(1)
+    """`lovasz_softmax` of class probabilities [B, K, H, W]: the fused op on a `LOVASZ_DEVICES` device (up to
+    `MAX_CLASSES` classes) unless `LOSS_OPS` has it off."""
+    if (LOSS_OPS.fused("lovasz") and probabilities.device.type in LOVASZ_DEVICES
+            and probabilities.shape[1] <= MAX_CLASSES):
+        return fused_lovasz(probabilities, target, ignore_index)
+    return lovasz_softmax_reference(probabilities, target, ignore_index)
 
 
-def edge_aware_smoothness(logits: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1,
-                          pairs=None) -> torch.Tensor:
-    """Mean over 4-neighbour pairs of w_pq |P(p) - P(q)|_1 (eq. 9 of the paper), w_pq = exp(-|I_p - I_q| / sigma) from the
-    guide image [B, C, H, W] (the sensor output; its channel mean, resized to the logits if needed), so predictions
-    stay smooth except across image edges. ``pairs(probabilities, guide, sigma)`` sums the pairs: None is one
-    fused Warp op forward and backward (`warpsense.ops.smoothness`); the plain-torch baseline passes
-    `warpsense.ops.reference.edge_aware_smoothness_reference`."""
-    return _smoothness_of_probabilities(torch.softmax(logits.float(), dim=1), guide, sigma, pairs)
+def edge_aware_smoothness(logits: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1) -> torch.Tensor:
+    """Mean over 4-neighbour pairs of w_pq |P(p) - P(q)|_1 (eq. 9 of the paper), w_pq = exp(-|I_p - I_q| / sigma)
+    from the guide image [B, C, H, W] (the sensor output; its channel mean, resized to the logits if needed), so
+    predictions stay smooth except across image edges: one fused Warp op forward and backward
+    (`warpsense.ops.smoothness`) unless `LOSS_OPS` has it off."""
+    return _smoothness_of_probabilities(torch.softmax(logits.float(), dim=1), guide, sigma)
 
 
-def _smoothness_of_probabilities(probabilities: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1,
-                                 pairs=None) -> torch.Tensor:
+def _smoothness_of_probabilities(probabilities: torch.Tensor, guide: torch.Tensor, sigma: float = 0.1) -> torch.Tensor:
     """`edge_aware_smoothness` of class probabilities [B, K, H, W]."""
     guide = guide.float().mean(dim=1, keepdim=True)
     if guide.shape[-2:] != probabilities.shape[-2:]:
         guide = F.interpolate(guide, size=probabilities.shape[-2:], mode="bilinear", align_corners=False)
-    return (pairs or fused_smoothness)(probabilities, guide[:, 0], sigma)
+    pairs = fused_smoothness if LOSS_OPS.fused("smoothness") else edge_aware_smoothness_reference
+    return pairs(probabilities, guide[:, 0], sigma)
 
 
 def pixel_distillation(student: torch.Tensor, teacher: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
@@ -166,14 +143,12 @@ def distillation_loss(student: torch.Tensor, teacher: torch.Tensor, temperature:
     return term(student, teacher, temperature)
 
 
-def segmentation_loss(logits, target, guide, loss_config, class_weights: torch.Tensor | None = None,
-                      smoothness_pairs=None) -> tuple[torch.Tensor, dict[str, float]]:
+def segmentation_loss(logits, target, guide, loss_config,
+                      class_weights: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """Total loss 0.6 OHEM + 0.4 Lovasz + lambda smoothness (eq. 10 of the paper; weights from the config), the
     OHEM term's pixels weighted by ``class_weights`` [K] when given. With ``loss_config.lovasz_stride`` = s > 1 the
     Lovasz term sees the pixels on a grid of every s-th row and column (the crops' random offsets move the grid over
     the scene): an estimate of the batch's Jaccard loss from 1/s^2 of the pixels, whose sort dominates its cost.
-
-    ``smoothness_pairs``: how the smoothness term sums its pairs (`edge_aware_smoothness`'s ``pairs``).
 
     Returns the loss and a dict of its detached parts (tensors: no host sync per step)."""
     parts = {}
@@ -190,6 +165,6 @@ def segmentation_loss(logits, target, guide, loss_config, class_weights: torch.T
                                                    target[..., ::stride, ::stride])
         total = total + loss_config.lovasz_weight * parts["lovasz"]
     if loss_config.smooth_weight > 0:
-        parts["smooth"] = _smoothness_of_probabilities(probabilities, guide, pairs=smoothness_pairs)
+        parts["smooth"] = _smoothness_of_probabilities(probabilities, guide)
         total = total + loss_config.smooth_weight * parts["smooth"]
     return total, {k: v.detach() for k, v in parts.items()}

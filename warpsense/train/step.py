@@ -53,8 +53,6 @@ class TrainingStep:
             step (compiled and captured with it) and is never part of the trained model.
         class_weights: [K] weights of the OHEM term's pixels by class (loss.class_balance), on the device.
         ema: a `warpsense.train.ema.WeightEMA` updated after every optimizer step (inside the captured step).
-        smoothness_pairs: how the smoothness term sums its pairs (`warpsense.train.losses.edge_aware_smoothness`);
-            None: the fused Warp op. The plain-torch baseline of the benchmarks passes the plain-torch reference.
         data_parallel: the model is DDP-wrapped (several ranks). With ``cuda_graph`` the gradient all-reduce (NCCL)
             is captured inside the step: the wrapper must be built within `capture_stream` (the side stream that
             warms up and captures), `DDP_EAGER_STEPS_BEFORE_CAPTURE` eager steps run first, and the capture is
@@ -64,8 +62,7 @@ class TrainingStep:
     def __init__(self, loss_config, optimizer: torch.optim.Optimizer, camera_params: list, total_steps: int,
                  amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False,
                  micro_batch: int = 0, teacher: torch.nn.Module | None = None,
-                 class_weights: torch.Tensor | None = None, ema=None, smoothness_pairs=None,
-                 data_parallel: bool = False):
+                 class_weights: torch.Tensor | None = None, ema=None, data_parallel: bool = False):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
         if cuda_graph and compile_mode in SELF_CAPTURING_COMPILE_MODES:
@@ -81,7 +78,6 @@ class TrainingStep:
         self.teacher = teacher if loss_config.distill_weight > 0 else None
         self.class_weights = class_weights
         self.ema = ema
-        self.smoothness_pairs = smoothness_pairs
         self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
         self.compiled = compile_mode != "off"
         self.forward_loss = self._forward_loss if not self.compiled else \
@@ -108,8 +104,7 @@ class TrainingStep:
 
     def _forward_loss(self, model, images, labels):
         logits, sensed = model(images, self.amp)
-        loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config, self.class_weights,
-                                        self.smoothness_pairs)
+        loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config, self.class_weights)
         if self.teacher is not None:
             with torch.no_grad():
                 teacher_logits, _ = self.teacher(images, self.amp)
