@@ -152,12 +152,13 @@ def segmentation_loss(logits, target, guide, loss_config,
 
     Returns the loss and a dict of its detached parts (tensors: no host sync per step)."""
     parts = {}
-    total = logits.new_zeros((), dtype=torch.float32)
+    logits = logits.float()  # once for all terms: a bf16 network's logits are cast (and their gradient) once
+    total = logits.new_zeros(())
     if loss_config.ohem_weight > 0:
         parts["ohem"] = ohem_cross_entropy(logits, target, loss_config.ohem_fraction, class_weights=class_weights)
         total = total + loss_config.ohem_weight * parts["ohem"]
     # one softmax for the two terms that read probabilities (per pixel, so a strided view is the strided softmax)
-    probabilities = torch.softmax(logits.float(), dim=1) \
+    probabilities = torch.softmax(logits, dim=1) \
         if loss_config.lovasz_weight > 0 or loss_config.smooth_weight > 0 else None
     if loss_config.lovasz_weight > 0:
         stride = loss_config.lovasz_stride
