@@ -1,7 +1,8 @@
 """The recipe's loss and its terms, forward + backward to the logits, at its training shape (batch 16, 11 classes,
-352 x 480; the network's bf16 channels-last logits, 5% of the pixels void), each in one CUDA graph: OHEM
-cross-entropy, the Lovasz term, the smoothness term (the fused op and its plain-torch reference for the last two),
-and the whole loss with the fused ops and with the references (`warpsense.train.losses.LOSS_OPS`).
+352 x 480; the network's bf16 channels-last logits, 5% of the pixels void), each in one CUDA graph: cross-entropy,
+OHEM, the softmax, per-pixel cross-entropy with the softmax (torch's two and the fused op), the Lovasz term and the
+smoothness term (the fused op and its plain-torch reference), and the whole loss with the fused ops and with torch's
+(`warpsense.train.losses.LOSS_OPS`).
 
     python tools/bench_loss.py [--device cuda] [--batch 16] [--height 352] [--width 480] [--profile FILE] [--json OUT]
 
@@ -20,6 +21,7 @@ from torch.nn import functional as F
 
 from warpsense.bench.timing import time_cuda_graph, time_function, write_kernel_table
 from warpsense.config import load_config
+from warpsense.ops.cross_entropy import softmax_cross_entropy
 from warpsense.train import losses
 
 
@@ -46,12 +48,16 @@ def cases(batch: int, height: int, width: int, device: str) -> dict:
         "cross_entropy": case(lambda: F.cross_entropy(logits.float(), labels, ignore_index=255)),
         "ohem": case(lambda: losses.ohem_cross_entropy(logits, labels, config.ohem_fraction)),
         "softmax": case(lambda: probabilities().sum()),
+        "softmax_ce_torch": case(lambda: F.cross_entropy(logits.float(), labels, ignore_index=255, reduction="none")
+                                 .sum() + probabilities().square().sum()),
+        "softmax_ce_fused": case(lambda: sum(part.square().sum() if part.dim() == 4 else part.sum()
+                                             for part in softmax_cross_entropy(logits, labels))),
         "lovasz_fused": case(lambda: losses.lovasz_softmax(logits, labels)),
         "lovasz_torch": case(lambda: losses.lovasz_softmax(logits, labels), "lovasz"),
         "smoothness_fused": case(lambda: losses.edge_aware_smoothness(logits, guide)),
         "smoothness_torch": case(lambda: losses.edge_aware_smoothness(logits, guide), "smoothness"),
         "loss_fused": case(lambda: losses.segmentation_loss(logits, labels, guide, config)[0]),
-        "loss_torch": case(lambda: losses.segmentation_loss(logits, labels, guide, config)[0], "lovasz",
+        "loss_torch": case(lambda: losses.segmentation_loss(logits, labels, guide, config)[0], "softmax", "lovasz",
                            "smoothness"),
     }
 

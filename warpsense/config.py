@@ -222,6 +222,7 @@ class TrainConfig:
     max_steps_per_epoch: int = _field(0, minimum=0)
     time_budget_minutes: float = _field(0.0, minimum=0)
     eval_every: int = _field(1, minimum=1)
+    eval_batch_size: int = _field(0, minimum=0)
     checkpoint_every: int = _field(1, minimum=1)
     plots: bool = True
 

@@ -15,7 +15,7 @@ MODULES = sorted(info.name for info in pkgutil.iter_modules(warpsense.kernels.__
 
 
 def test_every_kernel_module_is_listed():
-    assert {"cfa", "lovasz", "noise", "psf", "quantize", "sensor", "smoothness"} <= set(MODULES)
+    assert {"cfa", "cross_entropy", "lovasz", "noise", "psf", "quantize", "sensor", "smoothness"} <= set(MODULES)
 
 
 @pytest.mark.parametrize("name", MODULES)

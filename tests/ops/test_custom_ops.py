@@ -7,7 +7,7 @@ import torch
 from tests.conftest import device_params
 from warpsense.camera import Camera
 from warpsense.config import load_config
-from warpsense.ops import batchnorm, cfa, gate, lovasz, noise, psf, quantize, sensor, smoothness, upsample
+from warpsense.ops import batchnorm, cfa, cross_entropy, gate, lovasz, noise, psf, quantize, sensor, smoothness, upsample
 
 DOUBLE = dict(dtype=torch.float64)
 
@@ -28,6 +28,9 @@ CASES = {
     "channel_gate": (gate._channel_gate, lambda: (_rand(2, 12, 4), _rand(2, 4), _rand(2, 12, 4))),
     "channel_gate_no_residual": (gate._channel_gate, lambda: (_rand(2, 12, 4), _rand(2, 4), None)),
     "cfa_mosaic": (cfa._cfa_mosaic, lambda: (_rand(2, 3, 5, 6), _rand(2, 2, 3))),
+    "softmax_cross_entropy": (cross_entropy._softmax_cross_entropy,
+                              lambda: (_rand(2, 4, 5, 3), torch.randint(0, 4, (2, 5, 3), dtype=torch.int32),
+                                       torch.ones(4, **DOUBLE), 255)),
     "lovasz_softmax_terms": (lovasz._lovasz_terms, lambda: (torch.softmax(_rand(2, 4, 5, 3, grad=False), 1)
                                                             .requires_grad_(),
                                                             torch.randint(0, 4, (2, 5, 3), dtype=torch.int32), 255)),
@@ -66,6 +69,10 @@ BACKWARD_CASES = {
     "psf_conv_backward_cells": (psf._psf_backward_cells,
                                 lambda: (_rand(2, 3, 6, 7), _rand(2, 3, 6, 7), psf.node_cells(_rand(3, 3, 2, 3, 3)),
                                          3, 2)),
+    "softmax_cross_entropy_backward": (cross_entropy._softmax_cross_entropy_backward,
+                                       lambda: (_rand(2, 4, 5, 3), torch.randint(0, 4, (2, 5, 3), dtype=torch.int32),
+                                                torch.ones(4, **DOUBLE), 255, _rand(2, 4, 5, 3), _rand(2, 5, 3),
+                                                torch.float64)),
     "smoothness_map_backward": (smoothness._smoothness_map_backward,
                                 lambda: (_rand(2, 4, 5, 3), _rand(2, 4, 5), torch.tensor([10.0, 0.1, 0.1], **DOUBLE),
                                          _rand(2, 4, 5))),

@@ -140,10 +140,10 @@ def test_gradcheck():
 
 
 def test_module_loss_term_takes_the_op_unless_switched_off(monkeypatch):
-    """The training loss's Lovasz term runs the fused op on a `LOVASZ_DEVICES` device (the CPU here), and its
+    """The training loss's Lovasz term runs the fused op on a `FUSED_LOSS_DEVICES` device (the CPU here), and its
     plain-torch reference within `LOSS_OPS.torch_ops("lovasz")` (the benchmarks' baseline): the same function."""
     calls = []
-    monkeypatch.setattr(losses, "LOVASZ_DEVICES", ("cpu",))
+    monkeypatch.setattr(losses, "FUSED_LOSS_DEVICES", ("cpu",))
     monkeypatch.setattr(losses, "fused_lovasz", lambda *args: calls.append("fused") or lovasz_softmax(*args))
     logits = torch.randn(2, 5, 6, 7, dtype=torch.float64, requires_grad=True)
     labels = torch.randint(0, 5, (2, 6, 7))
@@ -154,6 +154,6 @@ def test_module_loss_term_takes_the_op_unless_switched_off(monkeypatch):
     assert calls == ["fused"]
     torch.testing.assert_close(fused, plain)
     torch.testing.assert_close(torch.autograd.grad(fused, logits)[0], torch.autograd.grad(plain, logits)[0])
-    with pytest.raises(KeyError, match="valid: lovasz, smoothness"):
+    with pytest.raises(KeyError, match="valid: softmax, lovasz, smoothness"):
         with losses.LOSS_OPS.torch_ops("ohem"):
             pass

@@ -226,9 +226,14 @@ def _optimizer(config, model, device) -> torch.optim.AdamW:
     ], fused=device.type == "cuda")
 
 
+def eval_batch_size(config) -> int:
+    """Images per evaluation batch: ``train.eval_batch_size``, or the training batch when it is 0."""
+    return config.train.eval_batch_size or config.data.batch_size
+
+
 def _validate(model, datasets: _Datasets, config, context, amp: bool, progress: bool) -> dict:
     """Validation metrics of one epoch (and the held-out selection set's, when there is one)."""
-    evaluation = dict(device=context.device, batch_size=max(1, config.data.batch_size // 2), context=context,
+    evaluation = dict(device=context.device, batch_size=eval_batch_size(config), context=context,
                       class_names=datasets.train.classes, amp=amp, progress=progress and context.is_main)
     metrics = evaluate(model, datasets.val, **evaluation)
     record = {"val_miou": metrics["miou"], "val_pixel_accuracy": metrics["pixel_accuracy"],
@@ -426,7 +431,7 @@ def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, epoch: i
     for split in evaluation_splits(config.data):
         dataset = datasets.val if split == config.data.val_split else \
             build_dataset(config.data, split, train=False, seed=config.run.seed)
-        metrics = evaluate(model, dataset, device, max(1, config.data.batch_size // 2),
+        metrics = evaluate(model, dataset, device, eval_batch_size(config),
                            class_names=datasets.train.classes, amp=amp, progress=progress, per_image=True)
         metrics["image_counts"] = metrics["image_counts"].tolist()
         record["splits"][split] = metrics

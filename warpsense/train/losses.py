@@ -6,6 +6,7 @@ import torch
 from torch.nn import functional as F
 
 from warpsense.data.labels import IGNORE_INDEX
+from warpsense.ops.cross_entropy import softmax_cross_entropy
 from warpsense.ops.lovasz import MAX_CLASSES
 from warpsense.ops.lovasz import lovasz_softmax as fused_lovasz
 from warpsense.ops.reference import edge_aware_smoothness_reference, lovasz_softmax_reference
@@ -39,7 +40,15 @@ def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: flo
             hardest pixels are picked; None: unweighted.
     """
     losses = F.cross_entropy(logits.float(), target, weight=class_weights, ignore_index=ignore_index,
-                             reduction="none").flatten()
+                             reduction="none")
+    return hardest_mean(losses, target, fraction, ignore_index)
+
+
+def hardest_mean(losses: torch.Tensor, target: torch.Tensor, fraction: float = 0.25,
+                 ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
+    """The mean of the largest ``fraction`` of per-pixel losses [B, H, W] over the valid pixels of ``target``
+    [B, H, W] (`ohem_cross_entropy`'s selection; at least one pixel; 1.0: the mean over all valid ones)."""
+    losses = losses.flatten()
     valid = target.flatten() != ignore_index
     count = valid.sum()
     if fraction >= 1.0:
@@ -50,13 +59,16 @@ def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: flo
     return (ranked * kept).sum() / keep
 
 
-LOSS_OPS = OpSwitch(("lovasz", "smoothness"))
-"""The loss's Warp ops, by name: the Lovasz term from one sort of all classes (`warpsense.ops.lovasz_softmax`) and
-the edge-aware smoothness term in one pass (`warpsense.ops.edge_aware_smoothness`). Within ``LOSS_OPS.torch_ops``
-they run as their plain-torch references (`warpsense.ops.reference`), as in the benchmarks' plain-torch baseline."""
-LOVASZ_DEVICES = ("cuda",)
-"""Devices where the Lovasz term takes the fused op: on a CPU its tiles run as Warp's cooperative fibers, ~18x
-slower than torch's sort there (tools/bench_loss.py --device cpu)."""
+LOSS_OPS = OpSwitch(("softmax", "lovasz", "smoothness"))
+"""The loss's Warp ops, by name: the softmax and the OHEM term's per-pixel cross-entropy in one pass
+(`warpsense.ops.softmax_cross_entropy`), the Lovasz term from one sort of all classes
+(`warpsense.ops.lovasz_softmax`) and the edge-aware smoothness term in one pass
+(`warpsense.ops.edge_aware_smoothness`). Within ``LOSS_OPS.torch_ops`` they run as torch's own ops and the
+plain-torch references (`warpsense.ops.reference`), as in the benchmarks' plain-torch baseline."""
+FUSED_LOSS_DEVICES = ("cuda",)
+"""Devices where the softmax with cross-entropy and the Lovasz term take their fused ops (the smoothness op runs
+everywhere): on a CPU the Lovasz op's tiles run as Warp's cooperative fibers, ~18x slower than torch's sort there
+(tools/bench_loss.py --device cpu), and Warp's CPU kernels use one core where torch's use all."""
 
 
 def lovasz_softmax(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
@@ -68,9 +80,9 @@ def lovasz_softmax(logits: torch.Tensor, target: torch.Tensor, ignore_index: int
 
 def _lovasz_of_probabilities(probabilities: torch.Tensor, target: torch.Tensor,
                              ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
-    """`lovasz_softmax` of class probabilities [B, K, H, W]: the fused op on a `LOVASZ_DEVICES` device (up to
+    """`lovasz_softmax` of class probabilities [B, K, H, W]: the fused op on a `FUSED_LOSS_DEVICES` device (up to
     `MAX_CLASSES` classes) unless `LOSS_OPS` has it off."""
-    if (LOSS_OPS.fused("lovasz") and probabilities.device.type in LOVASZ_DEVICES
+    if (LOSS_OPS.fused("lovasz") and probabilities.device.type in FUSED_LOSS_DEVICES
             and probabilities.shape[1] <= MAX_CLASSES):
         return fused_lovasz(probabilities, target, ignore_index)
     return lovasz_softmax_reference(probabilities, target, ignore_index)
@@ -152,14 +164,22 @@ def segmentation_loss(logits, target, guide, loss_config,
 
     Returns the loss and a dict of its detached parts (tensors: no host sync per step)."""
     parts = {}
-    logits = logits.float()  # once for all terms: a bf16 network's logits are cast (and their gradient) once
-    total = logits.new_zeros(())
-    if loss_config.ohem_weight > 0:
-        parts["ohem"] = ohem_cross_entropy(logits, target, loss_config.ohem_fraction, class_weights=class_weights)
-        total = total + loss_config.ohem_weight * parts["ohem"]
+    total = logits.new_zeros((), dtype=torch.float32)
     # one softmax for the two terms that read probabilities (per pixel, so a strided view is the strided softmax)
-    probabilities = torch.softmax(logits, dim=1) \
-        if loss_config.lovasz_weight > 0 or loss_config.smooth_weight > 0 else None
+    needs_probabilities = loss_config.lovasz_weight > 0 or loss_config.smooth_weight > 0
+    if (loss_config.ohem_weight > 0 and needs_probabilities and LOSS_OPS.fused("softmax")
+            and logits.device.type in FUSED_LOSS_DEVICES):
+        # both from one pass over the (bf16) logits, and one backward into them
+        pixel_losses, probabilities = softmax_cross_entropy(logits, target, class_weights, IGNORE_INDEX)
+        parts["ohem"] = hardest_mean(pixel_losses, target, loss_config.ohem_fraction)
+    else:
+        logits = logits.float()  # once for all terms: a bf16 network's logits are cast (and their gradient) once
+        if loss_config.ohem_weight > 0:
+            parts["ohem"] = ohem_cross_entropy(logits, target, loss_config.ohem_fraction,
+                                               class_weights=class_weights)
+        probabilities = torch.softmax(logits, dim=1) if needs_probabilities else None
+    if loss_config.ohem_weight > 0:
+        total = total + loss_config.ohem_weight * parts["ohem"]
     if loss_config.lovasz_weight > 0:
         stride = loss_config.lovasz_stride
         parts["lovasz"] = _lovasz_of_probabilities(probabilities[..., ::stride, ::stride],
