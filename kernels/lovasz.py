@@ -25,7 +25,7 @@ and every step of J as full-size tensors, forward and backward. Here:
    by one thread, the sums are tile reductions and torch sums: deterministic.
 
 Layouts: probabilities and the gradient [B, K, H, W] (any strides: a channels-last or strided view is read in
-place), labels [B, H, W] int32, keys [K * Q] int32, order [K * Q] int64 (the sort's indices c * Q + pixel),
+place; the op gives the gradient class planes, which keep each class's scattered writes within the L2 cache), labels [B, H, W] int32, keys [K * Q] int32, order [K * Q] int64 (the sort's indices c * Q + pixel),
 counts, offsets and sums [K * Q / tile] (tile-major), foreground [K] int32. The tile is the launch's block.
 """
 
