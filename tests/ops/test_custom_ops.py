@@ -7,7 +7,19 @@ import torch
 from tests.conftest import device_params
 from warpsense.camera import Camera
 from warpsense.config import load_config
-from warpsense.ops import batchnorm, cfa, cross_entropy, gate, lovasz, noise, psf, quantize, sensor, smoothness, upsample
+from warpsense.ops import (
+    batchnorm,
+    cfa,
+    cross_entropy,
+    gate,
+    lovasz,
+    noise,
+    psf,
+    quantize,
+    sensor,
+    smoothness,
+    upsample,
+)
 
 DOUBLE = dict(dtype=torch.float64)
 

@@ -35,6 +35,7 @@ from warpsense.system import SensingModel
 from warpsense.train.losses import LOSS_OPS
 from warpsense.train.step import TrainingStep
 
+
 def gaussian_psf(size: int = 7, sigma: float = 1.2, channels: int = 3) -> torch.Tensor:
     """[C, 1, 1, K, K] isotropic Gaussian PSF summing to 1."""
     x = torch.arange(size, dtype=torch.float32) - size // 2
