@@ -17,11 +17,20 @@ import torch.nn.functional as F
 from warpsense.bench import BENCH_SUITES
 from warpsense.bench.timing import _summary, _sync, time_cuda_graph, time_function
 from warpsense.files import environment, write_json
-from warpsense.ops import cfa_mosaic, poisson_gaussian, psf_conv, quantize_ste, upsample_concat
+from warpsense.ops import (
+    cfa_mosaic,
+    lovasz_softmax,
+    poisson_gaussian,
+    psf_conv,
+    quantize_ste,
+    softmax_cross_entropy,
+    upsample_concat,
+)
 from warpsense.ops.psf import _conv2d_warp_gradient, psf_conv_fft, psf_conv_patch
 from warpsense.ops.reference import (
     cfa_mosaic_reference,
     edge_aware_smoothness_reference,
+    lovasz_softmax_reference,
     poisson_gaussian_reference,
     psf_conv_reference,
     quantize_reference,
@@ -205,6 +214,18 @@ def _kernel_suite(device: str, quick: bool) -> list[dict]:
         shape = (batch, 11, height, width)
         bench.case("edge_smoothness", "warp", shape, edge_aware_smoothness, [probabilities, guide])
         bench.case("edge_smoothness", "torch_eager", shape, edge_aware_smoothness_reference, [probabilities, guide])
+        # the loss's other terms at the same size: Lovasz from one sort, softmax with per-pixel cross-entropy
+        labels = torch.randint(0, 11, (batch, height, width), device=device)
+        bench.case("lovasz_softmax", "warp", shape, lambda p, t=labels: lovasz_softmax(p, t), [probabilities])
+        bench.case("lovasz_softmax", "torch_eager", shape, lambda p, t=labels: lovasz_softmax_reference(p, t),
+                   [probabilities])
+        logits = torch.randn(batch, 11, height, width, dtype=torch.float64, device=device)
+        logits = logits.contiguous(memory_format=torch.channels_last).requires_grad_()
+        bench.case("softmax_cross_entropy", "warp", shape,
+                   lambda z, t=labels: torch.cat([out.flatten() for out in softmax_cross_entropy(z, t)]), [logits])
+        bench.case("softmax_cross_entropy", "torch_eager", shape,
+                   lambda z, t=labels: torch.cat([F.cross_entropy(z, t, reduction="none").flatten(),
+                                        torch.softmax(z, dim=1).flatten()]), [logits])
     # the decoder's upsampling + skip concatenation, channels-last: DSUNet's join into full resolution (width 24)
     up_sizes = [(1, 48, 48, 64)] if quick else ([(16, 48, 176, 240)] if device == "cuda" else [(1, 48, 96, 160)])
     for batch, channels, height, width in up_sizes:

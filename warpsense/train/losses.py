@@ -67,7 +67,7 @@ LOSS_OPS = OpSwitch(("softmax", "lovasz", "smoothness"))
 plain-torch references (`warpsense.ops.reference`), as in the benchmarks' plain-torch baseline."""
 FUSED_LOSS_DEVICES = ("cuda",)
 """Devices where the softmax with cross-entropy and the Lovasz term take their fused ops (the smoothness op runs
-everywhere): on a CPU the Lovasz op's tiles run as Warp's cooperative fibers, ~18x slower than torch's sort there
+everywhere): on a CPU the Lovasz op's tiles run as Warp's cooperative fibers, ~20x slower than torch's sort there
 (tools/bench_loss.py --device cpu), and Warp's CPU kernels use one core where torch's use all."""
 
 
