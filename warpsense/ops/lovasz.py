@@ -76,7 +76,7 @@ def lovasz_softmax(probabilities: torch.Tensor, labels: torch.Tensor, ignore_ind
     """Lovasz-softmax loss (Berman, Rannen Triki, Blaschko, CVPR 2018, alg. 1) averaged over the classes present in
     ``labels``, every class from one sort (`kernels/lovasz.py`). Errors closer than 2^-(29 - class bits) (3e-8
     at 11 classes) may be ranked in either order, which moves a class's loss by at most that much; otherwise it
-    equals `warpsense.train.losses.lovasz_softmax_reference`. Deterministic.
+    equals `warpsense.ops.reference.lovasz_softmax_reference`. Deterministic.
 
     Args:
         probabilities: [B, K, H, W] class probabilities in [0, 1], K <= `MAX_CLASSES`, any strides (a
