@@ -40,6 +40,22 @@ def check_channel_pairs(op: str, x) -> tuple[int, int, int, int]:
     return tuple(x.shape)
 
 
+def check_class_maps(op: str, name: str, maps, labels) -> tuple[int, int, int, int]:
+    """``maps`` (argument ``name``) must be a floating [B, K, H, W] tensor and ``labels`` an integer [B, H, W] one on
+    its device (per-pixel class indices); the maps' shape."""
+    check_tensor(op, name, maps, 4, "[B, K, H, W] tensor")
+    if not isinstance(labels, torch.Tensor) or labels.is_floating_point() or labels.is_complex() \
+            or labels.dtype == torch.bool:
+        raise TypeError(f"{op}: labels must be an integer tensor, got "
+                        f"{labels.dtype if isinstance(labels, torch.Tensor) else type(labels).__name__}")
+    check_same_device(op, **{name: maps, "labels": labels})
+    batch, classes, height, width = maps.shape
+    if tuple(labels.shape) != (batch, height, width):
+        raise ValueError(f"{op}: labels must be [B, H, W] = {(batch, height, width)} to match {name} "
+                         f"{tuple(maps.shape)}, got {tuple(labels.shape)}")
+    return batch, classes, height, width
+
+
 def check_same_device(op: str, **tensors: torch.Tensor) -> None:
     devices = {name: tensor.device for name, tensor in tensors.items()}
     if len(set(devices.values())) > 1:

@@ -7,7 +7,7 @@ import torch
 
 from warpsense.kernels import cross_entropy as kernels
 from warpsense.ops._warp import launch, warp_op
-from warpsense.ops.arguments import check_same_device, check_tensor
+from warpsense.ops.arguments import check_class_maps
 
 _DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' logits types; others compute in float32
 
@@ -79,16 +79,7 @@ def softmax_cross_entropy(logits: torch.Tensor, labels: torch.Tensor, weights: t
         losses [B, H, W] and probabilities [B, K, H, W], float32 (float64 for float64 logits).
     """
     op = "softmax_cross_entropy"
-    check_tensor(op, "logits", logits, 4, "[B, K, H, W] tensor")
-    if not isinstance(labels, torch.Tensor) or labels.is_floating_point() or labels.is_complex() \
-            or labels.dtype == torch.bool:
-        raise TypeError(f"{op}: labels must be an integer tensor, got "
-                        f"{labels.dtype if isinstance(labels, torch.Tensor) else type(labels).__name__}")
-    check_same_device(op, logits=logits, labels=labels)
-    batch, classes, height, width = logits.shape
-    if tuple(labels.shape) != (batch, height, width):
-        raise ValueError(f"{op}: labels must be [B, H, W] = {(batch, height, width)} to match logits "
-                         f"{tuple(logits.shape)}, got {tuple(labels.shape)}")
+    classes = check_class_maps(op, "logits", logits, labels)[1]
     if logits.dtype not in _DTYPES:
         logits = logits.float()
     arithmetic = _arithmetic(logits.dtype)

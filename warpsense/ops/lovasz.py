@@ -9,7 +9,7 @@ import torch
 
 from warpsense.kernels import lovasz as kernels
 from warpsense.ops._warp import launch, warp_op
-from warpsense.ops.arguments import check_same_device, check_tensor
+from warpsense.ops.arguments import check_class_maps
 
 TILE = {"cuda": 256, "cpu": 32}
 """Sorted keys per block of the counting and gradient kernels, by device type (a tile is one block)."""
@@ -88,16 +88,7 @@ def lovasz_softmax(probabilities: torch.Tensor, labels: torch.Tensor, ignore_ind
         0-d tensor in the kernels' dtype; 0 when no pixel is labelled.
     """
     op = "lovasz_softmax"
-    check_tensor(op, "probabilities", probabilities, 4, "[B, K, H, W] tensor")
-    if not isinstance(labels, torch.Tensor) or labels.is_floating_point() or labels.is_complex() \
-            or labels.dtype == torch.bool:
-        raise TypeError(f"{op}: labels must be an integer tensor, got "
-                        f"{labels.dtype if isinstance(labels, torch.Tensor) else type(labels).__name__}")
-    check_same_device(op, probabilities=probabilities, labels=labels)
-    batch, classes, height, width = probabilities.shape
-    if tuple(labels.shape) != (batch, height, width):
-        raise ValueError(f"{op}: labels must be [B, H, W] = {(batch, height, width)} to match probabilities "
-                         f"{tuple(probabilities.shape)}, got {tuple(labels.shape)}")
+    batch, classes, height, width = check_class_maps(op, "probabilities", probabilities, labels)
     if classes > MAX_CLASSES:
         raise ValueError(f"{op}: at most {MAX_CLASSES} classes (31-bit sort keys), got {classes}")
     if classes * (batch * height * width + TILE["cuda"]) >= 2**31:
