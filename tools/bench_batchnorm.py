@@ -2,10 +2,10 @@
 batch norm + ReLU of the recipe's network (DSUNet width 24 with the pyramid context, channels-last, bf16) at its
 training shape (batch 16, 352 x 480), all layers in one CUDA graph, forward and forward + backward.
 
-    python tools/bench_batchnorm.py [--device cuda] [--unroll N] [--threads N] [--profile FILE] [--json OUT]
+    python tools/bench_batchnorm.py [--device cuda] [--threads N] [--profile FILE] [--json OUT]
 
-``--unroll`` and ``--threads`` replace `kernels/batchnorm.py`'s UNROLL and the op's threads per launch before the
-kernels first build (a tuning aid; Warp hashes the constant into the module, so each value builds its own).
+``--threads`` replaces the op's threads per launch (a tuning aid). `kernels/batchnorm.py`'s UNROLL is read when its
+kernels are declared, at import, so it is tuned by editing the source (tools/device/README.md), not from here.
 Medians of graph-replay ms (`warpsense.bench.timing.time_cuda_graph`; eager wall-clock ms on a CPU, one small
 layer); also the bytes the fused op moves over the time.
 """
@@ -40,13 +40,10 @@ def layer_shapes(batch: int, height: int, width: int) -> list[tuple[int, int, in
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--unroll", type=int, help="kernels/batchnorm.py UNROLL for this process")
     parser.add_argument("--threads", type=int, help="threads per reduction launch on CUDA for this process")
     parser.add_argument("--profile", metavar="FILE", help="the fused op's kernels by GPU time (forward + backward)")
     parser.add_argument("--json", metavar="OUT")
     args = parser.parse_args()
-    if args.unroll:
-        op_module.kernels.UNROLL = args.unroll
     if args.threads:
         op_module._THREADS["cuda"] = args.threads
     device = torch.device(args.device)
