@@ -352,3 +352,25 @@ def test_captured_runs_report_their_capture_time_per_phase(tmp_path):
     for record in records[:2]:
         assert 0 < record["capture_s"] < record["epoch_time_s"]
     assert "capture_s" not in records[2]
+
+
+@pytest.mark.parametrize("eval_batch, expected", [(0, 4), (3, 3)])
+def test_validation_takes_train_eval_batch_size(tmp_path, monkeypatch, eval_batch, expected):
+    """Validation and the final evaluation batch ``train.eval_batch_size`` images, the training batch when it is
+    0; the metrics do not depend on it (eval-mode camera, noise seeded per image)."""
+    from warpsense.train import engine, evaluate
+
+    batches = []
+    real = evaluate.evaluate
+
+    def recording(model, dataset, device, batch_size=4, **kwargs):
+        batches.append(batch_size)
+        return real(model, dataset, device, batch_size, **kwargs)
+
+    monkeypatch.setattr(engine, "evaluate", recording)
+    config = load_config(None, TINY + ["train.epochs=1", "train.warmup_epochs=1", f"run.output_dir={tmp_path}",
+                                       f"train.eval_batch_size={eval_batch}"])
+    run = train(config, progress=False)
+    assert batches and set(batches) == {expected}
+    evaluation = json.loads((run / "evaluation.json").read_text())
+    assert 0 <= evaluation["splits"]["val"]["miou"] <= 1
