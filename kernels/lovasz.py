@@ -14,7 +14,7 @@ and every step of J as full-size tensors, forward and backward. Here:
    largest (e = 0, not valid). One stable ascending sort of these keys (torch.sort, the caller) orders the classes
    and, within each, the errors from large to small, every tile of the sorted keys inside one class. Errors closer
    than 1 / levels may swap, which moves a class's loss by at most 1 / levels (the g of a class sum to J_P <= 1)
-   and leaves every gradient a valid subgradient.
+   and gives those pixels the gradients of the order used (what the exact ranking gives when errors are equal).
 2. `lovasz_counts`: each tile (one block) counts its foreground (the keys' bit 0); a cumulative sum of the counts
    along each class (torch) gives every tile the foreground before it, and G.
 3. `lovasz_gradient`: each thread takes one sorted key: F_r from its tile's scan of the foreground bits, g_r in
@@ -25,8 +25,9 @@ and every step of J as full-size tensors, forward and backward. Here:
    by one thread, the sums are tile reductions and torch sums: deterministic.
 
 Layouts: probabilities and the gradient [B, K, H, W] (any strides: a channels-last or strided view is read in
-place; the op gives the gradient class planes, which keep each class's scattered writes within the L2 cache), labels [B, H, W] int32, keys [K * Q] int32, order [K * Q] int64 (the sort's indices c * Q + pixel),
-counts, offsets and sums [K * Q / tile] (tile-major), foreground [K] int32. The tile is the launch's block.
+place; the op gives the gradient class planes, which keep each class's scattered writes within the L2 cache),
+labels [B, H, W] int32, keys [K * Q] int32, order [K * Q] int64 (the sort's indices c * Q + pixel), counts,
+offsets and sums [K * Q / tile] (tile-major), foreground [K] int32. The tile is the launch's block.
 """
 
 from typing import Any
