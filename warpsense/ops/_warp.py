@@ -43,7 +43,19 @@ def _init_warp() -> None:
 _init_warp()
 # tiled kernels (`launch`'s block_dim) run their blocks' threads on the CPU too (Warp's cooperative CPU fibers)
 wp.config.enable_cpu_blocks = True
-_KERNEL_DTYPES = (torch.float32, torch.float64)
+ELEMENT_DTYPES = (torch.bfloat16, torch.float32, torch.float64)
+"""Element types of the kernels that read and write tensors in their own dtype (the network's and the loss's ops);
+tensors of other dtypes are given to them as float32 (`element_dtype`)."""
+
+
+def element_dtype(dtype: torch.dtype) -> torch.dtype:
+    """The dtype such a kernel takes a tensor of ``dtype`` in: itself if in `ELEMENT_DTYPES`, else float32."""
+    return dtype if dtype in ELEMENT_DTYPES else torch.float32
+
+
+def arithmetic_dtype(dtype: torch.dtype) -> torch.dtype:
+    """The float type such kernels compute in for elements of ``dtype``: float64 for float64, else float32."""
+    return torch.float64 if dtype == torch.float64 else torch.float32
 
 
 def kernel_dtype(*tensors: torch.Tensor) -> torch.dtype:

@@ -6,11 +6,10 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import batchnorm as kernels
+from warpsense.ops._warp import arithmetic_dtype, element_dtype, kernel_scalar, launch, warp_op
 from warpsense.ops._warp import bfloat16_words as _words
-from warpsense.ops._warp import kernel_scalar, launch, warp_op
 from warpsense.ops.arguments import check_channel_pairs, check_same_device, check_tensor
 
-_DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' element types; others compute in float32
 # threads per launch on CUDA: 2^17 beat 2^16 and 2^18 at UNROLL 4 (tools/bench_batchnorm.py, an H200)
 _THREADS = {"cuda": 2**17}
 _CPU_GROUPS = 16  # Warp's CPU backend runs a launch on one thread: few partial sums
@@ -111,8 +110,8 @@ def batch_norm_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, r
         raise ValueError(f"{op}: batch statistics need more than one value per channel, got x {tuple(x.shape)}")
     if not 0.0 <= momentum <= 1.0 or not eps > 0.0:
         raise ValueError(f"{op}: momentum must be in [0, 1] and eps > 0, got {momentum!r} and {eps!r}")
-    dtype = x.dtype if x.dtype in _DTYPES else torch.float32
-    accumulator = torch.float64 if dtype == torch.float64 else torch.float32  # the kernels' arithmetic
+    dtype = element_dtype(x.dtype)
+    accumulator = arithmetic_dtype(dtype)
     for name, tensor in (("weight", weight), ("bias", bias), ("running_mean", running_mean),
                          ("running_var", running_var)):
         check_tensor(op, name, tensor, 1, f"[{channels}] tensor")

@@ -6,14 +6,8 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import cross_entropy as kernels
-from warpsense.ops._warp import launch, warp_op
+from warpsense.ops._warp import arithmetic_dtype, element_dtype, launch, warp_op
 from warpsense.ops.arguments import check_class_maps
-
-_DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' logits types; others compute in float32
-
-
-def _arithmetic(dtype: torch.dtype) -> torch.dtype:
-    return torch.float64 if dtype == torch.float64 else torch.float32
 
 
 def _backward_fake(probabilities, labels, weights, ignore_index, grad_probabilities, grad_losses, dtype):
@@ -46,14 +40,14 @@ def _backward(ctx, grad_losses, grad_probabilities):
 
 
 def _fake(logits, labels, weights, ignore_index):
-    arithmetic = _arithmetic(logits.dtype)
+    arithmetic = arithmetic_dtype(logits.dtype)
     return labels.new_empty(labels.shape, dtype=arithmetic), torch.empty_like(logits, dtype=arithmetic)
 
 
 @warp_op("softmax_cross_entropy", _fake, _backward, _setup)
 def _softmax_cross_entropy(logits: torch.Tensor, labels: torch.Tensor, weights: torch.Tensor,
                            ignore_index: int) -> tuple[torch.Tensor, torch.Tensor]:
-    arithmetic = _arithmetic(logits.dtype)
+    arithmetic = arithmetic_dtype(logits.dtype)
     losses = labels.new_empty(labels.shape, dtype=arithmetic)
     probabilities = torch.empty_like(logits, dtype=arithmetic)
     batch, _, height, width = logits.shape
@@ -80,9 +74,8 @@ def softmax_cross_entropy(logits: torch.Tensor, labels: torch.Tensor, weights: t
     """
     op = "softmax_cross_entropy"
     classes = check_class_maps(op, "logits", logits, labels)[1]
-    if logits.dtype not in _DTYPES:
-        logits = logits.float()
-    arithmetic = _arithmetic(logits.dtype)
+    logits = logits.to(element_dtype(logits.dtype))
+    arithmetic = arithmetic_dtype(logits.dtype)
     if weights is None:
         weights = torch.ones(classes, dtype=arithmetic, device=logits.device)
     elif tuple(weights.shape) != (classes,):

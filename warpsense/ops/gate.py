@@ -6,12 +6,11 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import gate as kernels
+from warpsense.ops._warp import arithmetic_dtype, element_dtype, launch, warp_op
 from warpsense.ops._warp import bfloat16_words as _words
-from warpsense.ops._warp import launch, warp_op
 from warpsense.ops.arguments import check_channel_pairs, check_same_device, check_tensor
 from warpsense.ops.batchnorm import row_groups
 
-_DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' element types
 _CPU_GROUPS = 4  # pixel groups per image on the CPU, whose backend runs a launch on one thread
 
 
@@ -87,12 +86,11 @@ def channel_gate(x: torch.Tensor, gate: torch.Tensor, residual: torch.Tensor | N
             raise ValueError(f"{op}: residual must have x's shape {tuple(x.shape)}, got {tuple(residual.shape)}")
         tensors["residual"] = residual
     check_same_device(op, **tensors)
-    dtype = x.dtype if x.dtype in _DTYPES else torch.float32
+    dtype = element_dtype(x.dtype)
 
     def pixels(tensor):  # [B, H W, C]: a view of channels-last memory, a copy of any other
         return tensor.to(dtype).permute(0, 2, 3, 1).contiguous().view(batch, height * width, channels)
 
-    accumulator = torch.float64 if dtype == torch.float64 else torch.float32  # the kernels' arithmetic
-    out = _channel_gate(pixels(x), gate.reshape(batch, channels).to(accumulator).contiguous(),
+    out = _channel_gate(pixels(x), gate.reshape(batch, channels).to(arithmetic_dtype(dtype)).contiguous(),
                         None if residual is None else pixels(residual))
     return out.view(batch, height, width, channels).permute(0, 3, 1, 2)

@@ -6,10 +6,8 @@ from __future__ import annotations
 import torch
 
 from warpsense.kernels import upsample as kernels
-from warpsense.ops._warp import launch, warp_op
+from warpsense.ops._warp import element_dtype, launch, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
-
-_DTYPES = (torch.bfloat16, torch.float32, torch.float64)  # the kernels' element types; others compute in float32
 
 
 def _threads(count: int) -> int:
@@ -76,8 +74,7 @@ def upsample_concat(x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
     if skip.shape[0] != batch or tuple(skip.shape[2:]) != (2 * height, 2 * width):
         raise ValueError(f"{op}: skip must be [B, C2, 2h, 2w] = [{batch}, C2, {2 * height}, {2 * width}] for x "
                          f"{tuple(x.shape)}, got {tuple(skip.shape)}")
-    dtype = torch.promote_types(x.dtype, skip.dtype)
-    dtype = dtype if dtype in _DTYPES else torch.float32
+    dtype = element_dtype(torch.promote_types(x.dtype, skip.dtype))
     # [B, H, W, C] with the channels innermost: views of channels-last memory, copies of any other
     x_last = x.to(dtype).permute(0, 2, 3, 1).contiguous()
     skip_last = skip.to(dtype).permute(0, 2, 3, 1).contiguous()
