@@ -16,7 +16,7 @@ from typing import Any
 
 import warp as wp
 
-from warpsense.kernels.batchnorm import UNROLL, load_pair, store_pair
+from warpsense.kernels.batchnorm import UNROLL, load_pair, pair_of, store_pair
 
 wp.set_module_options({"enable_backward": False})
 
@@ -28,18 +28,12 @@ def image_thread(t: int, pairs: int, groups: int):
     return rest / groups, rest % groups, t % pairs
 
 
-@wp.func
-def gate_of(gate: wp.array2d(dtype=Any), b: int, p: int):
-    """Image b's gates of channels 2p and 2p + 1."""
-    return wp.vector(gate[b, 2 * p], gate[b, 2 * p + 1])
-
-
 @wp.kernel
 def gate_forward(x: wp.array3d(dtype=Any), gate: wp.array2d(dtype=Any), residual: wp.array3d(dtype=Any),
                  add_residual: int, pairs: int, groups: int, out: wp.array3d(dtype=Any)):
     """out = x gate (+ residual where ``add_residual``) for image b's pixel group g."""
     b, group, p = image_thread(wp.tid(), pairs, groups)
-    scale = gate_of(gate, b, p)
+    scale = pair_of(gate, b, p)  # image b's gates of channels 2p and 2p + 1
     for start in range(group, x.shape[1], groups * UNROLL):
         for u in range(wp.static(UNROLL)):
             s = start + u * groups
@@ -55,7 +49,7 @@ def gate_backward(grad_out: wp.array3d(dtype=Any), x: wp.array3d(dtype=Any), gat
                   pairs: int, groups: int, grad_x: wp.array3d(dtype=Any), partials: wp.array3d(dtype=Any)):
     """grad_x = dy gate, and partials[b, g] = sum dy x over image b's pixel group g."""
     b, group, p = image_thread(wp.tid(), pairs, groups)
-    scale = gate_of(gate, b, p)
+    scale = pair_of(gate, b, p)  # image b's gates of channels 2p and 2p + 1
     total = scale - scale
     for start in range(group, x.shape[1], groups * UNROLL):
         for u in range(wp.static(UNROLL)):

@@ -8,6 +8,7 @@ from torch.nn import functional as F
 
 from warpsense.models.resample import adaptive_pool, resize
 from warpsense.ops import batch_norm_relu, channel_gate, upsample_concat
+from warpsense.ops._warp import ELEMENT_DTYPES
 from warpsense.ops.switch import OpSwitch
 
 FUSED_DEVICES = ("cuda",)
@@ -30,7 +31,7 @@ def _fused(op: str, x: torch.Tensor) -> bool:
     """Whether x can go through the fused op ``op`` (`FUSED_OPS`): not turned off by `torch_ops`, channels-last on
     a `FUSED_DEVICES` device, bfloat16, float32 or float64, an even number of channels."""
     return (NETWORK_OPS.fused(op) and x.device.type in FUSED_DEVICES and x.dim() == 4 and x.shape[1] % 2 == 0
-            and x.dtype in (torch.bfloat16, torch.float32, torch.float64)
+            and x.dtype in ELEMENT_DTYPES
             and x.is_contiguous(memory_format=torch.channels_last))
 
 
