@@ -4,8 +4,9 @@
 
 SWITCH: "fused" (as shipped); "torch-joins", "torch-norm", "torch-gate" (that network op through torch: the
 decoder's upsampling and concatenation, batch norm + ReLU, the squeeze-and-excitation gate and residual);
-"torch-lovasz", "torch-smoothness" (that loss term's plain-torch reference); "torch-network" (the three network
-ops), "torch-loss" (the two loss ops), "torch-all" (all five). The script runs inside the switches the benchmarks'
+"torch-softmax", "torch-lovasz", "torch-smoothness" (that loss op's torch form: torch's softmax and
+cross-entropy, the terms' plain-torch references); "torch-network" (the three network ops), "torch-loss" (the three
+loss ops), "torch-all" (all six). The script runs inside the switches the benchmarks'
 baseline uses (`warpsense.models.dsunet.NETWORK_OPS`, `warpsense.train.losses.LOSS_OPS`).
 """
 

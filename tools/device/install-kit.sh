@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|bn|gate|loss|round25]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|bn|gate|loss]
 #   step:   the training step at Lovasz stride 1 and 2 (round 16)
 #   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
 #           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
@@ -19,14 +19,11 @@
 #   gate:   the fused squeeze-and-excitation gate's cuda tests (and the networks', the training tests), then the step
 #           and batch-1 latency with the gate through torch and through the op (tools/device/ab.py)
 #           -> $OUT/step_gate_{off,on}.json, latency_gate_{off,on}.json, ~6 minutes (issue 27)
-#   loss:   the fused Lovasz op's cuda tests (and the losses', the training tests), the loss terms
-#           (tools/bench_loss.py, the fused loss profiled), then the step with the Lovasz term's plain-torch form
-#           (tools/device/ab.py torch-lovasz) and with the op -> $OUT/loss_terms.json, loss_profile.txt,
-#           step_lovasz_{off,on}.json, ~6 minutes (issue 27)
-#   round25: the loss ops' cuda tests (softmax + cross-entropy, Lovasz, smoothness; the losses', the training tests),
-#           the loss terms (profiled), then the step with all the loss's ops in torch form, with the fused softmax
-#           off, and as shipped (tools/device/ab.py) -> $OUT/loss_terms.json, loss_profile.txt,
-#           step_loss_{torch,nosoftmax,fused}.json, ~6 minutes (issue 27)
+#   loss:   the loss ops' cuda tests (softmax + cross-entropy, Lovasz, smoothness; the losses', the training tests),
+#           the loss terms (tools/bench_loss.py, the fused loss profiled), then the step with all the loss's ops in
+#           torch form, with the fused softmax off, with the Lovasz op off, and as shipped (tools/device/ab.py)
+#           -> $OUT/loss_terms.json, loss_profile.txt, step_loss_{torch,nosoftmax,nolovasz,fused}.json, ~7 minutes
+#           (issue 27, round 25)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -123,21 +120,11 @@ if [ "${1:-}" = round23 ]; then
   python tools/bench_upsample.py --device cuda 2>&1 | grep -v Warning > "$OUT/upsample_joins.txt"
 fi
 if [ "${1:-}" = loss ]; then
-  cuda_tests loss_cuda_tests 240 tests/ops/test_lovasz.py tests/ops/test_smoothness.py tests/ops/test_custom_ops.py \
-    tests/train/test_losses.py tests/train/test_training.py
-  python tools/bench_loss.py --device cuda --json "$OUT/loss_terms.json" --profile "$OUT/loss_profile.txt" 2>&1 \
-    | grep -v -e Warning -e USDT
-  for ab in off:torch-lovasz on:fused; do
-    python tools/device/ab.py "${ab#*:}" tools/bench_train_bound.py --config camvid_codesign --steps 60 \
-      --json "$OUT/step_lovasz_${ab%%:*}.json" 2>&1 | grep -v -e Warning -e warn
-  done
-fi
-if [ "${1:-}" = round25 ]; then
   cuda_tests loss_cuda_tests 300 tests/ops/test_cross_entropy.py tests/ops/test_lovasz.py tests/ops/test_smoothness.py \
     tests/ops/test_custom_ops.py tests/train/test_losses.py tests/train/test_training.py
   python tools/bench_loss.py --device cuda --json "$OUT/loss_terms.json" --profile "$OUT/loss_profile.txt" 2>&1 \
     | grep -v -e Warning -e USDT
-  for ab in torch:torch-loss nosoftmax:torch-softmax fused:fused; do
+  for ab in torch:torch-loss nosoftmax:torch-softmax nolovasz:torch-lovasz fused:fused; do
     python tools/device/ab.py "${ab#*:}" tools/bench_train_bound.py --config camvid_codesign --steps 60 \
       --json "$OUT/step_loss_${ab%%:*}.json" 2>&1 | grep -v -e Warning -e warn
   done
