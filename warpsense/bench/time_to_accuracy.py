@@ -37,7 +37,7 @@ from warpsense.models import count_parameters, network_from_config
 from warpsense.system import SensingModel
 from warpsense.system.build import build_system
 from warpsense.train.distributed import DistributedContext
-from warpsense.train.engine import build_train_batches, eval_batch_size, train
+from warpsense.train.engine import build_train_batches, eval_batch_size, every, train
 from warpsense.train.evaluate import evaluate
 from warpsense.train.losses import segmentation_loss
 from warpsense.train.run_dir import METRICS, read_metrics
@@ -105,7 +105,7 @@ def baseline_curve(config, device: torch.device) -> tuple[list[dict], dict]:
                 if device.type == "cuda":
                     torch.cuda.synchronize(device)
                 start["first_epoch_s"] = time.perf_counter() - epoch_started
-            if (epoch + 1) % config.train.eval_every == 0 or epoch == config.train.epochs - 1:
+            if every(epoch, config.train.eval_every, config.train.epochs):
                 metrics = evaluate(model, val_set, device, eval_batch_size(config), amp=amp)
                 curve.append({"epoch": epoch, "wall_s": time.perf_counter() - started, "val_miou": metrics["miou"]})
     return curve, start

@@ -226,6 +226,12 @@ def _optimizer(config, model, device) -> torch.optim.AdamW:
     ], fused=device.type == "cuda")
 
 
+def every(epoch: int, interval: int, epochs: int) -> bool:
+    """Whether 0-based ``epoch`` of ``epochs`` is one of every ``interval``-th and the last (validation's
+    ``train.eval_every``, the resume point's ``train.checkpoint_every``)."""
+    return (epoch + 1) % interval == 0 or epoch == epochs - 1
+
+
 def eval_batch_size(config) -> int:
     """Images per evaluation batch: ``train.eval_batch_size``, or the training batch when it is 0."""
     return config.train.eval_batch_size or config.data.batch_size
@@ -382,7 +388,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         capture_s = training_step.take_capture_seconds()
         if capture_s:
             record["capture_s"] = capture_s  # of this epoch's time: the CUDA graph capture of a new phase
-        if (epoch + 1) % config.train.eval_every == 0 or epoch == schedule.epochs - 1:
+        if every(epoch, config.train.eval_every, schedule.epochs):
             with averaged(ema):
                 record.update(_validate(model, datasets, config, context, amp, progress))
         record["wall_s"] = time.perf_counter() - run_started  # this process's time so far, setup and evaluation included
@@ -394,8 +400,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             state = {"epoch": epoch, "step": step, "best_miou": best_miou, "num_classes": num_classes,
                      "class_names": list(datasets.train.classes), "record": record, "environment": versions,
                      "schedule": {**schedule.to_dict(), "requested": [requested.epochs, requested.warmup_epochs]}}
-            resume_point = (epoch + 1) % config.train.checkpoint_every == 0 or epoch == schedule.epochs - 1
-            _write_epoch(run_dir, model, optimizer, config, state, is_best, resume_point, ema)
+            _write_epoch(run_dir, model, optimizer, config, state, is_best,
+                         every(epoch, config.train.checkpoint_every, schedule.epochs), ema)
             print(_epoch_line(record, schedule, config), flush=True)
         context.barrier()
         epoch += 1
