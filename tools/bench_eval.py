@@ -13,12 +13,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import tempfile
-import time
 
 import torch
 
+from warpsense.bench.timing import time_function
 from warpsense.config import load_config
 from warpsense.data import build_dataset
 from warpsense.data.on_device import DecodedDataset
@@ -51,18 +50,16 @@ def main() -> None:
                "epochs": args.epochs, "batches": {}}
     first = None
     for batch in batches:
-        seconds = []
-        for _ in range(args.repeats):
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-            start = time.perf_counter()
-            metrics = evaluate(model, val, device, batch, amp=amp, per_image=True)
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-            seconds.append(time.perf_counter() - start)
+        runs = []
+
+        def run(batch=batch, runs=runs):
+            runs.append(evaluate(model, val, device, batch, amp=amp, per_image=True))
+
+        timing = time_function(run, device, args.repeats, warmup=0)
+        metrics = runs[-1]
         counts = metrics["image_counts"]
         first = counts if first is None else first
-        row = {"median_s": statistics.median(seconds), "miou": metrics["miou"],
+        row = {"median_s": timing["median_ms"] / 1e3, "miou": metrics["miou"],
                "same_counts_as_first": bool(torch.equal(counts, first)),
                "count_difference_from_first": int((counts - first).abs().sum())}
         results["batches"][batch] = row
