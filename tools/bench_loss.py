@@ -57,8 +57,8 @@ def cases(batch: int, height: int, width: int, device: str) -> dict:
         "smoothness_fused": case(lambda: losses.edge_aware_smoothness(logits, guide)),
         "smoothness_torch": case(lambda: losses.edge_aware_smoothness(logits, guide), "smoothness"),
         "loss_fused": case(lambda: losses.segmentation_loss(logits, labels, guide, config)[0]),
-        "loss_torch": case(lambda: losses.segmentation_loss(logits, labels, guide, config)[0], "softmax", "lovasz",
-                           "smoothness"),
+        "loss_torch": case(lambda: losses.segmentation_loss(logits, labels, guide, config)[0],
+                           *losses.LOSS_OPS.names),
     }
 
 
