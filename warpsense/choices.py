@@ -70,6 +70,11 @@ Anscombe transform, which makes Poisson-Gaussian noise about equally strong at e
 MODEL_CONTEXTS = ("none", "pyramid")
 """Context modules at the networks' 1/16 bottleneck (`warpsense.models.dsunet.CONTEXTS`)."""
 
+DECODER_JOINS = ("concat", "project")
+"""How a DSUNet decoder stage joins the deeper features to its encoder skip (`warpsense.models.dsunet.JOINS`): the
+upsampled features concatenated as they are, or first projected by a 1x1 convolution (at the deeper, 4x smaller
+resolution) to the skip's channels, which halves the channels the finer stages carry."""
+
 LIGHT_LEVELS = {"night": 70.0, "dusk": 700.0, "day": 7000.0}
 """Named scene light levels of the photon budget (`warpsense.camera.photons`): the electrons a mid-grey patch (18%
 linear reflectance) gives a clear pixel of the reference pixel (3 um pitch, quantum efficiency 0.6) at f/2 in 10 ms.

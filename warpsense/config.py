@@ -20,6 +20,7 @@ from warpsense.choices import (
     CFA_MODES,
     COMPILE_MODES,
     DATASETS,
+    DECODER_JOINS,
     DEVICES,
     DISTILL_MODES,
     LIGHT_LEVELS,
@@ -184,6 +185,7 @@ class ModelConfig:
     squeeze: bool = True
     full_width: int = _field(0, minimum=0, maximum=512)
     full_depth: int = _field(1, minimum=1, maximum=8)
+    decoder_join: str = _field("concat", choices=DECODER_JOINS)
     num_classes: int = _field(0, minimum=0, maximum=1024)
     channels_last: bool = True
     input: str = _field("sensor", choices=MODEL_INPUTS)

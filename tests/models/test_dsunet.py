@@ -1,6 +1,6 @@
 """DSUNet: shapes, the channels-last layout against the contiguous one, the bf16 decoder path, the bottleneck
 context module (pyramid pooling), the networks without squeeze-and-excitation, the full-resolution path's width and
-depth, the Anscombe input, and the network a config builds."""
+depth, the decoder's projected joins, the Anscombe input, and the network a config builds."""
 
 import copy
 
@@ -16,6 +16,7 @@ from warpsense.models.dsunet import (
     SqueezeExcitation,
     build_context,
     build_input_transform,
+    build_join,
 )
 
 
@@ -42,6 +43,65 @@ def test_exception_full_resolution_path():
         DSUNet(width=8, full_depth=0)
     with pytest.raises(ValueError, match="packunet has its own full-resolution path"):
         build_model("packunet", in_channels=1, num_classes=5, width=8, full_width=16)
+
+
+@pytest.mark.parametrize("full_width", [0, 12])
+def test_cardinality_projected_joins(full_width):
+    """Each decoder stage runs on twice its skip's channels: (6w, 4w, 2w, f) skips at w = 8, f = full_width or w."""
+    network = DSUNet(in_channels=1, num_classes=5, width=8, full_width=full_width, decoder_join="project")
+    assert network(torch.rand(2, 1, 37, 45)).shape == (2, 5, 37, 45)
+    f = full_width or 8
+    for level, (deep, skip) in {"4": (64, 48), "3": (48, 32), "2": (32, 16), "1": (16, f)}.items():
+        join = getattr(network, f"join{level}")
+        assert (join.in_channels, join.out_channels, join.kernel_size, join.bias) == (deep, skip, (1, 1), None)
+        assert getattr(network, f"dec{level}")[0].depthwise.in_channels == 2 * skip
+
+
+def test_exception_decoder_join():
+    with pytest.raises(KeyError, match="unknown decoder join 'add'; valid: concat, project"):
+        build_join("add", 16, 8)
+    with pytest.raises(KeyError, match="unknown decoder join"):
+        DSUNet(width=8, decoder_join="add")
+    with pytest.raises(ValueError, match="decoder_join must be 'concat', got 'project'"):
+        build_model("packunet", in_channels=1, num_classes=5, width=8, decoder_join="project")
+
+
+def test_feature_projected_joins_project_before_upsampling_as_after_it():
+    """The projection runs at the deeper resolution because it commutes with the bilinear upsampling (both are linear
+    and act on different axes): the logits equal a plain-torch decoder that upsamples first (F.interpolate) and
+    projects at the finer resolution (F.conv2d), float64."""
+    torch.manual_seed(0)
+    network = DSUNet(in_channels=1, num_classes=4, width=8, decoder_join="project", context="pyramid",
+                     channels_last=False).double().eval()
+    for level in "4321":
+        torch.nn.init.normal_(getattr(network, f"join{level}").weight)
+    image = torch.rand(2, 1, 32, 48, dtype=torch.float64)
+
+    def join_after(x, skip, projection):
+        up = torch.nn.functional.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+        return torch.cat([torch.nn.functional.conv2d(up, projection.weight), skip], dim=1)
+
+    with torch.no_grad():
+        s1, s2 = network.encode_high(image)
+        s3 = network.enc3(s2)
+        s4 = network.enc4(s3)
+        d = network.context(network.enc5(s4))
+        for level, skip in zip("4321", (s4, s3, s2, s1)):
+            d = getattr(network, f"dec{level}")(join_after(d, skip, getattr(network, f"join{level}")))
+        reference = network.head(d)
+        torch.testing.assert_close(network(image), reference, rtol=1e-12, atol=1e-12)
+
+
+def test_feature_concat_joins_build_the_network_as_before():
+    """The "concat" joins are parameter-free: the same parameters in the same order, drawn in the same order (a seed
+    builds the same network whatever the joins' registration), as a network built without naming the join."""
+    torch.manual_seed(3)
+    named = DSUNet(in_channels=1, num_classes=4, width=8, decoder_join="concat")
+    torch.manual_seed(3)
+    default = DSUNet(in_channels=1, num_classes=4, width=8)
+    assert [n for n, _ in named.named_parameters()] == [n for n, _ in default.named_parameters()]
+    assert all(torch.equal(a, b) for a, b in zip(named.parameters(), default.parameters()))
+    assert not any(n.startswith("join") for n, _ in named.named_parameters())
 
 
 def test_feature_full_width_equal_to_width_is_the_default_network():
@@ -265,10 +325,11 @@ def test_feature_without_squeeze_is_the_network_with_its_se_gates_removed(name):
 def test_module_network_from_config_takes_every_model_key():
     config = load_config(None, ["model.width=8", "model.context=pyramid", "model.squeeze=false",
                                 "model.channels_last=false", "model.num_classes=5", "model.input_transform=anscombe",
-                                "model.anscombe_offset=0.02", "model.full_width=12", "model.full_depth=2"])
+                                "model.anscombe_offset=0.02", "model.full_width=12", "model.full_depth=2",
+                                "model.decoder_join=project"])
     network = network_from_config(config.model, in_channels=1, num_classes=11, tile=2)
     expected = DSUNet(in_channels=1, num_classes=5, width=8, context="pyramid", squeeze=False, full_width=12,
-                      full_depth=2)
+                      full_depth=2, decoder_join="project")
     assert [name for name, _ in network.named_parameters()] == [name for name, _ in expected.named_parameters()]
     assert network.memory_format == torch.contiguous_format and network.head.out_channels == 5
     assert isinstance(network.input_transform, Anscombe) and network.input_transform.offset == 0.02

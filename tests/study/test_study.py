@@ -4,6 +4,7 @@ failing cell reported and skipped, the report; bad plans refused before anything
 import json
 import os
 import shlex
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 from tests.reliability.conftest import assert_clean_failure
 from warpsense.cli import main
 from warpsense.resources import CONFIG_DIR
-from warpsense.study import load_plan, render_text, run_cells, study_record
+from warpsense.study import load_plan, render_text, run_cells, runner, study_record
 from warpsense.study.plan import PlanError
 from warpsense.study.report import precision_recall, run_seconds
 from warpsense.train import engine
@@ -246,6 +247,31 @@ def test_reuse_copies_in_another_studys_runs_of_the_same_training_and_trains_the
     assert_clean_failure(capsys, ["study", "run", "smoke", "--out", str(tmp_path / "x"), "--reuse",
                                   str(tmp_path / "nowhere")], ("--reuse", "nowhere", "runs/"))
     assert not (tmp_path / "x").exists()
+
+
+def test_reuse_reads_an_older_runs_config_with_the_defaults_of_keys_added_since(tmp_path, capsys):
+    """A run saved before a key existed (its config.json without model.decoder_join) trained with that key's
+    default, so it is reused for a cell at the default and not for one that sets the key; a run whose config has a
+    key this version does not know is passed over with its reason."""
+    earlier = load_plan("smoke", FAST)
+    cell = earlier.cells()[0]
+    assert run_cells(earlier, tmp_path / "earlier", [cell]) == 0
+    saved = tmp_path / "earlier" / "runs" / cell.run_name / "config.json"
+    config = json.loads(saved.read_text())
+    del config["model"]["decoder_join"]
+    saved.write_text(json.dumps(config))
+    unknown = tmp_path / "earlier" / "runs" / "unknown"
+    shutil.copytree(saved.parent, unknown)
+    config["model"]["gone"] = 1
+    (unknown / "config.json").write_text(json.dumps(config))
+    capsys.readouterr()
+
+    found = runner.finished_runs([tmp_path / "earlier"])
+    assert list(found.values()) == [saved.parent]
+    assert f"--reuse: {unknown} not considered: " in capsys.readouterr().out
+    assert runner.reuse_cells(earlier, tmp_path / "same", [cell], found) == {cell: saved.parent}
+    projected = load_plan("smoke", FAST + ["model.decoder_join=project"])
+    assert runner.reuse_cells(projected, tmp_path / "other", [projected.cell(cell.id)], found) == {}
 
 
 BAD_PLANS = [

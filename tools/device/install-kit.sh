@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|bn|gate|loss]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|bn|gate|loss|network]
 #   step:   the training step at Lovasz stride 1 and 2 (round 16)
 #   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
 #           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
@@ -24,6 +24,9 @@
 #           torch form, with the fused softmax off, with the Lovasz op off, and as shipped (tools/device/ab.py)
 #           -> $OUT/loss_terms.json, loss_profile.txt, step_loss_{torch,nosoftmax,nolovasz,fused}.json, ~7 minutes
 #           (issue 27, round 25)
+#   network: the networks' cuda tests (and the batch-norm and gate ops'), then the training step of the network
+#           candidates (tools/bench_train_bound.py: the recipe, full_width 16, projected decoder joins, both, and
+#           both at full_width 12) -> $OUT/network_cuda_tests.txt, step_net_*.json, ~6 minutes (issue 27, round 26)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -127,5 +130,18 @@ if [ "${1:-}" = loss ]; then
   for ab in torch:torch-loss nosoftmax:torch-softmax nolovasz:torch-lovasz fused:fused; do
     python tools/device/ab.py "${ab#*:}" tools/bench_train_bound.py --config camvid_codesign --steps 60 \
       --json "$OUT/step_loss_${ab%%:*}.json" 2>&1 | grep -v -e Warning -e warn
+  done
+fi
+if [ "${1:-}" = network ]; then
+  cuda_tests network_cuda_tests 300 tests/models tests/ops/test_batchnorm.py tests/ops/test_gate.py \
+    tests/ops/test_upsample.py
+  for candidate in recipe: full16:model.full_width=16 project:model.decoder_join=project \
+      project_full16:model.decoder_join=project,model.full_width=16 \
+      project_full12:model.decoder_join=project,model.full_width=12; do
+    sets=()
+    IFS=, read -ra keys <<< "${candidate#*:}"
+    for key in "${keys[@]}"; do sets+=(--set "$key"); done
+    python tools/bench_train_bound.py --config camvid_codesign "${sets[@]}" --steps 60 \
+      --json "$OUT/step_net_${candidate%%:*}.json" 2>&1 | grep -v -e Warning -e warn
   done
 fi

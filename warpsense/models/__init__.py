@@ -24,7 +24,7 @@ def network_from_config(model_config, in_channels: int, num_classes: int, tile: 
                        channels_last=model_config.channels_last, context=model_config.context,
                        squeeze=model_config.squeeze, input_transform=model_config.input_transform,
                        anscombe_offset=model_config.anscombe_offset, full_width=model_config.full_width,
-                       full_depth=model_config.full_depth)
+                       full_depth=model_config.full_depth, decoder_join=model_config.decoder_join)
 
 
 def count_parameters(model) -> int:

@@ -46,18 +46,21 @@ class PackUNet(DSUNet):
     signature: the packing is 2 x 2 whatever the CFA tile (the detail path sees larger tiles whole). The padding,
     the 1/4-1/16 stages' order, the ``context`` module at 1/16 and the decoder's upsampling and skips are
     `DSUNet`'s (`encode_high` differs), and so are ``squeeze`` (False: the separable blocks without SE) and the
-    ``input_transform``. ``full_width`` and ``full_depth`` are `DSUNet`'s only (ValueError unless 0 and 1).
+    ``input_transform``. ``full_width``, ``full_depth`` and ``decoder_join`` are `DSUNet`'s only (ValueError unless 0, 1 and
+    "concat").
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 22, tile: int = 2,
                  channels_last: bool = True, context: str = "none", squeeze: bool = True,
                  input_transform: str = "linear", anscombe_offset: float = 0.0059, full_width: int = 0,
-                 full_depth: int = 1):
+                 full_depth: int = 1, decoder_join: str = "concat"):
         nn.Module.__init__(self)  # its own layers: DSUNet's constructor would build the separable ones
         del tile
         if (full_width, full_depth) != (0, 1):
             raise ValueError("packunet has its own full-resolution path: model.full_width must be 0 and "
                              f"model.full_depth 1, got {full_width} and {full_depth}")
+        if decoder_join != "concat":
+            raise ValueError(f"packunet's decoder concatenates: model.decoder_join must be 'concat', got {decoder_join!r}")
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
         self.input_transform = build_input_transform(input_transform, anscombe_offset)
         w = width
@@ -69,6 +72,7 @@ class PackUNet(DSUNet):
         self.enc4 = Stage(4 * w, 6 * w, 3, 2, squeeze)
         self.enc5 = Stage(6 * w, 8 * w, 3, 2, squeeze)
         self.context = build_context(context, 8 * w)
+        self.join4 = self.join3 = self.join2 = self.join1 = nn.Identity()  # DSUNet.forward's "concat" joins
         self.dec4 = Stage(8 * w + 6 * w, 6 * w, 1, 1, squeeze)
         self.dec3 = Stage(6 * w + 4 * w, 4 * w, 1, 1, squeeze)
         self.dec2 = ConvBlock(4 * w + 2 * w, 2 * w)

@@ -167,7 +167,10 @@ def _training_key(config: dict) -> str:
 
 def finished_runs(study_dirs: list[Path]) -> dict[str, Path]:
     """The finished run directories of other studies (``<dir>/runs/*`` with an evaluation), by `_training_key`; the
-    first directory given wins where two hold the same training."""
+    first directory given wins where two hold the same training. A run's saved config is read as this version reads
+    a config: a key added since takes its default, which is the behaviour the run had (a new key's default keeps the
+    old behaviour); a run whose config this version cannot read (a key since removed) matches no cell."""
+    from warpsense.config import ConfigError, config_from_dict
     from warpsense.train.engine import EVALUATION
 
     found: dict[str, Path] = {}
@@ -176,8 +179,15 @@ def finished_runs(study_dirs: list[Path]) -> dict[str, Path]:
         if not runs.is_dir():
             raise FileNotFoundError(f"--reuse {study_dir}: no runs/ folder (not a study directory)")
         for run in sorted(runs.iterdir()):
-            if (run / EVALUATION).is_file() and (run / "config.json").is_file():
-                found.setdefault(_training_key(json.loads((run / "config.json").read_text())), run)
+            saved = run / "config.json"
+            if not ((run / EVALUATION).is_file() and saved.is_file()):
+                continue
+            try:
+                config = config_from_dict(json.loads(saved.read_text()), str(saved))
+            except ConfigError as error:
+                print(f"--reuse: {run} not considered: {error}")
+                continue
+            found.setdefault(_training_key(config.to_dict()), run)
     return found
 
 
