@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|bn|gate|loss|network]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|bn|gate|loss|network|latency]
 #   step:   the training step at Lovasz stride 1 and 2 (round 16)
 #   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
 #           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
@@ -27,6 +27,8 @@
 #   network: the networks' cuda tests (and the batch-norm and gate ops'), then the training step of the network
 #           candidates (tools/bench_train_bound.py: the recipe, full_width 16, projected decoder joins, both, and
 #           both at full_width 12) -> $OUT/network_cuda_tests.txt, step_net_*.json, ~6 minutes (issue 27, round 26)
+#   latency: batch-1 latency, the eager calls of the three systems interleaved (tools/bench_latency.py), with each
+#           system's eager kernels profiled -> $OUT/latency.json, latency_profiles.tar.gz, ~2 minutes (round 26)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -144,4 +146,9 @@ if [ "${1:-}" = network ]; then
     python tools/bench_train_bound.py --config camvid_codesign "${sets[@]}" --steps 60 \
       --json "$OUT/step_net_${candidate%%:*}.json" 2>&1 | grep -v -e Warning -e warn
   done
+fi
+if [ "${1:-}" = latency ]; then
+  python tools/bench_latency.py --device cuda --json "$OUT/latency.json" --profile /tmp/latency_profiles 2>&1 \
+    | grep -v -e Warning -e USDT -e warn
+  tar czf "$OUT/latency_profiles.tar.gz" -C /tmp latency_profiles
 fi
