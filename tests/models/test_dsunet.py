@@ -298,9 +298,22 @@ def test_feature_fused_ops_are_the_torch_ones(name, monkeypatch):
         torch.testing.assert_close(buffer, reference, rtol=1e-12, atol=1e-14, msg=key)
     norms.clear()
     gates.clear()
+    joins.clear()
     with torch.no_grad():  # evaluation: running statistics and torch's gate (faster at batch 1 under graph replay)
-        fused_network.eval()(image)
-    assert not norms and not gates
+        eval_logits = fused_network.eval()(image)
+    assert not norms and not gates and len(joins) == 4
+    monkeypatch.setattr(dsunet, "FUSED_DEVICES", ())
+    with torch.no_grad():
+        torch.testing.assert_close(eval_logits, network.eval()(image), rtol=1e-10, atol=1e-12)
+    monkeypatch.setattr(dsunet, "FUSED_DEVICES", ("cpu",))
+    joins.clear()
+    with torch.no_grad():  # one image, eager: torch's joins (less host time per call); the same logits
+        single = fused_network(image[:1])
+    assert not joins
+    monkeypatch.setattr(dsunet, "_capturing", lambda x: True)  # inside a CUDA graph capture: the fused joins
+    with torch.no_grad():
+        torch.testing.assert_close(fused_network(image[:1]), single, rtol=1e-10, atol=1e-12)
+    assert len(joins) == 4
 
 
 @pytest.mark.parametrize("name", ["dsunet", "packunet"])

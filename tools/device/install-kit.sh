@@ -27,8 +27,9 @@
 #   network: the networks' cuda tests (and the batch-norm and gate ops'), then the training step of the network
 #           candidates (tools/bench_train_bound.py: the recipe, full_width 16, projected decoder joins, both, and
 #           both at full_width 12) -> $OUT/network_cuda_tests.txt, step_net_*.json, ~6 minutes (issue 27, round 26)
-#   latency: batch-1 latency, the eager calls of the three systems interleaved (tools/bench_latency.py), with each
-#           system's eager kernels profiled -> $OUT/latency.json, latency_profiles.tar.gz, ~2 minutes (round 26)
+#   latency: the networks' cuda tests, then batch-1 latency, the eager calls of the three systems interleaved (tools/bench_latency.py), with each
+#           system's eager kernels profiled -> $OUT/models_cuda_tests.txt, latency.json, latency_profiles.tar.gz,
+#           ~3 minutes (round 26)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -148,6 +149,7 @@ if [ "${1:-}" = network ]; then
   done
 fi
 if [ "${1:-}" = latency ]; then
+  cuda_tests models_cuda_tests 200 tests/models
   python tools/bench_latency.py --device cuda --json "$OUT/latency.json" --profile /tmp/latency_profiles 2>&1 \
     | grep -v -e Warning -e USDT -e warn
   tar czf "$OUT/latency_profiles.tar.gz" -C /tmp latency_profiles

@@ -35,6 +35,11 @@ def _fused(op: str, x: torch.Tensor) -> bool:
             and x.is_contiguous(memory_format=torch.channels_last))
 
 
+def _capturing(x: torch.Tensor) -> bool:
+    """Whether x's CUDA stream is being captured into a CUDA graph (False off CUDA)."""
+    return x.is_cuda and torch.cuda.is_current_stream_capturing()
+
+
 def norm_relu(norm: nn.BatchNorm2d, x: torch.Tensor) -> torch.Tensor:
     """``F.relu(norm(x))``. In training mode over channels-last x (bfloat16, float32 or float64, an even number of
     channels) on a `FUSED_DEVICES` device, an nn.BatchNorm2d with affine parameters, running statistics and a fixed
@@ -256,9 +261,12 @@ class DSUNet(nn.Module):
         """``torch.cat([upsampled x, skip], dim=1)``: the decoder's bilinear x2 and skip connection. A channels-last
         network on a `FUSED_DEVICES` device takes them in one pass forward and one backward (`upsample_concat`,
         equal up to float rounding and deterministic; torch's NHWC resize backward was 3.0 ms and the
-        concatenations 1.4 ms of a 41 ms step on an H100, docs/benchmarks.md round 23)."""
+        concatenations 1.4 ms of a 41 ms step on an H100, docs/benchmarks.md round 23), except a single image in
+        eval mode run eagerly: there the host's cost per op decides, and torch's resize and cat cost less of it
+        than the custom op (~0.1 ms a join at batch 1 on the H100's host, docs/benchmarks.md round 26); inside a
+        CUDA graph capture the op's shorter GPU time wins again."""
         if (self.memory_format == torch.channels_last and x.device.type in FUSED_DEVICES
-                and NETWORK_OPS.fused("joins")):
+                and NETWORK_OPS.fused("joins") and (self.training or x.shape[0] > 1 or _capturing(x))):
             return upsample_concat(x, skip)
         return torch.cat([self._up(x, skip), skip], dim=1)
 
