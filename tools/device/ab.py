@@ -6,7 +6,8 @@ SWITCH: "fused" (as shipped); "torch-joins", "torch-norm", "torch-gate" (that ne
 decoder's upsampling and concatenation, batch norm + ReLU, the squeeze-and-excitation gate and residual);
 "torch-softmax", "torch-lovasz", "torch-smoothness" (that loss op's torch form: torch's softmax and
 cross-entropy, the terms' plain-torch references); "torch-network" (the three network ops), "torch-loss" (the three
-loss ops), "torch-all" (all six). The script runs inside the switches the benchmarks'
+loss ops), "torch-all" (all six); "fused-single-joins" (as shipped, but a single image in eager eval mode joins with
+the fused op too, as until round 26). The script runs inside the switches the benchmarks'
 baseline uses (`warpsense.models.dsunet.NETWORK_OPS`, `warpsense.train.losses.LOSS_OPS`).
 """
 
@@ -14,11 +15,24 @@ import contextlib
 import runpy
 import sys
 
+from warpsense.models import dsunet
 from warpsense.models.dsunet import NETWORK_OPS
 from warpsense.train.losses import LOSS_OPS
 
+
+@contextlib.contextmanager
+def fused_single_joins():
+    """DSUNet's joins fused for one image in eager eval mode too: its capture test answers yes throughout."""
+    capturing = dsunet._capturing
+    dsunet._capturing = lambda x: True
+    try:
+        yield
+    finally:
+        dsunet._capturing = capturing
+
+
 SWITCHES = {"fused": {}, "torch-network": {NETWORK_OPS: ()}, "torch-loss": {LOSS_OPS: ()},
-            "torch-all": {NETWORK_OPS: (), LOSS_OPS: ()},
+            "torch-all": {NETWORK_OPS: (), LOSS_OPS: ()}, "fused-single-joins": {},
             **{f"torch-{name}": {ops: (name,)} for ops in (NETWORK_OPS, LOSS_OPS) for name in ops.names}}
 
 if __name__ == "__main__":
@@ -29,4 +43,6 @@ if __name__ == "__main__":
     with contextlib.ExitStack() as stack:
         for ops, names in SWITCHES[switch].items():
             stack.enter_context(ops.torch_ops(*names))
+        if switch == "fused-single-joins":
+            stack.enter_context(fused_single_joins())
         runpy.run_path(script, run_name="__main__")
