@@ -27,10 +27,9 @@
 #   network: the networks' cuda tests (and the batch-norm and gate ops'), then the training step of the network
 #           candidates (tools/bench_train_bound.py: the recipe, full_width 16, projected decoder joins, both, and
 #           both at full_width 12) -> $OUT/network_cuda_tests.txt, step_net_*.json, ~6 minutes (issue 27, round 26)
-#   latency: the networks' cuda tests, then batch-1 latency (tools/bench_latency.py: the eager calls of the three
-#           systems interleaved) with one image's eager joins fused as until round 26 (tools/device/ab.py) and as
-#           now, the latter profiled -> $OUT/models_cuda_tests.txt, latency_before.json, latency.json,
-#           latency_profiles.tar.gz, ~4 minutes (round 26)
+#   latency: batch-1 latency (tools/bench_latency.py: the eager calls of the three systems and of warpsense's two
+#           with the camera cached, interleaved; graph replay), each system's host time by Python function (cProfile)
+#           -> $OUT/latency.json, latency_host.tar.gz, ~3 minutes (round 27)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -150,10 +149,7 @@ if [ "${1:-}" = network ]; then
   done
 fi
 if [ "${1:-}" = latency ]; then
-  cuda_tests models_cuda_tests 200 tests/models
-  python tools/device/ab.py fused-single-joins tools/bench_latency.py --device cuda --json "$OUT/latency_before.json" \
-    2>&1 | grep -v -e Warning -e USDT -e warn
-  python tools/bench_latency.py --device cuda --json "$OUT/latency.json" --profile /tmp/latency_profiles 2>&1 \
-    | grep -v -e Warning -e USDT -e warn
-  tar czf "$OUT/latency_profiles.tar.gz" -C /tmp latency_profiles
+  python tools/bench_latency.py --device cuda --repeats 200 --json "$OUT/latency.json" \
+    --host-profile /tmp/latency_host 2>&1 | grep -v -e Warning -e USDT -e warn
+  tar czf "$OUT/latency_host.tar.gz" -C /tmp latency_host
 fi

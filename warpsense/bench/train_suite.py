@@ -18,7 +18,7 @@ from torch import nn
 
 from warpsense.bench.timing import _sync, time_cuda_graph, time_function
 from warpsense.camera import Camera
-from warpsense.camera.camera import set_finite_check
+from warpsense.camera.camera import cached_cameras, set_finite_check
 from warpsense.config import load_config
 from warpsense.data.color import srgb_to_linear
 from warpsense.errors import first_line
@@ -132,12 +132,15 @@ def step_throughput(step: TrainingStep, model, batch: int, height: int, width: i
     return steps * batch / (time.perf_counter() - start)
 
 
-def inference(method, camera_name, device, height, width):
+def inference(method, camera_name, device, height, width, cached: contextlib.ExitStack | None = None):
     """A batch-1 end-to-end inference (uint8 frame -> logits) of the system, as a function of no arguments: the
-    camera and network in eval mode, bf16 autocast on CUDA."""
+    camera and network in eval mode, bf16 autocast on CUDA. ``cached``: an exit stack that the camera's
+    `Camera.cached` context is entered on (the camera reuses its sensor arguments until the stack closes)."""
     torch.manual_seed(0)
     camera, network = build(method, camera_name, device)
     camera.eval(), network.eval()
+    if cached is not None:
+        cached.enter_context(cached_cameras(camera))
     frame = torch.randint(0, 256, (1, 3, height, width), dtype=torch.uint8, device=device)
     amp = torch.device(device).type == "cuda"
 

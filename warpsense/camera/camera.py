@@ -4,6 +4,7 @@ talks to the stages."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -99,6 +100,7 @@ class Camera(nn.Module):
         for name in self.stage_names:
             setattr(self, name, stages.get(name))
         self.register_buffer("mono_phi", torch.full((1, 1, 3), 1 / 3), persistent=False)
+        self._cache: dict | None = None  # inside `cached`: {} until the first call fills it
         # which parameters the config made learnable; training phases toggle requires_grad within this set
         self.learnable_names = frozenset(name for name, p in self.named_parameters() if p.requires_grad)
 
@@ -216,6 +218,62 @@ class Camera(nn.Module):
             for name, value in saved.items():
                 setattr(*owners[name], value)
 
+    # --- inference with a fixed camera ---------------------------------------------------------------------------
+
+    @contextlib.contextmanager
+    def cached(self) -> Iterator["Camera"]:
+        """Reuse what the camera derives from its parameters across calls, as `torch.nn.utils.parametrize.cached`
+        does for parametrized weights: the fused sensor kernel's arguments (responses with every gain folded in,
+        noise levels, the eval seeds of a batch without ``image_index``) are computed at the first call inside and
+        dropped on exit. For inference with a fixed camera (a video, a latency benchmark): at batch 1 these ~30
+        small kernels cost more host time than the capture itself.
+
+        Only calls in eval mode with gradients disabled use the cache (not while compiling or capturing a CUDA
+        graph); the others compute everything as usual. An in-place change of a parameter or buffer between calls
+        (an optimizer step, ``load_state_dict``, ``.to``) or a what-if override (`overridden`) is noticed and
+        recomputes; a change through ``.data`` is not: keep the parameters fixed inside. Nests; the outermost exit
+        drops the cache.
+        """
+        outermost = self._cache is None
+        if outermost:
+            self._cache = {}
+        try:
+            yield self
+        finally:
+            if outermost:
+                self._cache = None
+
+    def _cache_usable(self, image: torch.Tensor) -> bool:
+        return (self._cache is not None and not self.training and not torch.is_grad_enabled()
+                and not torch.compiler.is_compiling() and not (image.is_cuda and torch.cuda.is_current_stream_capturing()))
+
+    def _cache_key(self) -> tuple:
+        tensors = [*self.parameters(), *self.buffers()]
+        return (tuple((t.data_ptr(), t._version) for t in tensors), tuple(self.what_if_values().items()))
+
+    def _sensor_state(self, image: torch.Tensor, image_index: torch.Tensor | None):
+        """(arguments with the responses folded in, fusable, seeds) for this call: from the cache inside `cached`
+        where it is usable, else computed."""
+        if not self._cache_usable(image):
+            arguments, fusable = self.sensor_arguments()
+            seeds = arguments.seeds(image.shape[0], image_index) if arguments.noisy and fusable else 0
+            return arguments, fusable, seeds
+        key = self._cache_key()
+        if self._cache.get("key") != key:
+            arguments, fusable = self.sensor_arguments()
+            arguments = dataclasses.replace(arguments, phi=arguments.responses(), gain=None)
+            self._cache.clear()
+            self._cache.update(key=key, arguments=arguments, fusable=fusable, seeds={})
+        arguments, fusable = self._cache["arguments"], self._cache["fusable"]
+        if not (arguments.noisy and fusable):
+            return arguments, fusable, 0
+        if image_index is not None:
+            return arguments, fusable, arguments.seeds(image.shape[0], image_index)
+        seeds = self._cache["seeds"].get(image.shape[0])
+        if seeds is None:
+            seeds = self._cache["seeds"][image.shape[0]] = arguments.seeds(image.shape[0], None)
+        return arguments, fusable, seeds
+
     # --- data path -----------------------------------------------------------------------------------------------
 
     def sensor_arguments(self) -> tuple[SensorArguments, bool]:
@@ -247,9 +305,8 @@ class Camera(nn.Module):
         image = radiance
         for stage in self._part("optics"):
             image = stage(image)
-        arguments, fusable = self.sensor_arguments()
+        arguments, fusable, seeds = self._sensor_state(image, image_index)
         if fusable:
-            seeds = arguments.seeds(image.shape[0], image_index) if arguments.noisy else 0
             raw = sensor_capture(image, arguments.responses(), arguments.shot, arguments.read, seeds,
                                  arguments.bits, arguments.white_level)
         else:
@@ -281,3 +338,13 @@ def set_finite_check(module: nn.Module, enabled: bool) -> None:
     for child in module.modules():
         if isinstance(child, Camera):
             child.check_finite = enabled
+
+
+@contextlib.contextmanager
+def cached_cameras(module: nn.Module) -> Iterator[nn.Module]:
+    """`Camera.cached` for every camera inside ``module`` (a whole system) for the duration of the block."""
+    with contextlib.ExitStack() as stack:
+        for child in module.modules():
+            if isinstance(child, Camera):
+                stack.enter_context(child.cached())
+        yield module
