@@ -7,7 +7,8 @@ The train suite's latency records (`warpsense.bench.train_suite.latency`: the ba
 camera in warpsense, the codesign camera; DSUNet width 16, bf16 on CUDA), eager, warpsense's eager with the camera
 cached (`Camera.cached`, mode "eager_cached") and (CUDA) replayed as a CUDA graph, without the suite's training runs.
 Medians of synchronised wall-clock ms; the eager calls of all systems are interleaved (`time_interleaved`),
-``--repeats`` rounds. ``--profile DIR`` also writes each system's kernels by GPU time over 20 eager calls
+``--repeats`` rounds, each compared with the baseline's call of the same round (median difference and its 95%
+interval). ``--profile DIR`` also writes each system's kernels by GPU time over 20 eager calls
 (`torch.profiler`) to DIR/latency_<method>_<camera>.txt; ``--host-profile DIR`` each system's Python functions by
 host time over 100 eager calls (cProfile) to DIR/host_<method>_<camera>.txt.
 """
@@ -57,8 +58,11 @@ def main() -> None:
 
     def record(method, camera, mode, timing):
         records.append({"method": method, "camera": camera, "mode": mode, "shape": [1, 3, height, width], **timing})
-        print(f"{method:>15s} {camera:>9s} {mode:>14s} {timing['median_ms']:8.3f} ms [IQR {timing['iqr_ms']:.3f}]",
-              flush=True)
+        paired = (f"  vs the baseline, paired by round: {timing['vs_reference_ms']:+.3f} ms "
+                  f"[{timing['vs_reference_ci95_ms'][0]:+.3f}, {timing['vs_reference_ci95_ms'][1]:+.3f}]"
+                  if "vs_reference_ms" in timing else "")
+        print(f"{method:>15s} {camera:>9s} {mode:>14s} {timing['median_ms']:8.3f} ms [IQR {timing['iqr_ms']:.3f}]"
+              f"{paired}", flush=True)
 
     # eager: the systems called in turn, so that the host's drift falls on each alike; warpsense's systems also
     # with the camera cached (`Camera.cached`: a fixed camera's sensor arguments computed once)
@@ -66,7 +70,9 @@ def main() -> None:
         calls = {(*system, "eager"): inference(*system, args.device, height, width) for system in systems}
         calls.update({(*system, "eager_cached"): inference(*system, args.device, height, width, cached=stack)
                       for system in systems if system[0] == "warpsense"})
-        for (method, camera, mode), timing in time_interleaved(calls, args.device, args.repeats).items():
+        reference = ("torch_baseline", "simple", "eager")
+        for (method, camera, mode), timing in time_interleaved(calls, args.device, args.repeats,
+                                                               reference=reference).items():
             record(method, camera, mode, timing)
     for method, camera in systems:
         if args.device == "cuda":

@@ -26,3 +26,32 @@ def test_feature_time_interleaved_calls_in_turn_and_times_each_alone(monkeypatch
     assert abs(result["fast"]["median_ms"] - 3.0) < 1e-9 and abs(result["slow"]["median_ms"] - 5.0) < 1e-9
     assert result["fast"]["repeats"] == result["slow"]["repeats"] == 5
     assert abs(result["fast"]["iqr_ms"] - result["slow"]["iqr_ms"]) < 1e-9 and result["fast"]["iqr_ms"] > 0
+
+
+def test_feature_time_interleaved_pairs_each_round_with_the_reference(monkeypatch):
+    """Per-round differences to the reference: "slow" is 2 ms slower in every round whatever the drift, so its
+    paired median and interval are exactly 2 ms, while its unpaired medians differ by the same 2 ms only because
+    the drift is shared."""
+    clock = {"now": 0.0, "round": 0}
+
+    def advance(ms, last=False):
+        def function():
+            clock["now"] += (ms + 0.5 * clock["round"] ** 2) / 1e3
+            if last:
+                clock["round"] += 1
+        return function
+
+    monkeypatch.setattr(timing.time, "perf_counter", lambda: clock["now"])
+    result = timing.time_interleaved({"base": advance(1.0), "slow": advance(3.0, last=True)}, "cpu", repeats=9,
+                                     warmup=1, reference="base")
+    assert "vs_reference_ms" not in result["base"]
+    assert abs(result["slow"]["vs_reference_ms"] - 2.0) < 1e-9
+    assert all(abs(bound - 2.0) < 1e-9 for bound in result["slow"]["vs_reference_ci95_ms"])
+
+
+def test_feature_median_interval_order_statistics():
+    """n = 100: k = floor((100 - 1.96 * 10) / 2) = 40, so the 41st smallest and 41st largest of 0..99 (Conover's
+    interval covers the median with ~95% probability); tiny samples get their whole range."""
+    assert timing.median_interval([float(v) for v in reversed(range(100))]) == (40.0, 59.0)
+    assert timing.median_interval([3.0, 1.0, 2.0]) == (1.0, 3.0)
+    assert timing.median_interval([5.0]) == (5.0, 5.0)

@@ -28,8 +28,9 @@
 #           candidates (tools/bench_train_bound.py: the recipe, full_width 16, projected decoder joins, both, and
 #           both at full_width 12) -> $OUT/network_cuda_tests.txt, step_net_*.json, ~6 minutes (issue 27, round 26)
 #   latency: batch-1 latency (tools/bench_latency.py: the eager calls of the three systems and of warpsense's two
-#           with the camera cached, interleaved; graph replay), each system's host time by Python function (cProfile)
-#           -> $OUT/latency.json, latency_host.tar.gz, ~3 minutes (round 27)
+#           with the camera cached, interleaved, each paired by round with the baseline; graph replay), each
+#           system's host time by Python function (cProfile), the camera ops' custom-op dispatch
+#           (tools/bench_dispatch.py) -> $OUT/latency.json, latency_host.tar.gz, dispatch.txt, ~2 minutes (round 27)
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -152,4 +153,5 @@ if [ "${1:-}" = latency ]; then
   python tools/bench_latency.py --device cuda --repeats 200 --json "$OUT/latency.json" \
     --host-profile /tmp/latency_host 2>&1 | grep -v -e Warning -e USDT -e warn
   tar czf "$OUT/latency_host.tar.gz" -C /tmp latency_host
+  python tools/bench_dispatch.py --device cuda 2>&1 | grep -v -e Warning -e USDT -e warn | tee "$OUT/dispatch.txt"
 fi
