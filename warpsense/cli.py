@@ -149,7 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
                           help="average the predictions on the capture resized by each scale (keeps the CFA phase; "
                                "default: 1, no resizing)")
     evaluate.add_argument("--plot", metavar="OUT.png", help="with --sweep: plot the sweeps")
-    evaluate.add_argument("--latency", action="store_true", help="time sensor simulation + network and network alone (alone: no dataset, no mIoU; with --sweep: both)")
+    evaluate.add_argument("--latency", action="store_true", help="time sensor simulation + network (the camera cached: Camera.cached) and network alone (alone: no dataset, no mIoU; with --sweep: both)")
     evaluate.add_argument("--latency-size", default="192x640", metavar="HxW", help="input size for --latency (default: %(default)s)")
     evaluate.add_argument("--latency-batch", type=int, default=1, help="batch size for --latency (default: %(default)s)")
     evaluate.add_argument("--batch-size", type=int, default=4, help="evaluation batch size (default: %(default)s)")

@@ -168,5 +168,5 @@ def test_eval_latency_alone_reads_no_dataset_and_scores_nothing(tmp_path):
                        json_out=str(tmp_path / "latency.json"), latency=True, latency_size=(32, 48), device="cpu")
     assert "miou" not in payload
     assert {"sensor_plus_network_ms", "network_ms"} <= set(payload["latency"])
-    assert payload["latency"]["sensor_plus_network_ms"] > 0
+    assert payload["latency"]["sensor_plus_network_ms"] > 0 and payload["latency"]["camera_cached"] is True
     assert json.loads((tmp_path / "latency.json").read_text())["latency"] == payload["latency"]

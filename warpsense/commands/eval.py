@@ -40,13 +40,14 @@ def robustness_sweep(model, dataset, device, batch_size: int, class_names, amp: 
 
 def measure_latency(model, device, height: int, width: int, batch: int, repeats: int = 50) -> dict:
     """Median latency (ms) of sensor simulation + network and of the network alone; on CUDA also replayed as
-    CUDA graphs."""
+    CUDA graphs. The checkpoint's camera is fixed, so it runs cached (`Camera.cached`), as a deployed one would."""
     from warpsense.bench.timing import time_function
+    from warpsense.camera.camera import cached_cameras
 
     images = torch.randint(0, 256, (batch, 3, height, width), dtype=torch.uint8, device=device)
     sensed = model.sense(images)
-    result = {"device": str(device), "height": height, "width": width, "batch": batch}
-    with torch.no_grad():
+    result = {"device": str(device), "height": height, "width": width, "batch": batch, "camera_cached": True}
+    with torch.no_grad(), cached_cameras(model):
         result["sensor_plus_network_ms"] = time_function(lambda: model(images), device, repeats)["median_ms"]
         result["network_ms"] = time_function(lambda: model.network(sensed), device, repeats)["median_ms"]
         if device.type == "cuda":
