@@ -72,6 +72,11 @@ class LearnedCamera:
                    summary.get("digital_gain"))
 
 
+def _tracing(x: torch.Tensor) -> bool:
+    """Whether torch.compile is tracing or x's CUDA stream is being captured: no host reads, no cached tensors."""
+    return torch.compiler.is_compiling() or (x.is_cuda and torch.cuda.is_current_stream_capturing())
+
+
 class Camera(nn.Module):
     """Radiance [B, 3, H, W] (linear, >= 0) -> RAW [B, 1, H, W] in units of the white level.
 
@@ -243,36 +248,31 @@ class Camera(nn.Module):
             if outermost:
                 self._cache = None
 
-    def _cache_usable(self, image: torch.Tensor) -> bool:
-        return (self._cache is not None and not self.training and not torch.is_grad_enabled()
-                and not torch.compiler.is_compiling() and not (image.is_cuda and torch.cuda.is_current_stream_capturing()))
-
     def _cache_key(self) -> tuple:
         tensors = [*self.parameters(), *self.buffers()]
         return (tuple((t.data_ptr(), t._version) for t in tensors), tuple(self.what_if_values().items()))
 
     def _sensor_state(self, image: torch.Tensor, image_index: torch.Tensor | None):
-        """(arguments with the responses folded in, fusable, seeds) for this call: from the cache inside `cached`
-        where it is usable, else computed."""
-        if not self._cache_usable(image):
+        """(arguments, fusable, seeds) for this call: inside `cached`, in eval without gradients and outside
+        tracing, from the cache (the responses folded in, a batch's eval seeds kept by its size); else computed."""
+        seed_cache = None
+        if self._cache is not None and not self.training and not torch.is_grad_enabled() and not _tracing(image):
+            key = self._cache_key()
+            if self._cache.get("key") != key:
+                arguments, fusable = self.sensor_arguments()
+                arguments = dataclasses.replace(arguments, phi=arguments.responses(), gain=None)
+                self._cache = {"key": key, "arguments": arguments, "fusable": fusable, "seeds": {}}
+            arguments, fusable, seed_cache = self._cache["arguments"], self._cache["fusable"], self._cache["seeds"]
+        else:
             arguments, fusable = self.sensor_arguments()
-            seeds = arguments.seeds(image.shape[0], image_index) if arguments.noisy and fusable else 0
-            return arguments, fusable, seeds
-        key = self._cache_key()
-        if self._cache.get("key") != key:
-            arguments, fusable = self.sensor_arguments()
-            arguments = dataclasses.replace(arguments, phi=arguments.responses(), gain=None)
-            self._cache.clear()
-            self._cache.update(key=key, arguments=arguments, fusable=fusable, seeds={})
-        arguments, fusable = self._cache["arguments"], self._cache["fusable"]
         if not (arguments.noisy and fusable):
             return arguments, fusable, 0
-        if image_index is not None:
-            return arguments, fusable, arguments.seeds(image.shape[0], image_index)
-        seeds = self._cache["seeds"].get(image.shape[0])
-        if seeds is None:
-            seeds = self._cache["seeds"][image.shape[0]] = arguments.seeds(image.shape[0], None)
-        return arguments, fusable, seeds
+        batch = image.shape[0]
+        if seed_cache is None or image_index is not None:
+            return arguments, fusable, arguments.seeds(batch, image_index)
+        if batch not in seed_cache:
+            seed_cache[batch] = arguments.seeds(batch, None)
+        return arguments, fusable, seed_cache[batch]
 
     # --- data path -----------------------------------------------------------------------------------------------
 
@@ -296,8 +296,7 @@ class Camera(nn.Module):
 
     def forward(self, radiance: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance [B, 3, H, W] -> RAW [B, 1, H, W]; ``image_index`` [B] (dataset indices) keys the eval noise."""
-        if self.check_finite and not torch.compiler.is_compiling() and not (
-                radiance.is_cuda and torch.cuda.is_current_stream_capturing()):
+        if self.check_finite and not _tracing(radiance):
             bad = int((~torch.isfinite(radiance)).sum())
             if bad:
                 raise ValueError(f"camera: radiance has {bad} non-finite values (NaN or inf) of {radiance.numel()}; "
