@@ -1,4 +1,5 @@
-"""Host time of the camera's Warp ops per call, through their torch.library custom op and called directly.
+"""Host time of the camera's Warp ops per call: through their torch.library custom op, as called (`WarpOp`) and
+through the function the op wraps.
 
     python tools/bench_dispatch.py [--device cuda] [--size 192x640] [--calls 300]
 
@@ -6,8 +7,9 @@ Round 27's cProfile of batch-1 eager inference on an H100 (torch 2.11, `tools/be
 gave torch's custom-op wrapper (`torch/_library/custom_ops.py`, ``backend_impl``) 0.3-0.4 ms of its own time per
 call of `sensor_capture` and `psf_conv`, where published measurements of the custom-op dispatch put it at ~7-16 us.
 This tool measures it without a profiler: for each op, the host time of ``--calls`` calls (no synchronisation
-between them, so the GPU's work overlaps) through the op and through the function it wraps (the op's private
-``_init_fn``), with gradients off and on, and a trivial custom op (a clone) for the dispatch alone.
+between them, so the GPU's work overlaps) through the custom op (``.op``), through the `WarpOp` the package calls
+(which skips the dispatcher where nothing needs it: no gradient) and through the wrapped function
+(``.function``), with gradients off and on, and a trivial custom op (a clone) for the dispatch alone.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import time
 import torch
 
 from warpsense.ops import psf, sensor
+from warpsense.ops._warp import WarpOp
 
 
 @torch.library.custom_op("warpsense_bench::clone", mutates_args=())
@@ -62,11 +65,14 @@ def main() -> None:
     for grad in (False, True):
         with torch.set_grad_enabled(grad):
             for name, (op, inputs) in cases.items():
-                through_op = host_us(lambda op=op, inputs=inputs: op(*inputs), device, args.calls)
-                direct = host_us(lambda op=op, inputs=inputs: op._init_fn(*inputs), device, args.calls)
-                print(f"grad {'on ' if grad else 'off'} {name:>15s}: custom op {through_op:8.1f} us, direct "
-                      f"{direct:8.1f} us, dispatch {through_op - direct:+8.1f} us", flush=True)
-
+                custom = getattr(op, "op", op)
+                function = op.function if isinstance(op, WarpOp) else op._init_fn
+                through_op = host_us(lambda op=custom, inputs=inputs: op(*inputs), device, args.calls)
+                called = host_us(lambda op=op, inputs=inputs: op(*inputs), device, args.calls)
+                direct = host_us(lambda op=function, inputs=inputs: op(*inputs), device, args.calls)
+                print(f"grad {'on ' if grad else 'off'} {name:>15s}: custom op {through_op:8.1f} us, as called "
+                      f"{called:8.1f} us, direct {direct:8.1f} us, dispatch {through_op - direct:+8.1f} us",
+                      flush=True)
 
 if __name__ == "__main__":
     main()

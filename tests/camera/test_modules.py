@@ -237,3 +237,18 @@ def test_free_cfa_transmittances_stay_in_zero_one():
     phi = module.phi()
     assert float(phi.min()) >= 0 and float(phi.max()) <= 1
     assert module.hard_letters() == [["R", "Y"], ["Y", "B"]]
+
+
+def test_nan_policy_camera_takes_finite_radiance_whose_sum_overflows():
+    """The check sums the radiance first (one reduction): a float64 sum that overflows from finite pixels is counted
+    exactly and passes."""
+    from warpsense.camera import Camera
+    from warpsense.config import load_config
+
+    camera = Camera.from_config(load_config(None, []))
+    radiance = torch.full((1, 3, 8, 10), 1e307, dtype=torch.float64)
+    assert torch.isinf(radiance.sum())
+    assert camera(radiance).shape == (1, 1, 8, 10)
+    radiance[0, 2, 1, 1] = float("inf")
+    with pytest.raises(ValueError, match="camera: radiance has 1 non-finite values"):
+        camera(radiance)

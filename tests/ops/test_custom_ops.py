@@ -105,7 +105,7 @@ def test_opcheck(name, device):
     inputs = [_to(x, device) for x in make_inputs()]
     if name in BACKWARD_CASES:  # backward ops are once differentiable: no inputs that take gradients
         inputs = [x.detach() if isinstance(x, torch.Tensor) else x for x in inputs]
-    results = torch.library.opcheck(op, inputs)
+    results = torch.library.opcheck(op.op, inputs)
     assert set(results.values()) == {"SUCCESS"}, results
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -148,7 +149,8 @@ class Camera(nn.Module):
 
     def stages(self) -> list[tuple[str, Stage]]:
         """The constructed stages in data-path order, as (attribute name, module)."""
-        return [(name, getattr(self, name)) for name in self.stage_names if getattr(self, name) is not None]
+        modules = self._modules  # (nn.Module's __getattr__ costs ~1 us a name; an absent stage is None or unset)
+        return [(name, modules[name]) for name in self.stage_names if modules.get(name) is not None]
 
     def _part(self, part: str) -> list[Stage]:
         return [stage for _, stage in self.stages() if stage.part == part]
@@ -236,8 +238,8 @@ class Camera(nn.Module):
         Only calls in eval mode with gradients disabled use the cache (not while compiling or capturing a CUDA
         graph); the others compute everything as usual. An in-place change of a parameter or buffer between calls
         (an optimizer step, ``load_state_dict``, ``.to``) or a what-if override (`overridden`) is noticed and
-        recomputes; a change through ``.data`` is not: keep the parameters fixed inside. Nests; the outermost exit
-        drops the cache.
+        recomputes; a change through ``.data`` or a module put in place of one of the camera's is not: keep the
+        parameters and modules fixed inside. Nests; the outermost exit drops the cache.
         """
         outermost = self._cache is None
         if outermost:
@@ -249,7 +251,13 @@ class Camera(nn.Module):
                 self._cache = None
 
     def _cache_key(self) -> tuple:
-        tensors = [*self.parameters(), *self.buffers()]
+        # each module's own tensors read directly, the modules listed once per cache: parameters() and buffers()
+        # walk the module tree through generators, ~30 us a call
+        modules = self._cache.get("modules")
+        if modules is None:
+            modules = self._cache["modules"] = list(self.modules())
+        tensors = [t for module in modules for group in (module._parameters, module._buffers)
+                   for t in group.values() if t is not None]
         return (tuple((t.data_ptr(), t._version) for t in tensors), tuple(self.what_if_values().items()))
 
     def _sensor_state(self, image: torch.Tensor, image_index: torch.Tensor | None):
@@ -261,7 +269,7 @@ class Camera(nn.Module):
             if self._cache.get("key") != key:
                 arguments, fusable = self.sensor_arguments()
                 arguments = dataclasses.replace(arguments, phi=arguments.responses(), gain=None)
-                self._cache = {"key": key, "arguments": arguments, "fusable": fusable, "seeds": {}}
+                self._cache.update(key=key, arguments=arguments, fusable=fusable, seeds={})
             arguments, fusable, seed_cache = self._cache["arguments"], self._cache["fusable"], self._cache["seeds"]
         else:
             arguments, fusable = self.sensor_arguments()
@@ -296,7 +304,9 @@ class Camera(nn.Module):
 
     def forward(self, radiance: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance [B, 3, H, W] -> RAW [B, 1, H, W]; ``image_index`` [B] (dataset indices) keys the eval noise."""
-        if self.check_finite and not _tracing(radiance):
+        # one reduction and one host read: a NaN or inf anywhere makes the sum non-finite (a sum that overflows
+        # from finite values is counted exactly and passes)
+        if self.check_finite and not _tracing(radiance) and not math.isfinite(float(radiance.sum(dtype=torch.float64))):
             bad = int((~torch.isfinite(radiance)).sum())
             if bad:
                 raise ValueError(f"camera: radiance has {bad} non-finite values (NaN or inf) of {radiance.numel()}; "

@@ -174,7 +174,7 @@ class Optics(Stage):
         phase); while it is frozen or in eval mode the rendering is cached."""
         if not self.dynamic:
             return self.frozen_psf
-        if self._training_design() and self.training and torch.is_grad_enabled():
+        if self.training and torch.is_grad_enabled() and self._training_design():
             self._cache_valid = False
             return self.render().float()
         if not self._cache_valid:

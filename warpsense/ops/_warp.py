@@ -9,12 +9,14 @@
 - Every op is a `torch.library` custom op (`warp_op`): a fake (meta) implementation gives output shapes without
   running a kernel, the backward is registered with `register_autograd` and is itself a custom op, so
   `torch.compile` and CUDA-graph capture take the ops without graph breaks. Backward ops have no autograd formula
-  of their own: double backward raises a clear error.
+  of their own: double backward raises a clear error. Eager calls that need none of this (no gradient, no tracing
+  or modes) skip the dispatcher (`WarpOp`).
 """
 
 from __future__ import annotations
 
 import collections
+import functools
 import os
 from collections.abc import Sequence
 
@@ -123,20 +125,65 @@ def kernel_scalar(value: float, dtype: torch.dtype):
 
 
 OP_NAMESPACE = "warpsense"
+_PLAIN_TENSORS = (torch.Tensor, torch.nn.Parameter)
+
+
+def plain_eager(tensors: Sequence) -> bool:
+    """Whether a call on ``tensors`` (a sequence of arguments; non-tensors ignored) is plain eager PyTorch: not
+    traced by torch.compile, no torch-function or dispatch mode (fake tensors, make_fx, export), no functorch
+    transform (vmap, grad), plain tensors (no subclasses). ~0.3 us."""
+    if (torch.compiler.is_compiling() or torch._C._is_torch_function_mode_enabled()
+            or torch._C._len_torch_dispatch_stack() or torch._C._functorch.peek_interpreter_stack() is not None):
+        return False
+    return all(type(x) in _PLAIN_TENSORS for x in tensors if isinstance(x, torch.Tensor))
+
+
+class WarpOp:
+    """A Warp kernel's `torch.library` custom op, called as a function (what `warp_op` returns; the op itself is
+    ``.op``, e.g. for `torch.library.opcheck`).
+
+    A call that none of torch's machinery needs to see runs the implementation directly: plain eager
+    (`plain_eager`), no input that requires a gradient (or gradients off), the profiler off, no argument mutated.
+    The custom op's dispatch costs 27-42 us of host time per call on an H100 machine (torch 2.11,
+    `tools/bench_dispatch.py`), which batch-1 inference pays per op. Every other call (autograd, compile, capture
+    under tracing, fake tensors, vmap, profiling) goes through the op, so it is seen as one node with its fake
+    implementation and autograd formula. A CUDA-graph capture in eager mode may take either path: both launch
+    the same kernels on the current stream."""
+
+    def __init__(self, op, function, direct: bool):
+        self.op = op
+        self.function = function
+        self.direct = direct
+        functools.update_wrapper(self, function)
+
+    def __call__(self, *args, **kwargs):
+        # is_compiling first: dynamo folds it to True and never traces into the host-side checks
+        if self.direct and not torch.compiler.is_compiling() and self.direct_call((*args, *kwargs.values())):
+            return self.function(*args, **kwargs)
+        return self.op(*args, **kwargs)
+
+    @staticmethod
+    def direct_call(args: Sequence) -> bool:
+        """Whether a call with the arguments ``args`` skips the dispatcher (see the class)."""
+        if torch._C._autograd._profiler_enabled() or not plain_eager(args):
+            return False
+        return not torch.is_grad_enabled() or not any(
+            x.requires_grad for x in args if isinstance(x, torch.Tensor))
 
 
 def warp_op(name: str, fake, backward=None, setup_context=None, mutates_args: tuple[str, ...] = ()):
     """Decorator: register ``function`` (type-annotated, returns new tensors) as the custom op
     ``warpsense::<name>`` with the fake implementation ``fake`` and, optionally, its autograd formula
     (``backward(ctx, *grads)`` and ``setup_context(ctx, inputs, output)``, as for `torch.library.register_autograd`).
-    ``mutates_args`` names the tensor arguments the op writes in place (a batch norm's running statistics)."""
+    ``mutates_args`` names the tensor arguments the op writes in place (a batch norm's running statistics): such
+    an op always goes through the dispatcher, which keeps their version counters. Returns a `WarpOp`."""
 
     def register(function):
         op = torch.library.custom_op(f"{OP_NAMESPACE}::{name}", function, mutates_args=mutates_args)
         op.register_fake(fake)
         if backward is not None:
             op.register_autograd(backward, setup_context=setup_context)
-        return op
+        return WarpOp(op, function, direct=not mutates_args)
 
     return register
 
@@ -196,8 +243,8 @@ def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.dev
     signature = tuple((x.dtype, x.dim()) if isinstance(x, torch.Tensor) else
                       x.signature if isinstance(x, Vectors) else type(x) for x in inputs)
     key = (kernel, device, dim, signature, block_dim)
-    command = _LAUNCH_CACHE.get(key)
-    if command is None:
+    recorded = _LAUNCH_CACHE.get(key)
+    if recorded is None:
         arguments = [to_warp(x) if isinstance(x, (torch.Tensor, Vectors)) else x for x in inputs]
         if block_dim:
             command = wp.launch_tiled(kernel, dim=dim, inputs=arguments, device=wp.device_from_torch(device),
@@ -206,17 +253,36 @@ def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.dev
             command = wp.launch(kernel, dim=dim, inputs=arguments, device=wp.device_from_torch(device),
                                 record_cmd=True)
         command.fwd_args = None  # drop the first call's arrays: a cached launch must not keep tensors alive
-        _LAUNCH_CACHE[key] = command
+        recorded = _LAUNCH_CACHE[key] = _Recorded(command, [None] * len(inputs))
         if len(_LAUNCH_CACHE) > _LAUNCH_CACHE_SIZE:
             _LAUNCH_CACHE.popitem(last=False)
     else:
         _LAUNCH_CACHE.move_to_end(key)
+    command, held = recorded.command, recorded.held
     for index, value in enumerate(inputs):
         if isinstance(value, (torch.Tensor, Vectors)):
-            command.set_param_at_index_from_ctype(index, _array_ctype(value))
-        else:
+            tensor = value.tensor if isinstance(value, Vectors) else value
+            # a parameter already holding this pointer, shape and strides is left as it is (at batch 1 the caching
+            # allocator hands out the same blocks call after call: building the struct is most of the host time)
+            what = (tensor.data_ptr(), tensor.shape, tensor.stride())
+            if held[index] != what:
+                command.set_param_at_index_from_ctype(index, _array_ctype(value))
+                held[index] = what
+        elif held[index] != (type(value), value):
             command.set_param_at_index(index, value)
+            held[index] = (type(value), value)
     command.launch(stream=_warp_stream(device) if device.type == "cuda" else None)
+
+
+class _Recorded:
+    """A recorded launch (`wp.Launch`) and what its parameters hold now: (pointer, shape, strides) for an array,
+    (type, value) for a scalar."""
+
+    __slots__ = ("command", "held")
+
+    def __init__(self, command, held: list):
+        self.command = command
+        self.held = held
 
 
 def reduction_lanes(total: int, device: torch.device) -> int:

@@ -1,0 +1,116 @@
+"""The torch <-> Warp helper (`warpsense.ops._warp`): which calls skip the custom op's dispatcher (`WarpOp`), the
+recorded launches' parameters (set again only when they change) and the psf op's kept node cells."""
+
+import gc
+
+import pytest
+import torch
+from torch._subclasses.fake_tensor import FakeTensorMode
+
+from tests.conftest import device_params
+from warpsense.ops import _warp, batchnorm, psf, psf_conv, quantize_ste
+from warpsense.ops.reference import psf_conv_reference, quantize_reference
+
+
+@pytest.fixture
+def op_calls(monkeypatch):
+    """Calls of the psf op that went through its torch.library custom op (the dispatcher)."""
+    calls = []
+    op = psf._psf_conv_cells.op
+
+    def counted(*args, **kwargs):
+        calls.append(args)
+        return op(*args, **kwargs)
+
+    monkeypatch.setattr(psf._psf_conv_cells, "op", counted)
+    return calls
+
+
+def _inputs(device="cpu", grad=False):
+    torch.manual_seed(0)
+    image = torch.rand(1, 3, 7, 9, dtype=torch.float64, device=device, requires_grad=grad)
+    kernel = torch.rand(3, 2, 2, 3, 3, dtype=torch.float64, device=device)
+    return image, kernel / kernel.sum(dim=(-2, -1), keepdim=True)
+
+
+@pytest.mark.parametrize("device", device_params())
+def test_feature_direct_call_without_gradients(op_calls, device):
+    """No gradient to track: the implementation runs directly, with the op's result."""
+    image, kernel = _inputs(device, grad=True)
+    with torch.no_grad():
+        out = psf_conv(image, kernel, method="direct")
+    assert not op_calls and out.grad_fn is None
+    torch.testing.assert_close(out, psf_conv_reference(image.detach(), kernel))
+    out = psf_conv(image.detach(), kernel, method="direct")  # gradients on, but no input requires one
+    assert not op_calls
+    torch.testing.assert_close(out, psf_conv_reference(image.detach(), kernel))
+
+
+def test_feature_dispatcher_where_torch_needs_it(op_calls):
+    """Autograd, fake tensors, the profiler and functorch see the custom op."""
+    image, kernel = _inputs(grad=True)
+    out = psf_conv(image, kernel, method="direct")
+    assert len(op_calls) == 1 and out.grad_fn is not None
+    (grad,) = torch.autograd.grad(out.square().sum(), image)
+    (expected,) = torch.autograd.grad(psf_conv_reference(image, kernel).square().sum(), image)
+    torch.testing.assert_close(grad, expected)
+    mode = FakeTensorMode()
+    fake_image, fake_kernel = mode.from_tensor(image.detach()), mode.from_tensor(kernel)
+    with mode:
+        fake = psf_conv(fake_image, fake_kernel, method="direct")
+    assert len(op_calls) == 2 and fake.shape == image.shape
+    with torch.no_grad(), torch.profiler.profile() as profile:
+        psf_conv(image, kernel, method="direct")
+    assert len(op_calls) == 3
+    assert any(event.name == "warpsense::psf_conv" for event in profile.events())
+    seen = []
+    torch.vmap(lambda x: seen.append(_warp.WarpOp.direct_call((x,))) or x)(image.detach())
+    assert seen == [False]
+
+
+def test_module_mutating_op_always_dispatches():
+    """An op that writes its arguments (the running statistics) keeps the dispatcher, which tracks versions."""
+    assert not batchnorm._update_running.direct and psf._psf_conv_cells.direct
+    running = torch.zeros(4)
+    version = running._version
+    with torch.no_grad():
+        batchnorm._update_running(torch.rand(5, 4), 30, 0.1, running, torch.ones(4))
+    assert running._version > version
+
+
+def test_feature_launch_sets_changed_parameters_only(monkeypatch):
+    """A parameter holding the same pointer, shape and strides is not rebuilt; new contents at the same pointer,
+    other tensors and other scalars are seen."""
+    built = []
+    build = _warp._array_ctype
+    monkeypatch.setattr(_warp, "_array_ctype", lambda value: built.append(value) or build(value))
+    raw = torch.rand(2, 1, 5, 6, dtype=torch.float64)
+    out = quantize_ste(raw, 4)
+    first = len(built)
+    torch.testing.assert_close(out, quantize_reference(raw, 4))
+    raw.mul_(0.5)  # same pointer, new contents
+    torch.testing.assert_close(quantize_ste(raw, 4), quantize_reference(raw, 4))
+    torch.testing.assert_close(quantize_ste(raw, 6), quantize_reference(raw, 6))  # another scalar
+    other = torch.rand(2, 1, 5, 6, dtype=torch.float64)
+    torch.testing.assert_close(quantize_ste(other, 6), quantize_reference(other, 6))  # another tensor
+    assert 0 < len(built) - first < 3 * first  # the repeated calls rebuilt fewer structs than they passed
+
+
+def test_feature_kept_cells():
+    """The node cells of a PSF without gradients are kept while it is unchanged; an in-place change, a PSF that
+    takes gradients or a dropped PSF are handled."""
+    image, kernel = _inputs()
+    cells = psf._kept_cells(kernel)
+    assert psf._kept_cells(kernel) is cells
+    torch.testing.assert_close(cells, psf.node_cells(kernel), rtol=0, atol=0)
+    kernel[1].mul_(0.5)  # in place: the version counter moves
+    torch.testing.assert_close(psf_conv(image, kernel, method="direct"), psf_conv_reference(image, kernel))
+    assert psf._kept_cells(kernel) is not cells
+    learnable = kernel.clone().requires_grad_()
+    fresh = psf._kept_cells(learnable)
+    assert fresh.grad_fn is not None and psf._kept_cells(learnable) is not fresh
+    key = id(kernel)
+    assert key in psf._CELLS
+    del kernel
+    gc.collect()
+    assert key not in psf._CELLS
