@@ -114,3 +114,16 @@ def test_feature_kept_cells():
     del kernel
     gc.collect()
     assert key not in psf._CELLS
+
+
+def test_feature_kept_cells_not_from_inference_mode():
+    """Cells made under inference mode are not kept: a later training step with the same fixed PSF saves its cells
+    for the backward, which an inference tensor refuses."""
+    image, kernel = _inputs(grad=True)
+    with torch.inference_mode():
+        psf_conv(image.detach(), kernel, method="direct")
+    assert id(kernel) not in psf._CELLS
+    out = psf_conv(image, kernel, method="direct")
+    (grad,) = torch.autograd.grad(out.sum(), image)
+    (expected,) = torch.autograd.grad(psf_conv_reference(image, kernel).sum(), image)
+    torch.testing.assert_close(grad, expected)

@@ -255,11 +255,12 @@ def _kept_cells(psf: torch.Tensor) -> torch.Tensor:
     """`node_cells(psf)`, kept while ``psf`` lives unchanged (same tensor, same version counter) when no gradient
     flows to it: a fixed PSF grid (a frozen lens, a camera in eval) is rearranged once instead of per call (a stack
     kernel and ~15 us of host time). Computed afresh while tracing or capturing a CUDA graph (the graph must
-    compute it itself) and for inference-mode tensors (no version counter). A change through ``.data`` is not
-    seen."""
+    compute it itself) and in inference mode (its tensors have no version counter, and kept ones could not be
+    saved for a later backward). A change through ``.data`` is not seen."""
     # is_compiling first: dynamo folds it to True and never traces into the host-side checks
     if (torch.compiler.is_compiling() or (psf.requires_grad and torch.is_grad_enabled()) or psf.is_inference()
-            or not plain_eager((psf,)) or (psf.is_cuda and torch.cuda.is_current_stream_capturing())):
+            or torch.is_inference_mode_enabled() or not plain_eager((psf,))
+            or (psf.is_cuda and torch.cuda.is_current_stream_capturing())):
         return node_cells(psf)
     key = id(psf)
     kept = _CELLS.get(key)
