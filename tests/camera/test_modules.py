@@ -62,6 +62,28 @@ def test_noise_module_equals_functional_and_seeds():
     assert not torch.equal(module(raw), module(raw))  # training: a new seed per call
 
 
+@pytest.mark.parametrize("eval_seed", [42, 2**31 - 3, -5])
+def test_noise_eval_seeds_wrap_into_the_int31_range(eval_seed):
+    """eval_seed + the place in the batch, modulo 2^31 - 1 (a seed near the top wraps), or + the image's index."""
+    module = SensorNoise(0.015, 0.002, eval_seed=eval_seed).eval()
+    expected = [(eval_seed + offset) % (2**31 - 1) for offset in range(4)]
+    assert module.seeds(4).tolist() == expected
+    index = torch.tensor([7, 0])
+    assert module.seeds(2, index).tolist() == [(eval_seed + 7) % (2**31 - 1), expected[0]]
+
+
+def test_noise_what_if_scale():
+    """noise_scale s: the read std times s, the shot variance coefficient times s^2; 1 leaves the levels bitwise."""
+    module = SensorNoise(0.015, 0.002)
+    shot, read = module.levels()
+    module.scale = 0.5
+    scaled_shot, scaled_read = module.levels()
+    torch.testing.assert_close(scaled_shot, shot * 0.25)
+    torch.testing.assert_close(scaled_read, read * 0.5)
+    module.scale = 1.0
+    assert torch.equal(module.levels()[0], shot) and torch.equal(module.levels()[1], read)
+
+
 def test_noise_learnable_levels_bounded():
     module = SensorNoise(0.01, 0.002, learnable=True)
     with torch.no_grad():

@@ -48,14 +48,16 @@ class NoisySensor(Stage):
 
     def seeds(self, batch: int, image_index: torch.Tensor | None = None) -> torch.Tensor:
         """int64 [batch] per-image seeds on the module's device (see the class docstring)."""
-        offsets = torch.arange(batch, device=self.seed_counter.device)
+        device = self.seed_counter.device
         if self.training:
-            seeds = self.seed_counter + offsets
+            seeds = self.seed_counter + torch.arange(batch, device=device)
             self.seed_counter.add_(batch)
             return seeds % (2**31 - 1)
         if image_index is not None:
-            offsets = image_index.to(self.seed_counter.device)
-        return (self.eval_seed + offsets) % (2**31 - 1)
+            return (self.eval_seed + image_index.to(device)) % (2**31 - 1)
+        if 0 <= self.eval_seed and self.eval_seed + batch <= 2**31 - 1:  # the modulo changes nothing: one kernel
+            return torch.arange(self.eval_seed, self.eval_seed + batch, device=device)
+        return (self.eval_seed + torch.arange(batch, device=device)) % (2**31 - 1)
 
     def fuse(self, arguments: SensorArguments) -> bool:
         """The gain folds into the responses; the fused kernel draws the Gaussian approximation (exact Poisson counts
@@ -119,6 +121,8 @@ class SensorNoise(NoisySensor):
         return {"noise_shot": float(shot.detach()), "noise_read": float(read.detach())}
 
     def levels(self) -> tuple[torch.Tensor, torch.Tensor]:
-        shot = 2 * self.shot_init * torch.sigmoid(self.shot_logit) * self.scale**2
-        read = 2 * self.read_init * torch.sigmoid(self.read_logit) * self.scale
+        shot = 2 * self.shot_init * torch.sigmoid(self.shot_logit)
+        read = 2 * self.read_init * torch.sigmoid(self.read_logit)
+        if self.scale != 1:  # a what-if override (x * 1.0 is x: two kernels saved a call at the default)
+            shot, read = shot * self.scale**2, read * self.scale
         return shot, read
