@@ -98,3 +98,17 @@ def test_exception_cached_is_dropped_when_the_block_raises():
         with camera.cached():
             raise RuntimeError("inside")
     assert camera._cache is None
+
+
+def test_feature_jit_trace_inside_cached_records_the_computation():
+    """torch.jit.trace inside `cached` traces the arguments' computation, not the cached tensors as constants: the
+    traced camera follows a later change of a parameter."""
+    camera = _camera("optics.enabled=true", "optics.method=direct")
+    radiance = torch.rand(1, 3, 8, 10)
+    with torch.no_grad(), camera.cached():
+        camera(radiance)  # fills the cache
+        traced = torch.jit.trace(camera, radiance, check_trace=False)
+        camera.noise.read_logit.add_(1.0)
+        camera.cfa.logits.mul_(3.0)
+        expected = camera(radiance)
+        torch.testing.assert_close(traced(radiance), expected)

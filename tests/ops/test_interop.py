@@ -68,6 +68,17 @@ def test_feature_dispatcher_where_torch_needs_it(op_calls):
     assert seen == [False]
 
 
+def test_feature_jit_trace_records_the_op():
+    """torch.jit.trace records the custom op, not what its implementation runs around the kernel (a direct call
+    would leave the kernel out of the trace)."""
+    raw = torch.rand(2, 1, 4, 5)
+    with torch.no_grad():
+        traced = torch.jit.trace(lambda x: quantize_ste(x, 4), raw)
+    assert "warpsense::quantize_ste" in str(traced.graph)
+    other = torch.rand(2, 1, 4, 5)
+    torch.testing.assert_close(traced(other), quantize_reference(other, 4))
+
+
 def test_module_mutating_op_always_dispatches():
     """An op that writes its arguments (the running statistics) keeps the dispatcher, which tracks versions."""
     assert not batchnorm._update_running.direct and psf._psf_conv_cells.direct
