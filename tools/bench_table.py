@@ -61,7 +61,7 @@ def tables(payload: dict) -> str:
         reference = {r["mode"]: r["median_ms"] for r in latency if r["method"] == BASELINE and r["camera"] == "simple"}
         lines += ["", "| method | camera | batch-1 | median ms | baseline ms / this |", "|---|---|---|---|---|"]
         for record in latency:
-            speedup = reference.get(record["mode"])
+            speedup = reference.get(record["mode"].removesuffix("_cached"))  # the baseline has no camera to cache
             speedup = f"{speedup / record['median_ms']:.2f}" if speedup else "-"
             lines.append(f"| {record['method']} | {record['camera']} | {record['mode']} | {record['median_ms']:.3f} | "
                          f"{speedup} |")

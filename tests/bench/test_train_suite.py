@@ -15,7 +15,8 @@ def test_quick_cpu_suite_records_every_case():
     timed = [r for r in records if "median_ms" in r]
     cases = [("torch_baseline", "simple"), ("warpsense", "simple"), ("warpsense", "codesign")]
     assert {(r["method"], r["camera"], r["mode"]) for r in timed} == {
-        (method, camera, mode) for method, camera in cases for mode in ("eager", "camera fwd+bwd eager")}
+        (method, camera, mode) for method, camera in cases for mode in ("eager", "camera fwd+bwd eager")} | {
+        ("warpsense", camera, "eager_cached") for camera in ("simple", "codesign")}
     assert all(r["median_ms"] > 0 for r in timed)
     assert {tuple(r["shape"]) for r in timed if r["mode"].startswith("camera")} == {(2, 3, 64, 96)}
     assert all(r["suite"] == "train" and r["device"] == "cpu" for r in records)

@@ -23,7 +23,11 @@ def test_ratios_are_to_the_baseline_of_the_same_loss_and_step(tool, tmp_path):
                {"suite": "train", "device": "cuda", "method": "torch_baseline", "camera": "simple", "mode": "graph",
                 "median_ms": 2.0},
                {"suite": "train", "device": "cuda", "method": "warpsense", "camera": "simple", "mode": "graph",
-                "median_ms": 1.0}]
+                "median_ms": 1.0},
+               {"suite": "train", "device": "cuda", "method": "torch_baseline", "camera": "simple", "mode": "eager",
+                "median_ms": 6.0},
+               {"suite": "train", "device": "cuda", "method": "warpsense", "camera": "codesign",
+                "mode": "eager_cached", "median_ms": 5.0}]
     path = tmp_path / "bench.json"
     path.write_text(json.dumps({"metadata": {"device_name": "Test GPU", "torch": "x", "warp": "y"}, "records": records}))
     lines = tool.main([str(path)]).splitlines()
@@ -32,6 +36,7 @@ def test_ratios_are_to_the_baseline_of_the_same_loss_and_step(tool, tmp_path):
     assert "| warpsense | codesign | full | compiled + graph | 600.0 | 0.75 |" in lines  # against 800, not 400
     assert "| warpsense | codesign | full | compiled | failed: InductorError: boom | - |" in lines
     assert "| warpsense | simple | graph | 1.000 | 2.00 |" in lines
+    assert "| warpsense | codesign | eager_cached | 5.000 | 1.20 |" in lines  # against the baseline's eager call
 
 
 def test_a_file_without_train_records_is_a_one_line_error(tool, tmp_path):

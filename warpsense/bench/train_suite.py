@@ -152,10 +152,12 @@ def inference(method, camera_name, device, height, width, cached: contextlib.Exi
     return infer
 
 
-def latency(method, camera_name, device, height, width, graph: bool) -> dict:
-    """Batch-1 end-to-end inference time (`inference`), eager or replayed as a CUDA graph."""
-    infer = inference(method, camera_name, device, height, width)
-    return time_cuda_graph(infer, 100) if graph else time_function(infer, device, 50)
+def latency(method, camera_name, device, height, width, graph: bool, cached: bool = False) -> dict:
+    """Batch-1 end-to-end inference time (`inference`), eager or replayed as a CUDA graph; ``cached``: eager with
+    the camera cached (`Camera.cached`, a fixed camera's inference)."""
+    with contextlib.ExitStack() as stack:
+        infer = inference(method, camera_name, device, height, width, cached=stack if cached else None)
+        return time_cuda_graph(infer, 100) if graph else time_function(infer, device, 50)
 
 
 def camera_pass(method, camera_name, device, batch, height, width, graph: bool) -> dict:
@@ -224,8 +226,9 @@ def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
                  "median_ms": timing["median_ms"], "iqr_ms": timing["iqr_ms"], "shape": [camera_shape[0], 3,
                                                                                           *camera_shape[1:]]})
     for method, camera_name in cases:
-        for graph in ((False, True) if device == "cuda" else (False,)):
-            timing = latency(method, camera_name, device, height, width, graph)
-            add({"method": method, "camera": camera_name, "mode": "graph" if graph else "eager",
+        modes = ["eager", *(["eager_cached"] if method == "warpsense" else []), *(["graph"] if device == "cuda" else [])]
+        for mode in modes:
+            timing = latency(method, camera_name, device, height, width, mode == "graph", mode == "eager_cached")
+            add({"method": method, "camera": camera_name, "mode": mode,
                  "median_ms": timing["median_ms"], "iqr_ms": timing["iqr_ms"], "shape": [1, 3, height, width]})
     return records
