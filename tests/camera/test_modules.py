@@ -67,7 +67,7 @@ def test_noise_eval_seeds_wrap_into_the_int31_range(eval_seed):
     """eval_seed + the place in the batch, modulo 2^31 - 1 (a seed near the top wraps), or + the image's index."""
     module = SensorNoise(0.015, 0.002, eval_seed=eval_seed).eval()
     expected = [(eval_seed + offset) % (2**31 - 1) for offset in range(4)]
-    assert module.seeds(4).tolist() == expected
+    assert module.seeds(4).tolist() == expected and module.seeds(4).dtype == torch.int32
     index = torch.tensor([7, 0])
     assert module.seeds(2, index).tolist() == [(eval_seed + 7) % (2**31 - 1), expected[0]]
 

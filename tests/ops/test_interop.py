@@ -1,5 +1,6 @@
 """The torch <-> Warp helper (`warpsense.ops._warp`): which calls skip the custom op's dispatcher (`WarpOp`), the
-recorded launches' parameters (set again only when they change) and the psf op's kept node cells."""
+recorded launches' parameters (set again only when they change), the kept scalar tensors and the psf op's kept node
+cells."""
 
 import gc
 
@@ -10,6 +11,7 @@ from torch._subclasses.fake_tensor import FakeTensorMode
 from tests.conftest import device_params
 from warpsense.ops import _warp, batchnorm, psf, psf_conv, quantize_ste
 from warpsense.ops.reference import psf_conv_reference, quantize_reference
+from warpsense.ops.sensor import sensor_capture
 
 
 @pytest.fixture
@@ -138,3 +140,31 @@ def test_feature_kept_cells_not_from_inference_mode():
     (grad,) = torch.autograd.grad(out.sum(), image)
     (expected,) = torch.autograd.grad(psf_conv_reference(image, kernel).sum(), image)
     torch.testing.assert_close(grad, expected)
+
+
+def test_feature_scalar_tensors_kept_in_plain_eager_only():
+    """A Python number's tensor is one shared tensor per (value, dtype, device) in plain eager mode; inference mode
+    and fake tensors make a new one each time."""
+    like = torch.rand(3)
+    first = _warp.scalar_tensor(0.25, like)
+    assert _warp.scalar_tensor(0.25, like) is first and first.tolist() == [0.25]
+    assert _warp.scalar_tensor(0.5, like) is not first
+    assert _warp.scalar_tensor(0.25, like.double()).dtype == torch.float64
+    with torch.inference_mode():
+        made = _warp.scalar_tensor(0.25, like)
+        assert made is not first and made.is_inference() and _warp.scalar_tensor(0.25, like) is not made
+    mode = FakeTensorMode()
+    fake_like = mode.from_tensor(like)
+    with mode:
+        assert _warp.scalar_tensor(0.25, fake_like) is not first
+
+
+def test_feature_sensor_capture_after_inference_mode_trains():
+    """A capture in inference mode first (its white level not kept), then one with gradients: the backward saves
+    and uses its scalar arguments."""
+    rgb, phi = torch.rand(1, 3, 4, 6, dtype=torch.float64), torch.rand(2, 2, 3, dtype=torch.float64)
+    with torch.inference_mode():
+        sensor_capture(rgb, phi, 0.01, 0.002, 3, 10, 0.75)
+    rgb.requires_grad_()
+    (grad,) = torch.autograd.grad(sensor_capture(rgb, phi, 0.01, 0.002, 3, 10, 0.75).sum(), rgb)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0

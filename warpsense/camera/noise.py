@@ -47,17 +47,18 @@ class NoisySensor(Stage):
         return None
 
     def seeds(self, batch: int, image_index: torch.Tensor | None = None) -> torch.Tensor:
-        """int64 [batch] per-image seeds on the module's device (see the class docstring)."""
+        """int32 [batch] per-image seeds in [0, 2^31 - 1) on the module's device (see the class docstring); int32
+        is what the kernels take."""
         device = self.seed_counter.device
         if self.training:
             seeds = self.seed_counter + torch.arange(batch, device=device)
             self.seed_counter.add_(batch)
-            return seeds % (2**31 - 1)
+            return (seeds % (2**31 - 1)).to(torch.int32)
         if image_index is not None:
-            return (self.eval_seed + image_index.to(device)) % (2**31 - 1)
+            return ((self.eval_seed + image_index.to(device)) % (2**31 - 1)).to(torch.int32)
         if 0 <= self.eval_seed and self.eval_seed + batch <= 2**31 - 1:  # the modulo changes nothing: one kernel
-            return torch.arange(self.eval_seed, self.eval_seed + batch, device=device)
-        return (self.eval_seed + torch.arange(batch, device=device)) % (2**31 - 1)
+            return torch.arange(self.eval_seed, self.eval_seed + batch, dtype=torch.int32, device=device)
+        return ((self.eval_seed + torch.arange(batch, device=device)) % (2**31 - 1)).to(torch.int32)
 
     def fuse(self, arguments: SensorArguments) -> bool:
         """The gain folds into the responses; the fused kernel draws the Gaussian approximation (exact Poisson counts

@@ -20,7 +20,7 @@ class SensorArguments:
         phi: [T, T, 3] spectral responses; starts as the monochrome response (1/3 per channel, T = 1).
         gain: scalar tensor multiplying the responses (exposure, any linear gain before the noise), or None.
         shot, read: noise levels (variance coefficient, standard deviation; units of the white level), or None.
-        seeds: callable (batch, image_index) -> int64 [B] per-image seeds (drawn only when the capture runs).
+        seeds: callable (batch, image_index) -> int32 [B] per-image seeds (drawn only when the capture runs).
         bits, white_level: ADC bit depth and full-well level, or bits None for no quantization.
         digital_gain: scalar tensor the camera multiplies its output by after the ADC (the network's input gain of a
             photon budget), or None.

@@ -101,30 +101,6 @@ def to_warp(tensor) -> wp.array:
     return wp.from_torch(tensor.detach(), requires_grad=False)
 
 
-def scalar_tensor(value: float | torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """A 1-element tensor of ``like``'s dtype and device holding ``value`` (kept on the device: no host sync)."""
-    if isinstance(value, torch.Tensor):
-        if value.numel() != 1:
-            raise ValueError(f"expected a scalar (0-d or 1-element) tensor, got shape {tuple(value.shape)}")
-        return value.reshape(1).to(device=like.device, dtype=like.dtype)
-    # a fill kernel, not a host-to-device copy: capturable in a CUDA graph
-    return torch.full((1,), float(value), device=like.device, dtype=like.dtype)
-
-
-def bfloat16_words(tensor: torch.Tensor) -> torch.Tensor:
-    """A contiguous bfloat16 tensor [..., C] (C even) as the int32 words [..., C / 2] that kernels load two
-    channels from at once (Warp's bfloat16 loads are 2 bytes each; `kernels/batchnorm.py` unpacks the halves);
-    tensors of other dtypes as they are."""
-    return tensor.view(torch.int32) if tensor.dtype == torch.bfloat16 else tensor
-
-
-def kernel_scalar(value: float, dtype: torch.dtype):
-    """``value`` as the Warp scalar of ``dtype`` (float32 or float64), for kernel arguments typed like the arrays'
-    elements (a Python float would select float32)."""
-    return (wp.float64 if dtype == torch.float64 else wp.float32)(value)
-
-
-OP_NAMESPACE = "warpsense"
 _PLAIN_TENSORS = (torch.Tensor, torch.nn.Parameter)
 
 
@@ -142,6 +118,42 @@ def plain_eager(tensors: Sequence) -> bool:
         type(x) in _PLAIN_TENSORS for x in arguments if isinstance(x, torch.Tensor))
 
 
+def scalar_tensor(value: float | torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """A 1-element tensor of ``like``'s dtype and device holding ``value`` (kept on the device: no host sync). For a
+    Python number it may be a tensor shared with other calls: read it, never write it."""
+    if isinstance(value, torch.Tensor):
+        if value.numel() != 1:
+            raise ValueError(f"expected a scalar (0-d or 1-element) tensor, got shape {tuple(value.shape)}")
+        return value.reshape(1).to(device=like.device, dtype=like.dtype)
+    # plain eager calls share one kept tensor per (value, dtype, device): a fill kernel saved a call. Tracing, a
+    # CUDA-graph capture (a tensor made there holds its value only once the graph replays) and inference mode (its
+    # tensors cannot be saved for a later backward) make a new one: a fill kernel, not a host-to-device copy.
+    if (plain_eager(()) and not torch.is_inference_mode_enabled()
+            and not (like.is_cuda and torch.cuda.is_current_stream_capturing())):
+        return _kept_scalar(float(value), like.dtype, like.device)
+    return torch.full((1,), float(value), device=like.device, dtype=like.dtype)
+
+
+@functools.lru_cache(maxsize=64)
+def _kept_scalar(value: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """The shared read-only tensor of `scalar_tensor` (the kernels only read these arguments)."""
+    return torch.full((1,), value, device=device, dtype=dtype)
+
+
+def bfloat16_words(tensor: torch.Tensor) -> torch.Tensor:
+    """A contiguous bfloat16 tensor [..., C] (C even) as the int32 words [..., C / 2] that kernels load two
+    channels from at once (Warp's bfloat16 loads are 2 bytes each; `kernels/batchnorm.py` unpacks the halves);
+    tensors of other dtypes as they are."""
+    return tensor.view(torch.int32) if tensor.dtype == torch.bfloat16 else tensor
+
+
+def kernel_scalar(value: float, dtype: torch.dtype):
+    """``value`` as the Warp scalar of ``dtype`` (float32 or float64), for kernel arguments typed like the arrays'
+    elements (a Python float would select float32)."""
+    return (wp.float64 if dtype == torch.float64 else wp.float32)(value)
+
+
+OP_NAMESPACE = "warpsense"
 class WarpOp:
     """A Warp kernel's `torch.library` custom op, called as a function (what `warp_op` returns; the op itself is
     ``.op``, e.g. for `torch.library.opcheck`).
