@@ -65,14 +65,14 @@ def main() -> None:
     for grad in (False, True):
         with torch.set_grad_enabled(grad):
             for name, (op, inputs) in cases.items():
-                custom = getattr(op, "op", op)
-                function = op.function if isinstance(op, WarpOp) else op._init_fn
+                custom, function = (op.op, op.function) if isinstance(op, WarpOp) else (op, op._init_fn)
                 through_op = host_us(lambda op=custom, inputs=inputs: op(*inputs), device, args.calls)
                 called = host_us(lambda op=op, inputs=inputs: op(*inputs), device, args.calls)
                 direct = host_us(lambda op=function, inputs=inputs: op(*inputs), device, args.calls)
                 print(f"grad {'on ' if grad else 'off'} {name:>15s}: custom op {through_op:8.1f} us, as called "
                       f"{called:8.1f} us, direct {direct:8.1f} us, dispatch {through_op - direct:+8.1f} us",
                       flush=True)
+
 
 if __name__ == "__main__":
     main()

@@ -118,6 +118,15 @@ def plain_eager(tensors: Sequence) -> bool:
         type(x) in _PLAIN_TENSORS for x in arguments if isinstance(x, torch.Tensor))
 
 
+def may_keep(like: torch.Tensor) -> bool:
+    """Whether a tensor made now from ``like``'s device may be kept and handed to later calls: plain eager mode
+    (`plain_eager`), no CUDA-graph capture on its stream (a tensor made there holds its value only once the graph
+    replays, and the graph must compute it itself), not inference mode (its tensors cannot be saved for a later
+    backward)."""
+    return (plain_eager((like,)) and not torch.is_inference_mode_enabled()
+            and not (like.is_cuda and torch.cuda.is_current_stream_capturing()))
+
+
 def scalar_tensor(value: float | torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     """A 1-element tensor of ``like``'s dtype and device holding ``value`` (kept on the device: no host sync). For a
     Python number it may be a tensor shared with other calls: read it, never write it."""
@@ -125,11 +134,9 @@ def scalar_tensor(value: float | torch.Tensor, like: torch.Tensor) -> torch.Tens
         if value.numel() != 1:
             raise ValueError(f"expected a scalar (0-d or 1-element) tensor, got shape {tuple(value.shape)}")
         return value.reshape(1).to(device=like.device, dtype=like.dtype)
-    # plain eager calls share one kept tensor per (value, dtype, device): a fill kernel saved a call. Tracing, a
-    # CUDA-graph capture (a tensor made there holds its value only once the graph replays) and inference mode (its
-    # tensors cannot be saved for a later backward) make a new one: a fill kernel, not a host-to-device copy.
-    if (plain_eager(()) and not torch.is_inference_mode_enabled()
-            and not (like.is_cuda and torch.cuda.is_current_stream_capturing())):
+    # one kept tensor per (value, dtype, device) where that is allowed (`may_keep`): a fill kernel saved a call;
+    # elsewhere a new one: a fill kernel, not a host-to-device copy
+    if may_keep(like):
         return _kept_scalar(float(value), like.dtype, like.device)
     return torch.full((1,), float(value), device=like.device, dtype=like.dtype)
 

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 
 from warpsense.choices import PSF_METHODS
 from warpsense.kernels import psf as kernels
-from warpsense.ops._warp import Vectors, launch, plain_eager, prepare, save_inputs, warp_op
+from warpsense.ops._warp import Vectors, launch, may_keep, prepare, save_inputs, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
 
 _THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill an H100; serial CPU)
@@ -254,13 +254,12 @@ _CELLS: dict[int, tuple] = {}  # id(psf) -> (weak reference to psf, its version,
 def _kept_cells(psf: torch.Tensor) -> torch.Tensor:
     """`node_cells(psf)`, kept while ``psf`` lives unchanged (same tensor, same version counter) when no gradient
     flows to it: a fixed PSF grid (a frozen lens, a camera in eval) is rearranged once instead of per call (a stack
-    kernel and ~15 us of host time). Computed afresh while tracing or capturing a CUDA graph (the graph must
-    compute it itself) and in inference mode (its tensors have no version counter, and kept ones could not be
-    saved for a later backward). A change through ``.data`` is not seen."""
+    kernel and ~15 us of host time). Computed afresh where a kept tensor is not allowed (`may_keep`: tracing,
+    capturing a CUDA graph, inference mode) and for an inference tensor (no version counter). A change through
+    ``.data`` is not seen."""
     # is_compiling first: dynamo folds it to True and never traces into the host-side checks
     if (torch.compiler.is_compiling() or (psf.requires_grad and torch.is_grad_enabled()) or psf.is_inference()
-            or torch.is_inference_mode_enabled() or not plain_eager((psf,))
-            or (psf.is_cuda and torch.cuda.is_current_stream_capturing())):
+            or not may_keep(psf)):
         return node_cells(psf)
     key = id(psf)
     kept = _CELLS.get(key)
