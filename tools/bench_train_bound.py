@@ -3,12 +3,14 @@ CUDA-graph settings) for the network alone with cross-entropy, the network alone
 whole system (camera + network + losses), in one run (issue 11: an upper bound for the training throughput).
 
     python tools/bench_train_bound.py [--config camvid_codesign] [--set KEY=VALUE ...] [--device cuda]
-        [--size 352x480] [--batch 16] [--steps 60] [--json OUT] [--profile DIR]
+        [--size 352x480] [--batch 16] [--steps 60] [--variants ce,loss,step] [--json OUT] [--profile DIR]
 
 Inputs are random uint8 images and labels of the given size (the training crop); every step is a joint-phase
 step (camera parameters learn). Throughput is images per second over ``--steps`` steps after 8 warm-up steps
 (compilation and graph capture happen there). One JSON record per variant is printed; ``--json`` writes them with
-the device and versions. ``--profile DIR`` also runs 10 more steps of each variant under `torch.profiler` and
+the device and versions; ``--variants`` picks some of the three (``ce``: the network alone with cross-entropy,
+``loss``: the network alone with the config's losses, ``step``: camera + network + losses), e.g. only ``step`` for a
+compiled step, whose compilation takes minutes per variant. ``--profile DIR`` also runs 10 more steps of each variant under `torch.profiler` and
 writes the GPU kernels by total time to DIR/profile_<n>.txt (n: the variant's number, from 1).
 """
 
@@ -22,6 +24,10 @@ import sys
 import torch
 
 CROSS_ENTROPY_ONLY = ["loss.ohem_weight=1", "loss.ohem_fraction=1", "loss.lovasz_weight=0", "loss.smooth_weight=0"]
+# name -> (label, overrides, network only)
+VARIANTS = {"ce": ("network only, cross-entropy", CROSS_ENTROPY_ONLY, True),
+            "loss": ("network only, the config's losses", [], True),
+            "step": ("camera + network, the config's losses", [], False)}
 WARM_UP_STEPS = 8
 
 
@@ -73,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", default="352x480", help="HxW of the training crop")
     parser.add_argument("--batch", type=int, default=16)
     parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
     parser.add_argument("--json", metavar="OUT")
     parser.add_argument("--profile", metavar="DIR", help="write each variant's GPU kernels by time to DIR")
     args = parser.parse_args(argv)
@@ -80,13 +87,16 @@ def main(argv: list[str] | None = None) -> int:
         height, width = (int(part) for part in args.size.lower().split("x"))
     except ValueError:
         parser.error(f"--size must be HxW, e.g. 352x480, got {args.size!r}")
-    variants = (("network only, cross-entropy", CROSS_ENTROPY_ONLY, True),
-                ("network only, the config's losses", [], True),
-                ("camera + network, the config's losses", [], False))
+    names = [name.strip() for name in args.variants.split(",") if name.strip()]
+    unknown = [name for name in names if name not in VARIANTS]
+    if unknown or not names:
+        parser.error(f"--variants: unknown {', '.join(unknown) or 'empty list'}; valid: {', '.join(VARIANTS)}")
     records = []
     if args.profile:
         os.makedirs(args.profile, exist_ok=True)
-    for number, (label, overrides, network_only) in enumerate(variants, 1):
+    for name in names:
+        label, overrides, network_only = VARIANTS[name]
+        number = list(VARIANTS).index(name) + 1
         try:
             config = load_config(args.config, args.set + overrides)
         except ConfigError as error:

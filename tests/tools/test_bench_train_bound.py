@@ -29,3 +29,12 @@ def test_bad_size_and_bad_override_are_one_line_errors(tool, capsys):
     assert "--size must be HxW" in capsys.readouterr().err
     assert tool.main(["--set", "train.no_such_key=1", "--device", "cpu"]) == 2
     assert "no_such_key" in capsys.readouterr().err
+
+
+def test_variants_picks_some_in_the_order_given_and_rejects_unknown_names(tool, capsys):
+    assert tool.main(["--config", "camvid_codesign", *TINY, "--variants", "step,ce"]) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [r["variant"] for r in lines] == ["camera + network, the config's losses", "network only, cross-entropy"]
+    with pytest.raises(SystemExit):
+        tool.main(["--variants", "ce,whole"])
+    assert "--variants: unknown whole; valid: ce, loss, step" in capsys.readouterr().err

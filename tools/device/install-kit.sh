@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Call 2 of the kit (tools/device/README.md): joins the warp.so parts (part a came in call 1, under /tmp/kit),
-# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|bn|gate|loss|network|latency]
+# installs Warp into /tmp/site, checks torch + Warp on the GPU. Usage: bash tools/device/install-kit.sh [step|smooth|data|render|psf|upsample|round23|bn|gate|loss|network|latency|bound]
 #   step:   the training step at Lovasz stride 1 and 2 (round 16)
 #   smooth: the fused smoothness op's cuda tests, then the step with and without the smoothness term (what the term
 #           costs now; round 15 measured ~2.9 ms of 51 for its plain-torch form)
@@ -31,6 +31,8 @@
 #           with the camera cached, interleaved, each paired by round with the baseline; graph replay), each
 #           system's host time by Python function (cProfile), the camera ops' custom-op dispatch
 #           (tools/bench_dispatch.py) -> $OUT/latency.json, latency_host.tar.gz, dispatch.txt, ~2 minutes (round 27)
+#   bound:  tools/device/bound.sh eager (the camera in parts, the step of the recipe and of two faster networks;
+#           round 29), ~5 minutes
 set -u
 cp .device/kit2/* /tmp/kit/ || exit 2
 cat /tmp/kit/warp.so.xz.part_a /tmp/kit/warp.so.xz.part_b > /tmp/kit/warp.so.xz || exit 2
@@ -154,4 +156,7 @@ if [ "${1:-}" = latency ]; then
     --host-profile /tmp/latency_host 2>&1 | grep -v -e Warning -e USDT -e warn
   tar czf "$OUT/latency_host.tar.gz" -C /tmp latency_host
   python tools/bench_dispatch.py --device cuda 2>&1 | grep -v -e Warning -e USDT -e warn | tee "$OUT/dispatch.txt"
+fi
+if [ "${1:-}" = bound ]; then
+  bash tools/device/bound.sh eager
 fi
