@@ -1,12 +1,13 @@
 """The torch <-> Warp helper (`warpsense.ops._warp`): which calls skip the custom op's dispatcher (`WarpOp`), the
-recorded launches' parameters (set again only when they change), the kept scalar tensors and the psf op's kept node
-cells."""
+recorded launches' parameters (set again only when they change), the kept scalar tensors, the psf op's kept node
+cells, and forward-mode AD refused with a clear error."""
 
 import gc
 
 import pytest
 import torch
 from torch._subclasses.fake_tensor import FakeTensorMode
+from torch.autograd import forward_ad
 
 from tests.conftest import device_params
 from warpsense.ops import _warp, batchnorm, psf, psf_conv, quantize_ste
@@ -89,6 +90,50 @@ def test_module_mutating_op_always_dispatches():
     with torch.no_grad():
         batchnorm._update_running(torch.rand(5, 4), 30, 0.1, running, torch.ones(4))
     assert running._version > version
+
+
+def _dual(f, x, t):
+    with forward_ad.dual_level():
+        return forward_ad.unpack_dual(f(forward_ad.make_dual(x, t))).tangent
+
+
+FORWARD_MODE = {
+    "dual tensor": lambda f, x, t: _dual(f, x, t),
+    "torch.func.jvp": lambda f, x, t: torch.func.jvp(f, (x,), (t,))[1],
+    "jacfwd": lambda f, x, t: torch.func.jacfwd(f)(x),
+    "jvp over vmap": lambda f, x, t: torch.func.jvp(torch.func.vmap(f), (x[None],), (t[None],))[1],
+    "vmap over jvp": lambda f, x, t: torch.func.vmap(lambda y, u: torch.func.jvp(f, (y,), (u,))[1])(x[None], t[None]),
+    "hessian": lambda f, x, t: torch.func.hessian(lambda y: f(y).square().sum())(x),
+}
+
+
+@pytest.mark.parametrize("transform", list(FORWARD_MODE))
+@pytest.mark.parametrize("argument", ["image", "kernel"])
+def test_exception_forward_mode_ad_refused(transform, argument):
+    """The ops have reverse-mode formulas only: a forward-mode tangent reaching one is an error naming the op (torch
+    itself gave no tangent under a dual level and a zero one under torch.func.jvp)."""
+    image, kernel = _inputs()
+    f = (lambda x: psf_conv(x, kernel, method="direct")) if argument == "image" else (
+        lambda k: psf_conv(image, k, method="direct"))
+    x = image if argument == "image" else kernel
+    with pytest.raises(NotImplementedError, match="warpsense::psf_conv: forward-mode AD .* not implemented"):
+        FORWARD_MODE[transform](f, x, torch.rand_like(x))
+
+
+@pytest.mark.parametrize("transform", ["torch.func.jvp", "jacfwd"])
+def test_feature_forward_mode_ad_around_a_constant(transform):
+    """An op whose inputs carry no tangent runs inside forward-mode AD (even after the functional's own casts wrap
+    its inputs at the jvp level): the derivative is the one the rest of the function gives. (Nested beneath another
+    transform, as in hessian, such a wrapped constant is refused too: `forward_tangents` cannot read it there.)"""
+    image, kernel = _inputs()
+    scale = psf_conv_reference(image, kernel).sum()
+    x = torch.rand(3, dtype=torch.float64)
+    f = lambda y: y * psf_conv(image, kernel, method="direct").sum()  # noqa: E731
+    torch.testing.assert_close(FORWARD_MODE[transform](f, x, torch.ones(3, dtype=torch.float64)),
+                               {"torch.func.jvp": scale * torch.ones(3, dtype=torch.float64),
+                                "jacfwd": scale * torch.eye(3, dtype=torch.float64)}[transform])
+    with forward_ad.dual_level():  # a dual level open, no dual input
+        torch.testing.assert_close(psf_conv(image, kernel, method="direct"), psf_conv_reference(image, kernel))
 
 
 def test_feature_launch_sets_changed_parameters_only(monkeypatch):

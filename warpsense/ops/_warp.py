@@ -22,6 +22,7 @@ from collections.abc import Sequence
 
 import torch
 import warp as wp
+from torch.autograd import forward_ad
 
 wp.config.log_level = 30  # warnings only: no banner or per-module compile lines
 
@@ -76,7 +77,9 @@ def prepare(*tensors: torch.Tensor) -> list[torch.Tensor]:
     for tensor in tensors[1:]:
         if tensor.device != device:
             raise ValueError(f"all inputs must be on one device, got {device} and {tensor.device}")
-    return [t.to(dtype).contiguous() for t in tensors]
+    # a tensor already right is passed as it is: `.to` would cost a dispatch even then, and inside torch.func.jvp it
+    # wraps a constant at the jvp level, where `forward_tangents` can no longer tell it from one with a tangent
+    return [t if t.dtype == dtype and t.is_contiguous() else t.to(dtype).contiguous() for t in tensors]
 
 
 class Vectors:
@@ -116,6 +119,40 @@ def plain_eager(tensors: Sequence) -> bool:
     arguments = tuple(tensors)
     return not torch._C._has_torch_function(arguments) and all(
         type(x) in _PLAIN_TENSORS for x in arguments if isinstance(x, torch.Tensor))
+
+
+def forward_tangents(tensors: Sequence) -> bool:
+    """Whether a forward-mode AD tangent reaches one of ``tensors`` (a sequence of arguments; non-tensors ignored):
+    a dual tensor of `torch.autograd.forward_ad`, or a tensor wrapped by a `torch.func.jvp` level (also jacfwd's and
+    hessian's). The ops have reverse-mode formulas only, and torch lets such a call through with no tangent (a dual
+    level) or a zero one (torch.func.jvp): a wrong derivative without a word. Inside other functorch transforms
+    alone (vmap, grad) there is no tangent to lose. A tensor whose jvp wrapper lies beneath another transform's
+    (jacfwd of jacrev, as hessian nests them) is taken to carry one: its tangent cannot be read from outside, so
+    there a constant that an op such as ``.to`` has wrapped is refused too."""
+    if torch._C._functorch.peek_interpreter_stack() is not None:
+        from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
+
+        jvp_levels = {interpreter.level() for interpreter in retrieve_all_functorch_interpreters()
+                      if interpreter.key() == torch._C._functorch.TransformType.Jvp}
+        for x in tensors:
+            outermost = True
+            while jvp_levels and isinstance(x, torch.Tensor):
+                level = torch._C._functorch.maybe_get_level(x)
+                if level == -1:
+                    break
+                if level in jvp_levels:
+                    if not outermost:
+                        return True
+                    try:
+                        if forward_ad.unpack_dual(x).tangent is not None:
+                            return True
+                    except RuntimeError:  # a wrapper functorch cannot unpack here: assume a tangent
+                        return True
+                outermost = False
+                x = torch._C._functorch.get_unwrapped(x)
+        return False
+    return forward_ad._current_level >= 0 and any(
+        forward_ad.unpack_dual(x).tangent is not None for x in tensors if isinstance(x, torch.Tensor))
 
 
 def may_keep(like: torch.Tensor) -> bool:
@@ -166,12 +203,14 @@ class WarpOp:
     ``.op``, e.g. for `torch.library.opcheck`).
 
     A call that none of torch's machinery needs to see runs the implementation directly: plain eager
-    (`plain_eager`), no input that requires a gradient (or gradients off), the profiler off, no argument mutated.
+    (`plain_eager`), no input that requires a gradient (or gradients off), the profiler off, no forward-AD level
+    open, no argument mutated.
     The custom op's dispatch costs 27-42 us of host time per call on an H100 machine (torch 2.11,
     `tools/bench_dispatch.py`), which batch-1 inference pays per op. Every other call (autograd, torch.compile,
     torch.jit.trace, fake tensors, vmap, profiling) goes through the op, so it is seen as one node with its fake
     implementation and autograd formula. A CUDA-graph capture in eager mode may take either path: both launch
-    the same kernels on the current stream."""
+    the same kernels on the current stream. A call that a forward-mode tangent reaches (`forward_tangents`)
+    raises NotImplementedError: the ops have reverse-mode formulas only."""
 
     def __init__(self, op, function, direct: bool):
         self.op = op
@@ -181,14 +220,21 @@ class WarpOp:
 
     def __call__(self, *args, **kwargs):
         # is_compiling first: dynamo folds it to True and never traces into the host-side checks
-        if self.direct and not torch.compiler.is_compiling() and self.direct_call((*args, *kwargs.values())):
-            return self.function(*args, **kwargs)
+        if not torch.compiler.is_compiling():
+            arguments = (*args, *kwargs.values())
+            if self.direct and self.direct_call(arguments):
+                return self.function(*args, **kwargs)
+            if forward_tangents(arguments):
+                raise NotImplementedError(
+                    f"{self.op._qualname}: forward-mode AD (torch.func.jvp, jacfwd, hessian, torch.autograd.forward_ad) "
+                    "is not implemented for warpsense's ops; use reverse mode (Tensor.backward, torch.autograd.grad)")
         return self.op(*args, **kwargs)
 
     @staticmethod
     def direct_call(args: Sequence) -> bool:
         """Whether a call with the arguments ``args`` skips the dispatcher (see the class)."""
-        if torch._C._autograd._profiler_enabled() or not plain_eager(args):
+        if (torch._C._autograd._profiler_enabled() or forward_ad._current_level >= 0
+                or not plain_eager(args)):
             return False
         return not torch.is_grad_enabled() or not any(
             x.requires_grad for x in args if isinstance(x, torch.Tensor))
