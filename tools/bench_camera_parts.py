@@ -28,6 +28,7 @@ import sys
 
 import torch
 
+from warpsense.bench import parse_size
 from warpsense.bench.timing import time_cuda_graph, time_function
 from warpsense.files import write_json
 
@@ -97,9 +98,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", metavar="OUT")
     args = parser.parse_args(argv)
     try:
-        height, width = (int(part) for part in args.size.lower().split("x"))
-    except ValueError:
-        parser.error(f"--size must be HxW, e.g. 352x480, got {args.size!r}")
+        height, width = parse_size(args.size, "--size", "352x480")
+    except ValueError as error:
+        parser.error(str(error))
     if args.peak_tops <= 0:
         parser.error(f"--peak-tops must be > 0, got {args.peak_tops}")
     device = torch.device(args.device)

@@ -19,6 +19,7 @@ import time
 
 import torch
 
+from warpsense.bench import parse_size
 from warpsense.ops import psf, sensor
 from warpsense.ops._warp import WarpOp
 
@@ -52,7 +53,10 @@ def main() -> None:
     parser.add_argument("--size", default="192x640", help="HxW of the one image")
     parser.add_argument("--calls", type=int, default=300)
     args = parser.parse_args()
-    height, width = (int(part) for part in args.size.lower().split("x"))
+    try:
+        height, width = parse_size(args.size, "--size", "192x640")
+    except ValueError as error:
+        parser.error(str(error))
     device = args.device
     rgb = torch.rand(1, 3, height, width, device=device)
     level = torch.full((1,), 0.01, device=device)

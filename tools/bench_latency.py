@@ -23,6 +23,7 @@ import pstats
 
 import torch
 
+from warpsense.bench import parse_size
 from warpsense.bench.timing import time_interleaved, write_kernel_table
 from warpsense.bench.train_suite import inference, latency
 from warpsense.files import write_json
@@ -52,7 +53,10 @@ def main() -> None:
     parser.add_argument("--host-profile", metavar="DIR",
                         help="write each system's Python functions by host time over 100 eager calls there (cProfile)")
     args = parser.parse_args()
-    height, width = (int(part) for part in args.size.lower().split("x"))
+    try:
+        height, width = parse_size(args.size, "--size", "192x640")
+    except ValueError as error:
+        parser.error(str(error))
     systems = (("torch_baseline", "simple"), ("warpsense", "simple"), ("warpsense", "codesign"))
     records = []
 

@@ -23,6 +23,8 @@ import sys
 
 import torch
 
+from warpsense.bench import parse_size
+
 CROSS_ENTROPY_ONLY = ["loss.ohem_weight=1", "loss.ohem_fraction=1", "loss.lovasz_weight=0", "loss.smooth_weight=0"]
 # name -> (label, overrides, network only)
 VARIANTS = {"ce": ("network only, cross-entropy", CROSS_ENTROPY_ONLY, True),
@@ -84,9 +86,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--profile", metavar="DIR", help="write each variant's GPU kernels by time to DIR")
     args = parser.parse_args(argv)
     try:
-        height, width = (int(part) for part in args.size.lower().split("x"))
-    except ValueError:
-        parser.error(f"--size must be HxW, e.g. 352x480, got {args.size!r}")
+        height, width = parse_size(args.size, "--size", "352x480")
+    except ValueError as error:
+        parser.error(str(error))
     names = [name.strip() for name in args.variants.split(",") if name.strip()]
     unknown = [name for name in names if name not in VARIANTS]
     if unknown or not names:

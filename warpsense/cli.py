@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from warpsense import __version__
-from warpsense.bench import BENCH_SUITES
+from warpsense.bench import BENCH_SUITES, parse_size
 from warpsense.choices import DATASETS, DEVICES
 from warpsense.config import preset_names
 from warpsense.files import check_output_file
@@ -34,10 +34,7 @@ def _eval(args) -> int:
         raise ValueError("--plot draws the sweeps: add --sweep")
     check_output_file(args.json, "--json")
     check_output_file(args.plot, "--plot")
-    size = args.latency_size.lower().split("x")
-    if len(size) != 2 or not all(part.isdigit() and int(part) > 0 for part in size):
-        raise ValueError(f"--latency-size must be HxW, e.g. 192x640, got {args.latency_size!r}")
-    height, width = (int(part) for part in size)
+    height, width = parse_size(args.latency_size, "--latency-size", "192x640")
     run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
              (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot, args.flip_tta,
              progress=not args.no_progress, scales=args.scale_tta)

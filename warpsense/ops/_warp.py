@@ -134,12 +134,11 @@ def forward_tangents(tensors: Sequence) -> bool:
 
         jvp_levels = {interpreter.level() for interpreter in retrieve_all_functorch_interpreters()
                       if interpreter.key() == torch._C._functorch.TransformType.Jvp}
+        if not jvp_levels:
+            return False
         for x in tensors:
             outermost = True
-            while jvp_levels and isinstance(x, torch.Tensor):
-                level = torch._C._functorch.maybe_get_level(x)
-                if level == -1:
-                    break
+            while isinstance(x, torch.Tensor) and (level := torch._C._functorch.maybe_get_level(x)) != -1:
                 if level in jvp_levels:
                     if not outermost:
                         return True
