@@ -131,3 +131,17 @@ def test_eval_scale_tta_is_recorded_and_scored(shared_data, tmp_path, capsys):
     matrix.update(model.probabilities(image[None], image_index=torch.tensor([0]), scales=(0.75, 1.0)).argmax(1),
                   label[None])
     assert payload["miou"] == pytest.approx(matrix.compute()["miou"], abs=1e-12)
+
+
+@pytest.mark.parametrize("option,value,message", [
+    ("--limit", "-3", "argument --limit: must be >= 0, got -3"),
+    ("--latency-batch", "0", "argument --latency-batch: must be >= 1, got 0"),
+    ("--batch-size", "0", "argument --batch-size: must be >= 1, got 0"),
+    ("--batch-size", "two", "argument --batch-size: expected an integer, got 'two'"),
+])
+def test_eval_counts_out_of_range_are_usage_errors_naming_the_option(capsys, option, value, message):
+    """A negative --limit used to drop images from the end, and a zero batch failed deep in psf_conv or torch's
+    DataLoader after the data had loaded: the parser refuses them, before the (here missing) checkpoint is read."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(["eval", "--checkpoint", "missing.safetensors", option, value])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err

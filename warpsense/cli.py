@@ -65,6 +65,22 @@ def _scale_list(text: str) -> tuple[float, ...]:
     return scales
 
 
+def _count(minimum: int):
+    """An argparse ``type`` for an integer >= ``minimum``: a wrong value is a usage error naming the option, before
+    any checkpoint or data is loaded."""
+    def convert(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    convert.__name__ = "integer"  # argparse names the type in its "invalid ... value" message
+    return convert
+
+
 def _bench(args) -> int:
     from warpsense.commands.bench import run_bench_command
 
@@ -148,9 +164,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--plot", metavar="OUT.png", help="with --sweep: plot the sweeps")
     evaluate.add_argument("--latency", action="store_true", help="time sensor simulation + network (the camera cached: Camera.cached) and network alone (alone: no dataset, no mIoU; with --sweep: both)")
     evaluate.add_argument("--latency-size", default="192x640", metavar="HxW", help="input size for --latency (default: %(default)s)")
-    evaluate.add_argument("--latency-batch", type=int, default=1, help="batch size for --latency (default: %(default)s)")
-    evaluate.add_argument("--batch-size", type=int, default=4, help="evaluation batch size (default: %(default)s)")
-    evaluate.add_argument("--limit", type=int, default=0, help="evaluate only the first N images (default: %(default)s = all)")
+    evaluate.add_argument("--latency-batch", type=_count(1), default=1, metavar="N", help="batch size for --latency (default: %(default)s)")
+    evaluate.add_argument("--batch-size", type=_count(1), default=4, metavar="N", help="evaluation batch size (default: %(default)s)")
+    evaluate.add_argument("--limit", type=_count(0), default=0, metavar="N", help="evaluate only the first N images (default: %(default)s = all)")
     evaluate.add_argument("--device", default="auto", choices=DEVICES, help="device (default: %(default)s)")
     evaluate.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     evaluate.set_defaults(handler=_eval)
