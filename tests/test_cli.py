@@ -145,3 +145,39 @@ def test_eval_counts_out_of_range_are_usage_errors_naming_the_option(capsys, opt
     with pytest.raises(SystemExit) as exit_info:
         main(["eval", "--checkpoint", "missing.safetensors", option, value])
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+def _untrained_checkpoint(path, overrides, num_classes):
+    """An untrained model saved as `warpsense train` saves one, trained on CamVid's classes (what the label checks
+    read: the config's dataset, state.num_classes and state.class_names)."""
+    from warpsense.config import load_config
+    from warpsense.data.labels import CAMVID_CLASSES
+    from warpsense.system import build_system, save_checkpoint
+
+    config = load_config(None, ["data.scene_height=32", "data.scene_width=48", *overrides])
+    state = {"epoch": 0, "step": 1, "best_miou": 0.0, "num_classes": num_classes, "class_names": list(CAMVID_CLASSES)}
+    save_checkpoint(path, build_system(config, num_classes), config.to_dict(), state)
+    return str(path)
+
+
+def test_eval_refuses_a_checkpoint_predicting_other_classes_than_the_dataset(tmp_path, capsys):
+    """A run trained with model.num_classes=19 on 11-class data used to score on 11-class scenes with rc 0 (a
+    19-class mIoU listing 11 names): refused in one line naming both counts."""
+    from tests.reliability.conftest import assert_clean_failure
+
+    checkpoint = _untrained_checkpoint(tmp_path / "c19.safetensors", ["model.num_classes=19"], 19)
+    assert_clean_failure(capsys, ["eval", "--checkpoint", checkpoint, "--limit", "1", "--device", "cpu",
+                                  "--no-progress", "--json", str(tmp_path / "e.json")],
+                         ("c19.safetensors", "predicts 19 classes", "scenes labels 11"), watched=tmp_path)
+
+
+def test_eval_on_another_dataset_than_the_checkpoints_says_so(tmp_path, capsys):
+    """A checkpoint scored on a dataset it was not trained on (same classes) runs, with a note and the dataset it
+    was trained on in the JSON, instead of silently."""
+    checkpoint = _untrained_checkpoint(tmp_path / "cv.safetensors", ["data.dataset=camvid", "data.root=/nowhere"], 11)
+    out = tmp_path / "e.json"
+    assert main(["eval", "--checkpoint", checkpoint, "--data", "scenes", "--limit", "1", "--device", "cpu",
+                 "--no-progress", "--json", str(out)]) == 0
+    assert "note: the checkpoint was trained on camvid; scoring it on scenes" in capsys.readouterr().out
+    payload = json.loads(out.read_text())
+    assert payload["dataset"] == "scenes" and payload["trained_on"] == "camvid"

@@ -58,6 +58,36 @@ def measure_latency(model, device, height: int, width: int, batch: int, repeats:
     return result
 
 
+def check_label_space(checkpoint, model, state: dict, dataset, data: str) -> list[str]:
+    """The class names to score with, once the checkpoint's classes are known to be the dataset's.
+
+    Args:
+        checkpoint: the checkpoint's path, for the message.
+        model: the loaded model (its network head's channels are the classes it predicts).
+        state: the checkpoint's training state (its ``class_names``: those of the dataset it was trained on).
+        dataset: the dataset to score on (its ``classes``).
+        data: the dataset's kind, for the message.
+
+    Returns:
+        The dataset's class names, in label order.
+
+    Raises:
+        ValueError: the network predicts another number of classes than the dataset labels (a run trained with
+            ``model.num_classes`` set to more than its dataset's classes, or a Cityscapes checkpoint on CamVid), or
+            the same number under other names: its scores would be meaningless.
+    """
+    names = list(dataset.classes)
+    predicted = model.network.head.out_channels
+    if predicted != len(names):
+        raise ValueError(f"{checkpoint}: the network predicts {predicted} classes, {data} labels {len(names)}: "
+                         f"evaluate it on a dataset with its {predicted} classes")
+    saved = state.get("class_names")
+    if saved and list(saved) != names:
+        raise ValueError(f"{checkpoint}: trained on the classes {', '.join(saved)}; {data} labels "
+                         f"{', '.join(names)}: evaluate it on a dataset with its classes")
+    return names
+
+
 def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: str, json_out: str | None = None,
              sweep: bool = False, latency: bool = False, latency_size: tuple[int, int] = (192, 640),
              latency_batch: int = 1, device: str = "auto", batch_size: int = 4, limit: int = 0,
@@ -76,8 +106,9 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
         if json_out:
             write_json(json_out, payload)
         return payload
+    trained_on = config.data.dataset
     if data is None:  # the checkpoint's own dataset, said out loud
-        data = config.data.dataset
+        data = trained_on
         data_root = config.data.root if data_root is None else data_root
         print(f"dataset: {data} (the checkpoint's; --data picks another)"
               + (f", root {data_root}" if data != "scenes" else ""))
@@ -87,12 +118,16 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
     if data == "scenes":
         config.data.scenes_val = limit or config.data.scenes_val
     dataset = build_dataset(config.data, split, train=False, seed=config.run.seed)
-    class_names = state.get("class_names") or list(dataset.classes)
+    class_names = check_label_space(checkpoint, model, state, dataset, data)
+    if data != trained_on:
+        print(f"note: the checkpoint was trained on {trained_on}; scoring it on {data} (the same "
+              f"{len(class_names)} classes) is a transfer test, not its own benchmark")
     amp = torch_device.type == "cuda" and config.train.amp
     metrics = evaluate(model, dataset, torch_device, batch_size, class_names=class_names, amp=amp, progress=progress,
                        flip=flip, scales=scales)
     payload = dict(metrics)
-    payload.update({"checkpoint": str(checkpoint), "dataset": data, "split": split, "flip_tta": flip,
+    payload.update({"checkpoint": str(checkpoint), "dataset": data, "trained_on": trained_on, "split": split,
+                    "flip_tta": flip,
                     "scale_tta": list(scales)})
     print(f"mIoU {metrics['miou']:.4f}  pixel accuracy {metrics['pixel_accuracy']:.4f}  images {metrics['num_images']}")
     for name, iou in metrics["per_class_iou"].items():
