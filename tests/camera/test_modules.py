@@ -256,7 +256,7 @@ def test_free_cfa_transmittances_stay_in_zero_one():
     module = CFA("RYYB", 2, "free", candidates="RGBCY")
     with torch.no_grad():
         module.responses.mul_(100)
-    phi = module.phi()
+    phi = module.phi().detach()
     assert float(phi.min()) >= 0 and float(phi.max()) <= 1
     assert module.hard_letters() == [["R", "Y"], ["Y", "B"]]
 
@@ -274,3 +274,22 @@ def test_nan_policy_camera_takes_finite_radiance_whose_sum_overflows():
     radiance[0, 2, 1, 1] = float("inf")
     with pytest.raises(ValueError, match="camera: radiance has 1 non-finite values"):
         camera(radiance)
+
+
+def test_camera_differentiates_with_respect_to_the_scene_without_warnings():
+    """Gradients with respect to the radiance are a normal use: the finite check must not make torch warn about
+    converting a tensor that requires grad to a Python number (it read the sum of the graph-carrying radiance), and
+    a non-finite pixel is still refused."""
+    import warnings
+
+    camera = Camera.from_config(load_config(None, ["noise.enabled=false"])).eval()
+    radiance = torch.rand(1, 3, 8, 10, requires_grad=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        raw = camera(radiance)
+        (gradient,) = torch.autograd.grad(raw.sum(), radiance)
+    assert torch.isfinite(gradient).all() and gradient.abs().sum() > 0
+    bad = radiance.detach().clone()
+    bad[0, 0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="camera: radiance has 1 non-finite values"):
+        camera(bad.requires_grad_())
