@@ -108,7 +108,7 @@ def _study(args) -> int:
     if args.study_command == "run":
         return run_study(args.plan, args.out, args.overrides, args.cell, args.plan_only, args.gpus, args.per_gpu,
                          progress=args.progress, worker=args.worker, reuse=args.reuse)
-    return report_study(args.study_dir, args.json, args.plot, args.split, args.resamples)
+    return report_study(args.study_dir, args.json, args.plot, args.split, args.resamples, args.block_frames)
 
 
 def _lens(args) -> int:
@@ -219,7 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
     study_commands = study.add_subparsers(dest="study_command", metavar="run|report", required=True)
     study_run = study_commands.add_parser(
         "run", help="run the plan's cells (resumable; finished cells are never retrained)",
-        description="Run every cell of a plan into OUT/runs/<camera>.<light>.seed<N>. Finished cells are skipped, "
+        description="Run every cell of a plan into OUT/runs/<camera>.<light>[.<fold>].seed<N>. Finished cells are skipped, "
         "interrupted ones resume, failed ones are reported and the others go on. With several GPUs the cells run "
         "on a local pool of worker processes (--per-gpu on each GPU), each taking the next cell.",
         epilog="shipped plans: configs/studies/")
@@ -227,7 +227,8 @@ def build_parser() -> argparse.ArgumentParser:
     study_run.add_argument("--out", required=True, help="the study directory")
     study_run.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                            help="override one config key of every cell (repeatable)")
-    study_run.add_argument("--cell", metavar="CAMERA/LIGHT/SEED", help="run this cell only (what --plan-only prints)")
+    study_run.add_argument("--cell", metavar="CAMERA/LIGHT/[FOLD/]SEED",
+                           help="run this cell only (what --plan-only prints)")
     study_run.add_argument("--plan-only", action="store_true",
                            help="print one command per cell, for a scheduler (a Slurm job array, ...), and exit")
     study_run.add_argument("--gpus", default="auto",
@@ -241,13 +242,19 @@ def build_parser() -> argparse.ArgumentParser:
     study_run.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)  # the local pool's processes
     study_report = study_commands.add_parser(
         "report", help="per camera and light: mIoU with intervals, differences to the reference",
-        description="Mean mIoU and per-class IoU with 95%% t intervals over seeds, the seed-paired difference to "
-        "the reference camera with an image-level bootstrap interval, and the learned camera of every run.")
+        description="Mean mIoU and per-class IoU with 95% t intervals over seeds (over the folds' means with "
+        "sequence folds), the difference to the reference camera paired over seeds (or (fold, seed) pairs) with a "
+        "bootstrap interval that draws blocks of consecutive frames within each sequence, a per-sequence table with "
+        "folds, and the learned camera of every run.")
     study_report.add_argument("study_dir", metavar="DIR", help="a study directory (warpsense study run --out)")
     study_report.add_argument("--json", metavar="OUT", help="write the report's record as JSON")
     study_report.add_argument("--plot", metavar="OUT.png", help="scores with intervals and per-class differences")
     study_report.add_argument("--split", help="the split the plot shows (default: the first, val)")
-    study_report.add_argument("--resamples", type=int, default=2000, help="bootstrap resamples (default: %(default)s)")
+    study_report.add_argument("--resamples", type=_count(1), default=2000, metavar="N",
+                              help="bootstrap resamples (default: %(default)s)")
+    study_report.add_argument("--block-frames", type=_count(1), default=10, metavar="N",
+                              help="consecutive frames of one sequence drawn together by the bootstrap (default: "
+                              "%(default)s)")
     study.set_defaults(handler=_study)
 
     lens = commands.add_parser("lens", help="a lens's energy outside its PSF kernel and pixel-integration error",

@@ -85,6 +85,7 @@ class DataConfig:
     batch_size: int = _field(8, minimum=1)
     num_workers: int = _field(0, minimum=0, maximum=256)
     holdout_prefix: str = ""
+    holdout_sequence: str = ""
     on_device: str = _field("auto", choices=ON_DEVICE_MODES)
     on_device_max_mb: int = _field(2048, minimum=0)
     max_train_images: int = _field(0, minimum=0)
@@ -93,6 +94,7 @@ class DataConfig:
     scenes_val: int = _field(32, minimum=1)
     scene_height: int = _field(96, minimum=8, maximum=8192)
     scene_width: int = _field(128, minimum=8, maximum=8192)
+    scene_sequences: int = _field(3, minimum=1, maximum=1024)
     unprocess: bool = False
 
 
@@ -284,6 +286,11 @@ def validate(config: "Config", source: str) -> "Config":
     if config.train.micro_batch and config.train.cuda_graph:
         raise ConfigError(f"{source}: train.micro_batch splits the step for a memory-bound (CPU) run; with "
                           "train.cuda_graph use the whole batch (train.micro_batch = 0)")
+    if config.data.holdout_sequence and config.data.holdout_prefix:
+        raise ConfigError(f"{source}: data.holdout_sequence and data.holdout_prefix both hold frames out; set one")
+    sequence = config.data.holdout_sequence
+    if sequence != sequence.strip() or "/" in sequence or "\\" in sequence:
+        raise ConfigError(f"{source}: data.holdout_sequence must be a sequence name, got {sequence!r}")
     name = config.run.name
     if not name or name in (".", "..") or "/" in name or "\\" in name or name != name.strip():
         raise ConfigError(f"{source}: run.name must be a plain folder name (no path separators), got {name!r}")

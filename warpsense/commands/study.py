@@ -49,13 +49,13 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
 
 
 def report_study(study_dir: str, json_out: str | None = None, plot_out: str | None = None,
-                 split: str | None = None, resamples: int = 2000) -> int:
+                 split: str | None = None, resamples: int = 2000, block_frames: int = 10) -> int:
     """The `warpsense study report` command: console text, and the same record as JSON and a plot."""
     from warpsense.study.report import plot_study, render_text, study_record
 
     check_output_file(json_out, "--json")
     check_output_file(plot_out, "--plot")
-    record = study_record(study_dir, resamples)
+    record = study_record(study_dir, resamples, block_frames)
     if split is not None and split not in record["splits"]:
         raise ValueError(f"--split {split!r}: the study's runs were judged on {', '.join(record['splits'])}")
     print(render_text(record))

@@ -4,11 +4,38 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from warpsense.data.datasets import KITTI360, CamVid, Cityscapes, DatasetError
+from warpsense.data.datasets import KITTI360, CamVid, Cityscapes, DatasetError, Frames, frame_sequences, sequence_fold
 from warpsense.data.scenes import StreetScenes
 from warpsense.data.transforms import Augmented, paste_class_ids
 
 DATASETS = {"camvid": CamVid, "cityscapes": Cityscapes, "kitti360": KITTI360, "scenes": StreetScenes}
+
+
+HELDOUT_SPLIT = "heldout"
+"""The name a run's evaluation gives the held-out sequence's frames (``data.holdout_sequence``)."""
+
+
+def _source(data_config, split: str, train: bool, seed: int, limit: int = 0):
+    """The un-augmented frames of ``split`` (generated scenes: the training stream when ``train``, else the
+    validation stream, a disjoint part of the generator)."""
+    name = data_config.dataset
+    if name not in DATASETS:
+        raise KeyError(f"unknown dataset {name!r}; valid datasets: {', '.join(DATASETS)}")
+    if name == "scenes":
+        count = data_config.scenes_train if train else data_config.scenes_val
+        return StreetScenes(count, data_config.scene_height, data_config.scene_width, seed=seed + (0 if train else 7919),
+                            sequence_blocks=data_config.scene_sequences)
+    if not data_config.root:
+        raise DatasetError(f"data.root is empty: set it to the {name} folder (train: --set data.root=PATH; "
+                           f"eval: --data-root PATH)")
+    return DATASETS[name](data_config.root, split, limit=limit)
+
+
+def _augmented(data_config, dataset, seed: int):
+    crop = (data_config.crop_height, data_config.crop_width)
+    return Augmented(dataset, crop, (data_config.scale_min, data_config.scale_max), data_config.hflip, seed,
+                     data_config.scale_fill, paste_class_ids(data_config.paste_classes, dataset.classes),
+                     data_config.paste_probability)
 
 
 def build_dataset(data_config, split: str, train: bool, seed: int = 0, part: str = "all"):
@@ -16,23 +43,12 @@ def build_dataset(data_config, split: str, train: bool, seed: int = 0, part: str
 
     ``part``: "all", or with ``data_config.holdout_prefix`` set, "rest" (the images outside the held-out prefix)
     or "holdout" (those inside it, never augmented: the model-selection set)."""
-    name = data_config.dataset
-    if name not in DATASETS:
-        raise KeyError(f"unknown dataset {name!r}; valid datasets: {', '.join(DATASETS)}")
-    if name == "scenes":
-        count = data_config.scenes_train if train else data_config.scenes_val
-        # validation scenes come from a disjoint stream of the generator
-        dataset = StreetScenes(count, data_config.scene_height, data_config.scene_width, seed=seed + (0 if train else 7919))
-    else:
-        if not data_config.root:
-            raise DatasetError(f"data.root is empty: set it to the {name} folder (train: --set data.root=PATH; "
-                               f"eval: --data-root PATH)")
-        limit = data_config.max_train_images if train else data_config.max_val_images
-        dataset = DATASETS[name](data_config.root, split, limit=limit if part == "all" else 0)
+    limit = data_config.max_train_images if train else data_config.max_val_images
+    dataset = _source(data_config, split, train, seed, limit if part == "all" else 0)
     if part != "all":
         if not data_config.holdout_prefix or not hasattr(dataset, "split_by_prefix"):
             raise DatasetError(f"data.holdout_prefix: a held-out part needs a prefix and a file-based dataset, "
-                               f"got {data_config.holdout_prefix!r} for {name}")
+                               f"got {data_config.holdout_prefix!r} for {data_config.dataset}")
         rest, held = dataset.split_by_prefix(data_config.holdout_prefix)
         # the limits apply after the split: max_train_images to the rest, max_val_images to the held-out part
         held.pairs = held.pairs[:data_config.max_val_images or None]
@@ -40,17 +56,41 @@ def build_dataset(data_config, split: str, train: bool, seed: int = 0, part: str
             return held
         dataset = rest
         dataset.pairs = dataset.pairs[:data_config.max_train_images or None]
-    if train:
-        crop = (data_config.crop_height, data_config.crop_width)
-        return Augmented(dataset, crop, (data_config.scale_min, data_config.scale_max), data_config.hflip, seed,
-                         data_config.scale_fill, paste_class_ids(data_config.paste_classes, dataset.classes),
-                         data_config.paste_probability)
-    return dataset
+    return _augmented(data_config, dataset, seed) if train else dataset
+
+
+def labelled_sources(data_config, seed: int = 0) -> list:
+    """The un-augmented frames of the labelled splits, ``train_split`` then ``val_split`` (every labelled frame a
+    user has: what sequence folds are cut from)."""
+    return [_source(data_config, data_config.train_split, True, seed),
+            _source(data_config, data_config.val_split, False, seed)]
+
+
+def sequence_names(data_config, seed: int = 0) -> list[str]:
+    """The sequences of the labelled splits, sorted; DatasetError when the frames carry no sequence names."""
+    return sorted({name for source in labelled_sources(data_config, seed) for name in frame_sequences(source)})
+
+
+def build_fold(data_config, train: bool, seed: int = 0):
+    """The fold of ``data_config.holdout_sequence``: with ``train``, the labelled splits' frames of every other
+    sequence, augmented (at most ``max_train_images``); else the held-out sequence's frames, in order (at most
+    ``max_val_images``). DatasetError when the sequence holds no frame or every frame."""
+    rest, held = sequence_fold(labelled_sources(data_config, seed), data_config.holdout_sequence)
+    if not train:
+        held.frames = held.frames[:data_config.max_val_images or None]
+        held.sequences = held.sequences[:len(held.frames)]
+        return held
+    rest.frames = rest.frames[:data_config.max_train_images or None]
+    rest.sequences = rest.sequences[:len(rest.frames)]
+    return _augmented(data_config, rest, seed)
 
 
 def evaluation_splits(data_config) -> list[str]:
-    """The labelled splits a finished run is judged on: the val split, and CamVid's test split where the copy has
-    one (``<root>/test.txt``, as the SegNet release does)."""
+    """The labelled splits a finished run is judged on: the held-out sequence (`HELDOUT_SPLIT`) with
+    ``data.holdout_sequence``; else the val split, and CamVid's test split where the copy has one
+    (``<root>/test.txt``, as the SegNet release does)."""
+    if data_config.holdout_sequence:
+        return [HELDOUT_SPLIT]
     splits = [data_config.val_split]
     if data_config.dataset == "camvid" and "test" not in splits and (Path(data_config.root) / "test.txt").is_file():
         splits.append("test")
@@ -64,5 +104,6 @@ def load_raw(path):
     return _load_raw(path)
 
 
-__all__ = ["Augmented", "CamVid", "Cityscapes", "DATASETS", "DatasetError", "KITTI360", "StreetScenes",
-           "build_dataset", "evaluation_splits", "load_raw"]
+__all__ = ["Augmented", "CamVid", "Cityscapes", "DATASETS", "DatasetError", "Frames", "HELDOUT_SPLIT", "KITTI360",
+           "StreetScenes", "build_dataset", "build_fold", "evaluation_splits", "frame_sequences", "labelled_sources",
+           "load_raw", "sequence_fold", "sequence_names"]

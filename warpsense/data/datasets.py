@@ -21,6 +21,56 @@ class DatasetError(ValueError):
     """A dataset folder is missing or malformed; the message names the path."""
 
 
+class Frames(Dataset):
+    """Chosen frames of one or more datasets of the same classes, in the order given: the labelled splits joined
+    (train + val) and cut by sequence (`sequence_fold`).
+
+    Args:
+        sources: datasets with ``classes`` and ``sequences`` (one name per frame).
+        frames: (source index, frame index) pairs.
+    """
+
+    def __init__(self, sources: list, frames: list[tuple[int, int]]):
+        self.sources, self.frames = list(sources), list(frames)
+        self.classes = sources[0].classes
+        names = [frame_sequences(source) for source in sources]
+        self.sequences = [names[source][index] for source, index in self.frames]
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, index: int):
+        source, frame = self.frames[index]
+        return self.sources[source][frame]
+
+
+def frame_sequences(dataset) -> list[str]:
+    """The sequence (drive, city, generator block) of each frame of ``dataset``; DatasetError naming the dataset
+    when its frames carry no sequence names."""
+    names = getattr(dataset, "sequences", None)
+    if names is None:
+        raise DatasetError(f"{type(dataset).__name__}: its frames carry no sequence names (a dataset is split by "
+                           f"sequence only when each frame knows its drive)")
+    return list(names)
+
+
+def sequence_fold(sources: list, held_out: str) -> tuple[Frames, Frames]:
+    """(the frames of every other sequence, the frames of ``held_out``) of the ``sources`` joined, in order.
+
+    Raises:
+        DatasetError: ``held_out`` holds no frame, or no frame is left to train on.
+    """
+    frames = [(s, i) for s, source in enumerate(sources) for i in range(len(source))]
+    names = [name for source in sources for name in frame_sequences(source)]
+    held = [frame for frame, name in zip(frames, names) if name == held_out]
+    rest = [frame for frame, name in zip(frames, names) if name != held_out]
+    if not held:
+        raise DatasetError(f"sequence {held_out!r} holds no frame; sequences: {', '.join(sorted(set(names)))}")
+    if not rest:
+        raise DatasetError(f"sequence {held_out!r} holds every frame: nothing is left to train on")
+    return Frames(sources, rest), Frames(sources, held)
+
+
 def _read_rgb(path: Path) -> np.ndarray:
     image = np.array(Image.open(path))  # a writable copy (torch.from_numpy needs one)
     if image.ndim == 2:
@@ -55,6 +105,16 @@ class PairDataset(Dataset):
 
     def __len__(self) -> int:
         return len(self.pairs)
+
+    @property
+    def sequences(self) -> list[str]:
+        """The sequence of each frame (`sequence_of` of its image path)."""
+        return [self.sequence_of(image) for image, _ in self.pairs]
+
+    @staticmethod
+    def sequence_of(image: Path) -> str:
+        """The sequence a frame belongs to, from its image path (a dataset's own rule)."""
+        raise DatasetError(f"{image}: this dataset's frames carry no sequence names")
 
     def split_by_prefix(self, prefix: str) -> tuple["PairDataset", "PairDataset"]:
         """(pairs whose image file name does not start with ``prefix``, those that do): e.g. a CamVid sequence
@@ -96,6 +156,14 @@ class CamVid(PairDataset):
         table[11:] = IGNORE_INDEX
         super().__init__(pairs, table, limit)
 
+    @staticmethod
+    def sequence_of(image: Path) -> str:
+        """The drive: the file name's prefix before the first "_" ("0016E5_07959.png" -> "0016E5")."""
+        if "_" not in image.name or not image.name.split("_", 1)[0]:
+            raise DatasetError(f"{image}: no sequence prefix in the file name (CamVid names frames SEQUENCE_FRAME, "
+                               f"e.g. 0016E5_07959.png)")
+        return image.name.split("_", 1)[0]
+
 
 class Cityscapes(PairDataset):
     """Cityscapes: ``leftImg8bit/<split>/<city>/*_leftImg8bit.png`` with
@@ -117,6 +185,11 @@ class Cityscapes(PairDataset):
             pairs.append((image, label))
         super().__init__(pairs, id_to_train_id_table(), limit)
 
+    @staticmethod
+    def sequence_of(image: Path) -> str:
+        """The city: the image's folder (leftImg8bit/<split>/<city>/...)."""
+        return image.parent.name
+
 
 class KITTI360(PairDataset):
     """KITTI-360 2D semantics: ``data_2d_semantics/train/2013_05_28_drive_<split>_frames.txt`` lists
@@ -132,3 +205,11 @@ class KITTI360(PairDataset):
             raise DatasetError(f"{listing}: KITTI-360 split list not found")
         pairs = read_pair_list(listing, lambda p: root / p)
         super().__init__(pairs, id_to_train_id_table(), limit)
+
+    @staticmethod
+    def sequence_of(image: Path) -> str:
+        """The drive: the path's ``2013_05_28_drive_NNNN_sync`` folder."""
+        for part in image.parts:
+            if "_drive_" in part:
+                return part
+        raise DatasetError(f"{image}: no drive folder (2013_05_28_drive_NNNN_sync) in the path")

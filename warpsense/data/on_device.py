@@ -7,6 +7,7 @@ training step needs no host work and no host-device copy.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -14,6 +15,7 @@ import torch
 from torch.nn import functional as F
 from tqdm import tqdm
 
+from warpsense.data.datasets import DatasetError, frame_sequences
 from warpsense.data.labels import IGNORE_INDEX
 from warpsense.data.transforms import check_fill, paste, reflect_index
 
@@ -47,6 +49,8 @@ class DecodedDataset(torch.utils.data.Dataset):
         self.items = [(image.to(device), label.clamp(max=IGNORE_INDEX).to(torch.uint8).to(device))
                       for image, label in decode_all(dataset, "loading the evaluation set onto the device", progress)]
         self.classes = getattr(dataset, "classes", ())
+        with contextlib.suppress(DatasetError):  # the frames' sequence names, where they carry them
+            self.sequences = frame_sequences(dataset)
 
     def __len__(self) -> int:
         return len(self.items)

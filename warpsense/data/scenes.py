@@ -114,15 +114,25 @@ def render_scene(height: int, width: int, rng: np.random.Generator) -> tuple[np.
 
 
 class StreetScenes(Dataset):
-    """``count`` generated scenes of ``height`` x ``width``; returns (uint8 [3, H, W], int64 [H, W])."""
+    """``count`` generated scenes of ``height`` x ``width``; returns (uint8 [3, H, W], int64 [H, W]).
+
+    ``sequences`` cut the scenes into blocks of consecutive generator indices, as a drive is a block of frames:
+    scene i of ``count`` belongs to block ``i * sequence_blocks // count``, named "block<k>" (the training and
+    validation streams' block k share the name: a fold holds out block k of both)."""
 
     classes = CAMVID_CLASSES
 
-    def __init__(self, count: int = 256, height: int = 96, width: int = 128, seed: int = 0):
+    def __init__(self, count: int = 256, height: int = 96, width: int = 128, seed: int = 0,
+                 sequence_blocks: int = 1):
         self.count, self.height, self.width, self.seed = count, height, width, seed
+        self.sequence_blocks = sequence_blocks
 
     def __len__(self) -> int:
         return self.count
+
+    @property
+    def sequences(self) -> list[str]:
+        return [f"block{i * self.sequence_blocks // self.count}" for i in range(self.count)]
 
     def __getitem__(self, index: int):
         rng = np.random.default_rng([self.seed, index])

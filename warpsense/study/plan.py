@@ -8,6 +8,9 @@ A plan is a TOML file (see `configs/studies/`)::
     set = ["train.epochs=100"]      # overrides for every cell
     seeds = [0, 1, 2]
     reference = "fixed_isp"         # the camera the others are compared with, seed by seed
+    folds = "sequence"              # "sequence": a cell per held-out sequence (train on the others' frames of train +
+                                    # val, judge on its frames); "none": train on train, judge on val
+    sequences = []                  # with folds = "sequence": the sequences held out, one fold each (default: all)
 
     [[camera]]
     name = "fixed_isp"
@@ -27,21 +30,24 @@ A plan is a TOML file (see `configs/studies/`)::
     analog_gain = 2.0               # photons.analog_gain (optional)
     set = ["optics.exposure_ms=2.5"]  # the operating point at this level (optional)
 
-Every cell (camera x light x seed) is one ordinary training run; its config is the base, the camera's preset, the
-study's and the camera's overrides, the light's sensor keys, the seed, then the command line's ``--set``. Unknown
-keys, wrong types, duplicate or unknown names and configs that do not resolve are one-line `PlanError`s naming the
-plan file and key, found before anything is written.
+Every cell (camera x light x seed, and x fold with ``folds = "sequence"``) is one ordinary training run; its config
+is the base, the camera's preset, the study's and the camera's overrides, the light's sensor keys, the fold's
+``data.holdout_sequence``, the seed, then the command line's ``--set`` (whose ``study.KEY=VALUE`` entries change the
+plan's [study] table instead, e.g. ``--set study.folds=none``). Unknown keys, wrong types, duplicate or unknown names,
+folds that hold no frame, a dataset without sequence names and configs that do not resolve are one-line `PlanError`s
+naming the plan file and key, found before anything is written.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
 from warpsense.choices import LIGHT_LEVELS
-from warpsense.config import Config, ConfigError, load_config, read_toml
-from warpsense.data import DatasetError, build_dataset
+from warpsense.config import Config, ConfigError, load_config, parse_override, read_toml
+from warpsense.data import DatasetError, build_dataset, sequence_names
 from warpsense.resources import CONFIG_DIR
 
 
@@ -84,23 +90,29 @@ class LightSpec:
         return [*keys, f"quantize.bits={self.bits}", *self.set]
 
 
+FOLDS = ("none", "sequence")
+"""A study's protocol: "none" (train on the train split, judge on val) or "sequence" (one fold per held-out
+sequence of the labelled splits)."""
+
+
 @dataclass(frozen=True)
 class Cell:
-    """One training run of a study."""
+    """One training run of a study; ``fold`` is the held-out sequence ("" without folds)."""
 
     camera: str
     light: str
     seed: int
+    fold: str = ""
 
     @property
     def id(self) -> str:
-        """"camera/light/seed", as `--cell` takes it."""
-        return f"{self.camera}/{self.light}/{self.seed}"
+        """"camera/light/seed", or "camera/light/fold/seed" with folds, as `--cell` takes it."""
+        return "/".join([self.camera, self.light, *([self.fold] if self.fold else []), str(self.seed)])
 
     @property
     def run_name(self) -> str:
         """The run directory's name under <out>/runs."""
-        return f"{self.camera}.{self.light}.seed{self.seed}"
+        return ".".join([self.camera, self.light, *([self.fold] if self.fold else []), f"seed{self.seed}"])
 
 
 @dataclass(frozen=True)
@@ -114,25 +126,31 @@ class Plan:
     cameras: tuple[CameraSpec, ...]
     lights: tuple[LightSpec, ...]
     overrides: tuple[str, ...] = ()  # from the command line, applied last
+    folds: str = "none"  # FOLDS
+    sequences: tuple[str, ...] = ()  # the held-out sequences, one fold each (folds = "sequence")
 
     def cells(self) -> list[Cell]:
-        """Every cell, light by light, seed by seed, camera by camera (so a partial study has whole comparisons)."""
-        return [Cell(camera.name, light.name, seed) for light in self.lights for seed in self.seeds
-                for camera in self.cameras if not light.cameras or camera.name in light.cameras]
+        """Every cell, light by light, seed by seed, fold by fold, camera by camera (so a partial study has whole
+        comparisons: every fold of seed 0 before seed 1)."""
+        folds = self.sequences if self.folds == "sequence" else ("",)
+        return [Cell(camera.name, light.name, seed, fold) for light in self.lights for seed in self.seeds
+                for fold in folds for camera in self.cameras if not light.cameras or camera.name in light.cameras]
 
     def cell(self, cell_id: str) -> Cell:
         for cell in self.cells():
             if cell.id == cell_id:
                 return cell
-        raise PlanError(f"{self.source}: no cell {cell_id!r}; cells are camera/light/seed, e.g. {self.cells()[0].id}")
+        form = "camera/light/fold/seed" if self.folds == "sequence" else "camera/light/seed"
+        raise PlanError(f"{self.source}: no cell {cell_id!r}; cells are {form}, e.g. {self.cells()[0].id}")
 
     def config(self, cell: Cell, output_dir: str | Path) -> Config:
         """The resolved config of ``cell``, its run directory <output_dir>/<cell.run_name>."""
         camera = next(c for c in self.cameras if c.name == cell.camera)
         light = next(light for light in self.lights if light.name == cell.light)
         files = [file for file in (self.base, camera.preset) if file]
-        overrides = [*self.set, *camera.set, *light.overrides(), f"run.seed={cell.seed}",
-                     f"run.name={cell.run_name}", f"run.output_dir={output_dir}", *self.overrides]
+        fold = [f"data.holdout_sequence={json.dumps(cell.fold)}"] if cell.fold else []
+        overrides = [*self.set, *camera.set, *light.overrides(), *fold, f"run.seed={cell.seed}",
+                     f"run.name={cell.run_name}", f"run.output_dir={output_dir}", *cell_overrides(self.overrides)]
         return load_config(files, overrides)
 
     def to_dict(self) -> dict:
@@ -142,7 +160,8 @@ class Plan:
     def from_dict(cls, data: dict) -> "Plan":
         """The plan `to_dict` wrote (a study directory's plan.json)."""
         return cls(source=data.get("source", ""), name=data["name"], base=data["base"], set=tuple(data["set"]),
-                   seeds=tuple(data["seeds"]), reference=data["reference"],
+                   seeds=tuple(data["seeds"]), reference=data["reference"], folds=data.get("folds", "none"),
+                   sequences=tuple(data.get("sequences", ())),
                    cameras=tuple(CameraSpec(c["name"], c["preset"], tuple(c["set"])) for c in data["cameras"]),
                    lights=tuple(LightSpec(x["name"], x.get("full_well_electrons"), x.get("read_electrons"),
                                           x["bits"], tuple(x["cameras"]), x.get("scene", ""),
@@ -150,7 +169,28 @@ class Plan:
                    overrides=tuple(data.get("overrides", ())))
 
 
-STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str}
+STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str, "folds": str, "sequences": list}
+
+
+def _is_study_override(text: str) -> bool:
+    return text.split("=", 1)[0].strip().startswith("study.")
+
+
+def cell_overrides(overrides) -> list[str]:
+    """The command line's ``--set`` entries for the cells' configs (``study.KEY=VALUE`` ones change the plan)."""
+    return [text for text in overrides if not _is_study_override(text)]
+
+
+def _study_overrides(study: dict, overrides, source: str) -> dict:
+    """The [study] table with the command line's ``study.KEY=VALUE`` entries applied."""
+    study = dict(study)
+    for text in overrides:
+        if _is_study_override(text):
+            try:
+                study.update(parse_override(text)["study"])
+            except ConfigError as error:
+                raise PlanError(f"{source}: {error}") from None
+    return study
 CAMERA_KEYS = {"name": str, "preset": str, "set": list}
 LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons": (int, float), "bits": int,
               "cameras": list, "scene": str, "analog_gain": (int, float), "set": list}
@@ -221,7 +261,11 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     study = data.get("study")
     if not isinstance(study, dict):
         raise PlanError(f"{source}: [study] table missing")
-    study = _table(study, STUDY_KEYS, f"{source}: study", ("seeds", "reference"))
+    study = _table(_study_overrides(study, overrides, source), STUDY_KEYS, f"{source}: study", ("seeds", "reference"))
+    if study.get("folds", "none") not in FOLDS:
+        raise PlanError(f"{source}: study.folds: {study['folds']!r} is not a protocol; valid: {', '.join(FOLDS)}")
+    if study.get("sequences") and study.get("folds", "none") != "sequence":
+        raise PlanError(f"{source}: study.sequences: held-out sequences need folds = \"sequence\"")
     cameras, lights = data.get("camera"), data.get("light")
     if not isinstance(cameras, list) or not cameras:
         raise PlanError(f"{source}: camera: at least one [[camera]] table is needed")
@@ -269,15 +313,18 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                                x.get("bits", 10), tuple(x.get("cameras", [])), x.get("scene", ""),
                                _float(x.get("analog_gain")),
                                _strings(x.get("set", []), f"{source}: light {x['name']}.set")) for x in lights),
-        overrides=tuple(overrides))
+        overrides=tuple(overrides), folds=study.get("folds", "none"))
+    if plan.folds == "sequence":
+        plan = dataclasses.replace(plan, sequences=_fold_sequences(plan, study.get("sequences", [])))
     checked_data = set()
-    for camera in plan.cameras:  # every cell's config resolves (seeds only change run.seed)
+    for camera in plan.cameras:  # every cell's config resolves (seeds only change run.seed, folds the held-out name)
         for light in plan.lights:
             if light.cameras and camera.name not in light.cameras:
                 continue
             where = f"{source}: camera {camera.name!r} at light {light.name!r}"
             try:
-                config = plan.config(Cell(camera.name, light.name, plan.seeds[0]), "runs")
+                config = plan.config(Cell(camera.name, light.name, plan.seeds[0], plan.sequences[0] if
+                                          plan.sequences else ""), "runs")
                 check_config(config, "config")
             except ConfigError as error:
                 raise PlanError(f"{where}: {error}") from None
@@ -287,6 +334,9 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                     if light.scene else "the camera has a photon budget (photons.enabled): state the light as a "
                     "scene level (scene), not as noise-stage electrons"))
             data = (config.data.dataset, config.data.root, config.data.train_split, config.data.val_split)
+            if plan.folds == "sequence" and config.data.holdout_prefix:
+                raise PlanError(f"{where}: data.holdout_prefix: a sequence fold holds its sequence out; leave the "
+                                f"prefix empty with study.folds = \"sequence\"")
             if data not in checked_data:
                 checked_data.add(data)
                 try:  # the split lists exist (reads file lists only)
@@ -295,3 +345,28 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                 except DatasetError as error:
                     raise PlanError(f"{where}: data: {error}") from None
     return plan
+
+
+def _fold_sequences(plan: Plan, wanted: list) -> tuple[str, ...]:
+    """The held-out sequences of a ``folds = "sequence"`` plan: ``wanted`` (study.sequences) or every sequence of
+    the base config's labelled splits (train_split + val_split), checked against the frames."""
+    where = f"{plan.source}: study.folds"
+    try:
+        config = load_config([plan.base] if plan.base else None, [*plan.set, *cell_overrides(plan.overrides)])
+        names = sequence_names(config.data)
+    except (ConfigError, DatasetError) as error:
+        raise PlanError(f"{where}: {error}") from None
+    if len(names) < 2:
+        raise PlanError(f"{where}: the labelled splits ({config.data.train_split}, {config.data.val_split}) hold "
+                        f"{len(names)} sequence(s) ({', '.join(names)}): a fold needs others to train on")
+    if not all(isinstance(name, str) for name in wanted) or len(set(wanted)) != len(wanted):
+        raise PlanError(f"{plan.source}: study.sequences: expected distinct sequence names, got {wanted!r}")
+    for name in wanted:
+        if name not in names:
+            raise PlanError(f"{plan.source}: study.sequences: {name!r} holds no frame of the labelled splits "
+                            f"({config.data.train_split}, {config.data.val_split}); sequences: {', '.join(names)}")
+    chosen = tuple(wanted) or tuple(names)
+    for name in chosen:
+        if not name or "/" in name or "." in name or name != name.strip():
+            raise PlanError(f"{where}: sequence {name!r} cannot name a cell (no '/', '.' or spaces at the ends)")
+    return chosen

@@ -1,18 +1,27 @@
 """The report of a study directory: per camera and light level, mean mIoU and per-class IoU, precision and recall
-with 95% intervals over seeds; the paired difference to the reference camera (seed by seed) and an image-level
-bootstrap interval; the learned camera and the wall time of every run. The console text and the JSON are rendered
+with 95% intervals over seeds (clustered by fold with sequence folds); the paired difference to the reference camera
+(over seeds, or (fold, seed) pairs) and a bootstrap interval that resamples blocks of frames within their sequences;
+with folds, a per-sequence table; the learned camera and the wall time of every run. The console text and the JSON are rendered
 from one record (`study_record`)."""
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
 
 from warpsense.study.plan import Plan, PlanError
 from warpsense.study.runner import PLAN_RECORD, THROUGHPUT, evaluation_path, throughput_line
-from warpsense.study.statistics import LEVEL, bootstrap_difference, distinguishable, paired_difference, t_interval
+from warpsense.study.statistics import (
+    LEVEL,
+    block_bootstrap_difference,
+    distinguishable,
+    fold_interval,
+    paired_difference,
+    t_interval,
+)
 from warpsense.train.run_dir import METRICS, read_metrics
 
 NOT_DISTINGUISHABLE = "not distinguishable"
@@ -31,17 +40,17 @@ def _read_plan(study_dir: Path) -> dict:
         raise PlanError(f"{path}: unreadable: {error}") from None
 
 
-def _sign_count(paired: dict) -> str:
-    """", higher on 2 of 3 seeds" (the side most seeds took; nothing for reports written before the counts)."""
+def _sign_count(paired: dict, folds: bool = False) -> str:
+    """", higher on 2 of 3 seeds" (or "of 9 (fold, seed) pairs"; the side most pairs took)."""
     if "higher" not in paired:
         return ""
     side, count = ("higher", paired["higher"]) if paired["higher"] >= paired["lower"] else ("lower", paired["lower"])
-    return f", {side} on {count} of {len(paired['seeds'])} seeds"
+    return f", {side} on {count} of {len(paired['seeds'])} {'(fold, seed) pairs' if folds else 'seeds'}"
 
 
 def _verdict(paired: dict, bootstrap: dict | None) -> str:
-    """"better" / "worse" when the seed-paired interval and the image bootstrap interval both exclude 0 on the
-    same side; otherwise not distinguishable."""
+    """"better" / "worse" when every interval the report prints for the comparison, the paired one (over seeds, or
+    (fold, seed) pairs) and the clustered bootstrap's, excludes 0 on the same side; otherwise not distinguishable."""
     intervals = [paired] + ([bootstrap] if bootstrap is not None else [])
     if all(distinguishable(i) for i in intervals):
         sides = {i["low"] > 0 for i in intervals}
@@ -81,53 +90,118 @@ def _per_class(per_seed: list[list[float | None]], classes: list[str]) -> dict:
     return intervals
 
 
-def _split_record(plan: dict, evaluations: dict, run_s: dict, split: str, resamples: int) -> dict:
+def _runs(evaluations: dict, camera: str, light: str, split: str) -> dict:
+    """A camera's evaluations of ``split`` at ``light``, by (fold, seed)."""
+    return {(fold, seed): evaluation["splits"][split] for (c, x, fold, seed), evaluation in evaluations.items()
+            if c == camera and x == light and split in evaluation["splits"]}
+
+
+def _group(camera: str, light: str, runs: dict, classes: list[str], run_s: dict) -> dict:
+    iou = [[run["per_class_iou"][name] for name in classes] for run in runs.values()]
+    precision, recall = zip(*(precision_recall(run["image_counts"]) for run in runs.values()))
+    seconds = [s for s in (run_s[(camera, light, *key)] for key in runs) if s is not None]
+    return {"camera": camera, "light": light, "seeds": sorted({seed for _, seed in runs}),
+            "folds": sorted({fold for fold, _ in runs if fold}), "cells": len(runs),
+            "run_s": float(np.mean(seconds)) if seconds else None, "timed_runs": len(seconds),
+            "miou": fold_interval({key: run["miou"] for key, run in runs.items()}),
+            "per_class_iou": _per_class(iou, classes),
+            "per_class_precision": _per_class(precision, classes),
+            "per_class_recall": _per_class(recall, classes)}
+
+
+def _frames(run: dict) -> list:
+    """The sequence of each frame a run was judged on (one unnamed sequence where the evaluation has none)."""
+    return run.get("image_sequences") or [""] * len(run["image_counts"])
+
+
+def _comparison(camera: str, light: str, runs: dict, reference: dict, plan: dict, classes: list[str],
+                resamples: int, block: int) -> dict:
+    keys = sorted(set(runs) & set(reference))
+    paired = paired_difference({k: runs[k]["miou"] for k in keys}, {k: reference[k]["miou"] for k in keys})
+    pairs = [(runs[k]["image_counts"], reference[k]["image_counts"], k[0]) for k in keys
+             if np.shape(runs[k]["image_counts"]) == np.shape(reference[k]["image_counts"])]
+    sequences = {k[0]: _frames(reference[k]) for k in keys}
+    bootstrap = block_bootstrap_difference(pairs, sequences, block, resamples) \
+        if len(pairs) == len(keys) and all(np.size(counts) for counts, _, _ in pairs) else None
+    deltas = {}
+    for name in classes:
+        both = [(runs[k]["per_class_iou"][name], reference[k]["per_class_iou"][name]) for k in keys]
+        both = [(a, b) for a, b in both if a is not None and b is not None]
+        deltas[name] = float(np.mean([a - b for a, b in both])) if both else None
+    return {"camera": camera, "light": light, "reference": plan["reference"], "paired": paired,
+            "bootstrap": bootstrap, "verdict": _verdict(paired, bootstrap), "per_class_delta": deltas}
+
+
+def _per_sequence(light: str, by_camera: dict, reference: str) -> list[dict]:
+    """Per held-out sequence (fold): each camera's mean over seeds with its t interval, and the mean paired
+    difference to the reference over the fold's seeds (no interval: the pooled one judges)."""
+    rows = []
+    folds = sorted({fold for runs in by_camera.values() for fold, _ in runs if fold})
+    for fold in folds:
+        cameras = {}
+        for camera, runs in by_camera.items():
+            scores = {seed: run["miou"] for (f, seed), run in runs.items() if f == fold}
+            if not scores:
+                continue
+            base = {seed: run["miou"] for (f, seed), run in by_camera.get(reference, {}).items() if f == fold}
+            common = sorted(set(scores) & set(base))
+            cameras[camera] = {"miou": t_interval(list(scores.values())), "seeds": sorted(scores),
+                               "difference": float(np.mean([scores[s] - base[s] for s in common]))
+                               if common and camera != reference else None}
+        rows.append({"light": light, "sequence": fold, "cameras": cameras})
+    return rows
+
+
+def _shared_sequences(evaluations: dict, split: str) -> list[str]:
+    """Sequences of ``split``'s frames that some run also trained on (CamVid's val: drive 0016E5)."""
+    shared = set()
+    for evaluation in evaluations.values():
+        judged = set(evaluation["splits"].get(split, {}).get("image_sequences") or ())
+        shared |= judged & set(evaluation.get("train_sequences") or ())
+    return sorted(shared)
+
+
+def _split_record(plan: dict, evaluations: dict, run_s: dict, split: str, resamples: int, block: int) -> dict:
     classes = next(iter(evaluations.values()))["class_names"]
-    groups, comparisons = [], []
+    groups, comparisons, per_sequence = [], [], []
     for light in plan["lights"]:
         by_camera = {}
         for camera in plan["cameras"]:
-            runs = {seed: evaluations[(camera["name"], light["name"], seed)]["splits"][split]
-                    for seed in plan["seeds"] if (camera["name"], light["name"], seed) in evaluations
-                    and split in evaluations[(camera["name"], light["name"], seed)]["splits"]}
-            if not runs:
-                continue
-            by_camera[camera["name"]] = runs
-            iou = [[run["per_class_iou"][name] for name in classes] for run in runs.values()]
-            precision, recall = zip(*(precision_recall(run["image_counts"]) for run in runs.values()))
-            seconds = [s for s in (run_s[(camera["name"], light["name"], seed)] for seed in runs) if s is not None]
-            groups.append({"camera": camera["name"], "light": light["name"], "seeds": sorted(runs),
-                           "run_s": float(np.mean(seconds)) if seconds else None, "timed_runs": len(seconds),
-                           "miou": t_interval([run["miou"] for run in runs.values()]),
-                           "per_class_iou": _per_class(iou, classes),
-                           "per_class_precision": _per_class(precision, classes),
-                           "per_class_recall": _per_class(recall, classes)})
+            runs = _runs(evaluations, camera["name"], light["name"], split)
+            if runs:
+                by_camera[camera["name"]] = runs
+                groups.append(_group(camera["name"], light["name"], runs, classes, run_s))
+        if plan.get("folds") == "sequence":
+            per_sequence += _per_sequence(light["name"], by_camera, plan["reference"])
         reference = by_camera.get(plan["reference"])
         if reference is None:
             continue
         for camera, runs in by_camera.items():
-            if camera == plan["reference"] or not set(runs) & set(reference):
-                continue
-            seeds = sorted(set(runs) & set(reference))
-            paired = paired_difference({s: runs[s]["miou"] for s in seeds}, {s: reference[s]["miou"] for s in seeds})
-            counts = np.array([runs[s]["image_counts"] for s in seeds])
-            reference_counts = np.array([reference[s]["image_counts"] for s in seeds])
-            bootstrap = bootstrap_difference(counts, reference_counts, resamples) \
-                if counts.shape == reference_counts.shape and counts.size else None
-            deltas = {}
-            for name in classes:
-                pairs = [(runs[s]["per_class_iou"][name], reference[s]["per_class_iou"][name]) for s in seeds]
-                pairs = [(a, b) for a, b in pairs if a is not None and b is not None]
-                deltas[name] = float(np.mean([a - b for a, b in pairs])) if pairs else None
-            comparisons.append({"camera": camera, "light": light["name"], "reference": plan["reference"],
-                                "paired": paired, "bootstrap": bootstrap, "verdict": _verdict(paired, bootstrap),
-                                "per_class_delta": deltas})
-    return {"groups": groups, "comparisons": comparisons}
+            if camera != plan["reference"] and set(runs) & set(reference):
+                comparisons.append(_comparison(camera, light["name"], runs, reference, plan, classes, resamples,
+                                               block))
+    return {"groups": groups, "comparisons": comparisons, "per_sequence": per_sequence,
+            "shared_sequences": _shared_sequences(evaluations, split)}
 
 
-def study_record(study_dir: str | Path, resamples: int = 2000) -> dict:
+def _check_scores(evaluation: dict, cell: str, path: Path) -> None:
+    """A cell's evaluation holds finite scores in [0, 1] (else a one-line PlanError naming the cell and file)."""
+    try:
+        for split, metrics in evaluation["splits"].items():
+            values = [metrics["miou"], *(v for v in metrics["per_class_iou"].values() if v is not None)]
+            if not all(isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1 for v in values):
+                raise PlanError(f"{path}: cell {cell}: {split} scores must be finite and in [0, 1], got mIoU "
+                                f"{metrics['miou']!r}")
+    except (KeyError, TypeError, AttributeError) as error:
+        raise PlanError(f"{path}: cell {cell}: not an evaluation record ({type(error).__name__}: {error})") from None
+
+
+def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) -> dict:
     """Everything the report says, as JSON-ready data: the plan, each cell (its scores and learned camera, or
-    that it is missing), and per split the groups and comparisons."""
+    that it is missing), and per split the groups, comparisons and, with sequence folds, the per-sequence table.
+    ``block``: frames per block of the clustered bootstrap."""
+    if resamples < 1 or block < 1:
+        raise ValueError(f"{'--resamples' if resamples < 1 else '--block-frames'} must be >= 1")
     study_dir = Path(study_dir)
     plan = _read_plan(study_dir)
     evaluations, run_s, cells, missing = {}, {}, [], []
@@ -140,11 +214,13 @@ def study_record(study_dir: str | Path, resamples: int = 2000) -> dict:
             evaluation = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as error:
             raise PlanError(f"{path}: unreadable: {error}") from None
-        evaluations[(cell.camera, cell.light, cell.seed)] = evaluation
-        run_s[(cell.camera, cell.light, cell.seed)] = run_seconds(path.parent / METRICS)
-        cells.append({"cell": cell.id, "camera": cell.camera, "light": cell.light, "seed": cell.seed,
-                      "epoch": evaluation["epoch"], "network_parameters": evaluation["network_parameters"],
-                      "run_s": run_s[(cell.camera, cell.light, cell.seed)],
+        _check_scores(evaluation, cell.id, path)
+        key = (cell.camera, cell.light, cell.fold, cell.seed)
+        evaluations[key] = evaluation
+        run_s[key] = run_seconds(path.parent / METRICS)
+        cells.append({"cell": cell.id, "camera": cell.camera, "light": cell.light, "fold": cell.fold,
+                      "seed": cell.seed, "epoch": evaluation["epoch"],
+                      "network_parameters": evaluation["network_parameters"], "run_s": run_s[key],
                       "miou": {split: m["miou"] for split, m in evaluation["splits"].items()},
                       "learned_camera": evaluation["camera"]})
     if not evaluations:
@@ -153,8 +229,9 @@ def study_record(study_dir: str | Path, resamples: int = 2000) -> dict:
     throughput_path = study_dir / THROUGHPUT
     throughput = json.loads(throughput_path.read_text()) if throughput_path.is_file() else []
     return {"study": plan["name"], "directory": str(study_dir), "reference": plan["reference"], "level": LEVEL,
+            "folds": plan.get("folds", "none"), "sequences": plan.get("sequences", []), "block_frames": block,
             "plan": plan, "cells": cells, "missing": missing, "throughput": throughput,
-            "splits": {split: _split_record(plan, evaluations, run_s, split, resamples) for split in splits}}
+            "splits": {split: _split_record(plan, evaluations, run_s, split, resamples, block) for split in splits}}
 
 
 def _interval(record: dict | None, signed: bool = False) -> str:
@@ -202,30 +279,63 @@ def _per_class_lines(split: str, part: dict) -> list[str]:
     return lines
 
 
+def _per_sequence_lines(split: str, part: dict, reference: str) -> list[str]:
+    rows = part.get("per_sequence") or []
+    if not rows:
+        return []
+    cameras = list(dict.fromkeys(camera for row in rows for camera in row["cameras"]))
+    cells = [[(f"{_interval(row['cameras'][c]['miou'])}" + ("" if row["cameras"][c]["difference"] is None else
+              f" {row['cameras'][c]['difference']:+.4f}")) if c in row["cameras"] else "-" for c in cameras]
+             for row in rows]
+    heads = [f"{row['light']}/{row['sequence']}" for row in rows]
+    head_width = max(len(h) for h in heads)
+    widths = [max(len(c), *(len(line[i]) for line in cells)) for i, c in enumerate(cameras)]
+    lines = [f"[{split}] per held-out sequence: mIoU mean over seeds [t interval], then the mean paired difference "
+             f"to {reference!r}",
+             f"  {'':<{head_width}s}  " + "  ".join(f"{c:>{w}s}" for c, w in zip(cameras, widths))]
+    lines += [f"  {head:<{head_width}s}  " + "  ".join(f"{c:>{w}s}" for c, w in zip(line, widths))
+              for head, line in zip(heads, cells)]
+    return lines
+
+
 def render_text(record: dict) -> str:
     """The console report (every number comes from ``record``)."""
     level = f"{record['level']:.0%}"
+    folds = record.get("folds") == "sequence"
+    protocol = (f"sequence folds (held out: {', '.join(record['sequences'])}): each cell trains on the other "
+                f"sequences' frames and is judged on its own" if folds else "no folds: trained on train, judged on val")
     lines = [f"study {record['study']} ({record['directory']}): {len(record['cells'])} cells evaluated, "
-             f"{len(record['missing'])} missing; judged at the final epoch; intervals {level}"]
+             f"{len(record['missing'])} missing; judged at the final epoch; {protocol}; intervals {level}"]
     if record["missing"]:
         lines.append(f"  missing: {', '.join(record['missing'])}")
+    over = "(fold, seed)" if folds else "seeds"
     for split, part in record["splits"].items():
-        lines.append(f"\n[{split}] mIoU, mean over seeds [{level} t interval]")
+        if part.get("shared_sequences"):
+            lines.append(f"\nnote: [{split}] frames come from sequences the runs also trained on "
+                         f"({', '.join(part['shared_sequences'])}): this measures more frames of known drives, not new "
+                         f"streets; judge by study.folds = \"sequence\"")
+        interval = "t interval over the folds' means" if folds else "t interval"
+        lines.append(f"\n[{split}] mIoU, mean over {over} [{level} {interval}]")
         width = max(len(g["camera"]) for g in part["groups"])
         for group in part["groups"]:
             seconds = "" if group["run_s"] is None else f"  {group['run_s']:.0f} s/run" + (
-                "" if group["timed_runs"] == len(group["seeds"]) else f" ({group['timed_runs']} timed)")
+                "" if group["timed_runs"] == group.get("cells", len(group["seeds"])) else
+                f" ({group['timed_runs']} timed)")
+            where = f"folds {','.join(group['folds'])} x " if group.get("folds") else ""
             lines.append(f"  {group['light']:>8s}  {group['camera']:<{width}s}  {_interval(group['miou'])}  "
-                         f"seeds {','.join(map(str, group['seeds']))}{seconds}")
+                         f"{where}seeds {','.join(map(str, group['seeds']))}{seconds}")
         if part["comparisons"]:
-            lines.append(f"[{split}] difference to the reference camera {record['reference']!r}: paired over seeds "
-                         f"[{level} t] | image bootstrap [{level}]")
+            block = record.get("block_frames")
+            boot = f"bootstrap of frames in blocks of {block} within sequences" if block else "image bootstrap"
+            lines.append(f"[{split}] difference to the reference camera {record['reference']!r}: paired over {over} "
+                         f"[{level} t] | {boot} [{level}]")
         for comparison in part["comparisons"]:
             bootstrap = comparison["bootstrap"]
             boot = f"[{bootstrap['low']:+.4f}, {bootstrap['high']:+.4f}]" if bootstrap else "-"
             lines.append(f"  {comparison['light']:>8s}  {comparison['camera']:<{width}s}  "
                          f"{_interval(comparison['paired'], signed=True)} | {boot}  {comparison['verdict']}"
-                         f"{_sign_count(comparison['paired'])}")
+                         f"{_sign_count(comparison['paired'], folds)}")
+        lines += _per_sequence_lines(split, part, record["reference"])
         lines += _per_class_lines(split, part)
     if record.get("throughput"):
         lines.append("\nthroughput (each `study run`)")

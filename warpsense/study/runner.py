@@ -145,6 +145,8 @@ def record_plan(plan: Plan, out: Path) -> None:
     if path.is_file():
         saved = json.loads(path.read_text())
         saved.pop("source", None)
+        saved.setdefault("folds", "none")  # a plan recorded before studies had folds
+        saved.setdefault("sequences", [])
         if saved != json.loads(json.dumps(record)):
             raise PlanError(f"{path}: this study directory holds another plan ({saved.get('name')!r} with other "
                             f"cameras, lights, seeds or overrides); use a new --out")

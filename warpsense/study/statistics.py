@@ -1,5 +1,6 @@
-"""The statistics of a camera study: Student-t intervals over seeds, paired differences, and an image-level
-bootstrap of mIoU differences from per-image confusion counts."""
+"""The statistics of a camera study: Student-t intervals over seeds (clustered by fold with sequence folds), paired
+differences over (fold, seed), and a moving-block bootstrap of mIoU differences that resamples frames within their
+sequences, from per-image confusion counts."""
 
 from __future__ import annotations
 
@@ -64,32 +65,85 @@ def miou_from_counts(counts: np.ndarray) -> np.ndarray:
     return np.where(count > 0, total / np.maximum(count, 1), 0.0)
 
 
-def bootstrap_difference(counts: np.ndarray, reference: np.ndarray, resamples: int = 2000, seed: int = 0,
-                         level: float = LEVEL) -> dict:
-    """Image-level bootstrap of the mIoU difference between two cameras judged on the same images.
+def fold_interval(values: dict, level: float = LEVEL) -> dict:
+    """Mean of a camera's scores over (fold, seed) cells with an interval clustered by fold.
 
     Args:
-        counts, reference: per-image (TP, FP, FN) counts [S, N, K, 3] of S paired runs (seeds) on the same N
-            images, in the same order.
-        resamples: bootstrap draws; each draws N images with replacement (the same images for every run and both
-            cameras) and recomputes each run's mIoU from the summed counts.
+        values: score per (fold, seed) key; fold "" (one fold: the study has none).
 
     Returns:
-        {"mean": the difference of the seed-mean mIoUs on all images, "low", "high": percentile interval of the
-        resampled differences, "resamples"}.
+        {"mean" (over every cell), "low", "high", "n" (cells), "folds"}: with one fold the Student-t interval over its
+        seeds; with several, the t interval over the folds' means (F - 1 degrees of freedom): each fold is another
+        drive, and its seeds share it, so the folds, not the cells, are the independent samples of "a new drive".
     """
-    counts = np.asarray(counts, dtype=np.float64)
-    reference = np.asarray(reference, dtype=np.float64)
-    if counts.shape != reference.shape or counts.ndim != 4:
-        raise ValueError(f"bootstrap_difference: expected two [S, N, K, 3] arrays of one shape, got {counts.shape} "
-                         f"and {reference.shape}")
-    runs, images, classes, _ = counts.shape
+    if not values:
+        raise ValueError("fold_interval: no values")
+    folds: dict = {}
+    for (fold, _seed), value in values.items():
+        folds.setdefault(fold, []).append(value)
+    mean = float(np.mean(list(values.values())))
+    if len(folds) == 1:
+        interval = t_interval(list(values.values()), level)
+    else:
+        interval = t_interval([np.mean(scores) for scores in folds.values()], level)
+        shift = mean - interval["mean"]  # unequal seeds per fold: the interval is centred on the cells' mean
+        interval = {**interval, "low": interval["low"] + shift, "high": interval["high"] + shift}
+    return {**interval, "mean": mean, "n": len(values), "folds": len(folds)}
+
+
+def block_weights(sequences: list, block: int, resamples: int, generator: np.random.Generator) -> np.ndarray:
+    """Moving-block bootstrap weights [resamples, N] for N frames in their order, resampled within each sequence.
+
+    Each sequence of n frames (those of ``sequences`` with its name, in order) is rebuilt from ceil(n / b) blocks of
+    b = min(block, n) consecutive frames, each starting at a uniform position of the n - b + 1, truncated to n frames
+    (Kuensch 1989): neighbouring frames of one drive are alike, so they are drawn together, and a sequence keeps its
+    size, so no sequence stands in for another. Weight [r, i]: how often frame i is drawn in resample r."""
+    sequences = list(sequences)
+    weights = np.zeros((resamples, len(sequences)))
+    for name in dict.fromkeys(sequences):
+        frames = np.array([i for i, other in enumerate(sequences) if other == name])
+        n = len(frames)
+        length = max(1, min(block, n))
+        blocks = -(-n // length)
+        starts = generator.integers(0, n - length + 1, size=(resamples, blocks))
+        drawn = (starts[:, :, None] + np.arange(length)).reshape(resamples, -1)[:, :n]
+        flat = (np.arange(resamples)[:, None] * n + drawn).ravel()
+        weights[:, frames] = np.bincount(flat, minlength=resamples * n).reshape(resamples, n)
+    return weights
+
+
+def block_bootstrap_difference(runs: list[tuple], sequences: dict, block: int = 10, resamples: int = 2000,
+                               seed: int = 0, level: float = LEVEL) -> dict:
+    """Clustered (moving-block, within-sequence) bootstrap of the mean mIoU difference between paired runs.
+
+    Args:
+        runs: (counts, reference, frames) per pair of runs (a camera's and the reference's, same fold and seed):
+            per-image (TP, FP, FN) counts [N, K, 3] of both on the same N frames, and the key of those frames.
+        sequences: per frames key, the sequence of each of its N frames in evaluation order. Every pair judged on
+            the same frames (every seed of a fold) is resampled with the same draws (`block_weights`).
+        block: frames per block (consecutive frames of one sequence drawn together).
+
+    Returns:
+        {"mean": the mean over pairs of the mIoU difference on all frames (the paired mean), "low", "high":
+        percentile interval of the resampled mean differences, "resamples", "block"}.
+    """
+    if not runs:
+        raise ValueError("block_bootstrap_difference: no pairs of runs")
     generator = np.random.default_rng(seed)
-    weights = generator.multinomial(images, np.full(images, 1.0 / images), size=resamples).astype(np.float64)
-    flat = lambda array: array.transpose(1, 0, 2, 3).reshape(images, -1)  # noqa: E731 [N, S*K*3]
-    resampled = [(weights @ flat(array)).reshape(resamples, runs, classes, 3) for array in (counts, reference)]
-    differences = (miou_from_counts(resampled[0]) - miou_from_counts(resampled[1])).mean(axis=1)
-    point = float((miou_from_counts(counts.sum(1)) - miou_from_counts(reference.sum(1))).mean())
+    weights = {key: block_weights(sequences[key], block, resamples, generator) for key in dict.fromkeys(
+        frames for _, _, frames in runs)}
+    differences, point = np.zeros(resamples), 0.0
+    for counts, reference, frames in runs:
+        counts, reference = np.asarray(counts, dtype=np.float64), np.asarray(reference, dtype=np.float64)
+        if counts.shape != reference.shape or counts.ndim != 3 or counts.shape[0] != len(sequences[frames]):
+            raise ValueError(f"block_bootstrap_difference: expected two [N, K, 3] arrays of one shape on the "
+                             f"{len(sequences[frames])} frames of {frames!r}, got {counts.shape} and {reference.shape}")
+        drawn = [(weights[frames] @ array.reshape(len(array), -1)).reshape(resamples, *array.shape[1:])
+                 for array in (counts, reference)]
+        differences += miou_from_counts(drawn[0]) - miou_from_counts(drawn[1])
+        point += float(miou_from_counts(counts.sum(0)) - miou_from_counts(reference.sum(0)))
+    differences /= len(runs)
     tail = (1 - level) / 2 * 100
     low, high = np.percentile(differences, [tail, 100 - tail])
-    return {"mean": point, "low": float(low), "high": float(high), "resamples": resamples}
+    return {"mean": point / len(runs), "low": float(low), "high": float(high), "resamples": resamples,
+            "block": block}

@@ -16,7 +16,7 @@ from torch.utils.data import DataLoader, DistributedSampler
 from tqdm import tqdm
 
 from warpsense.camera.camera import set_finite_check
-from warpsense.data import build_dataset, evaluation_splits
+from warpsense.data import HELDOUT_SPLIT, DatasetError, build_dataset, build_fold, evaluation_splits, frame_sequences
 from warpsense.data.on_device import DecodedDataset, DeviceBatches, dataset_megabytes
 from warpsense.data.transforms import EpochSampler
 from warpsense.files import environment, write_json
@@ -205,8 +205,11 @@ class _Datasets(NamedTuple):
 
 
 def _datasets(config) -> _Datasets:
-    holdout = "rest" if config.data.holdout_prefix else "all"
     seed = config.run.seed
+    if config.data.holdout_sequence:  # a sequence fold: validate (and judge) on the held-out sequence
+        return _Datasets(build_fold(config.data, train=True, seed=seed), build_fold(config.data, train=False, seed=seed),
+                         None)
+    holdout = "rest" if config.data.holdout_prefix else "all"
     return _Datasets(
         build_dataset(config.data, config.data.train_split, train=True, seed=seed, part=holdout),
         build_dataset(config.data, config.data.val_split, train=False, seed=seed),
@@ -280,8 +283,9 @@ def _epoch_line(record: dict, schedule: Schedule, config) -> str:
     miou = f"{record['val_miou']:.4f}" if "val_miou" in record else "-"
     if "selection_miou" in record:
         miou += f" (held-out {config.data.holdout_prefix}: {record['selection_miou']:.4f})"
+    judged = f"held-out {config.data.holdout_sequence}" if config.data.holdout_sequence else "val"
     return (f"epoch {record['epoch'] + 1}/{schedule.epochs} {record['phase']}: loss {record['train_loss']:.4f} "
-            f"val mIoU {miou} ({record['images_per_s']:.1f} img/s)")
+            f"{judged} mIoU {miou} ({record['images_per_s']:.1f} img/s)")
 
 
 def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_model: bool):
@@ -433,16 +437,29 @@ def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, epoch: i
     Returns the record."""
     record = {"epoch": epoch,
               "class_names": list(datasets.train.classes), "num_classes": num_classes,
-              "network_parameters": count_parameters(model.network), "camera": model.camera.summary(), "splits": {}}
+              "network_parameters": count_parameters(model.network), "camera": model.camera.summary(),
+              "holdout_sequence": config.data.holdout_sequence,
+              "train_sequences": _sequences(getattr(datasets.train, "dataset", datasets.train)), "splits": {}}
     for split in evaluation_splits(config.data):
-        dataset = datasets.val if split == config.data.val_split else \
+        dataset = datasets.val if split in (config.data.val_split, HELDOUT_SPLIT) else \
             build_dataset(config.data, split, train=False, seed=config.run.seed)
         metrics = evaluate(model, dataset, device, eval_batch_size(config),
                            class_names=datasets.train.classes, amp=amp, progress=progress, per_image=True)
         metrics["image_counts"] = metrics["image_counts"].tolist()
+        metrics["image_sequences"] = _sequences(dataset, distinct=False)
         record["splits"][split] = metrics
     write_json(run_dir / EVALUATION, record)
     return record
+
+
+def _sequences(dataset, distinct: bool = True) -> list[str] | None:
+    """The sequence of each frame of ``dataset`` (sorted distinct names with ``distinct``), None where its frames
+    carry no sequence names: the report's clustered bootstrap and its note on val sharing drives with training."""
+    try:
+        names = frame_sequences(dataset)
+    except DatasetError:
+        return None
+    return sorted(set(names)) if distinct else names
 
 
 def run_summary(run_dir: Path, config) -> str:
@@ -453,6 +470,8 @@ def run_summary(run_dir: Path, config) -> str:
         best = json.loads(best_json.read_text())["state"]["record"]
         if "selection_miou" in best:
             score = f"held-out {config.data.holdout_prefix} mIoU {best['selection_miou']:.4f}, val {best['val_miou']:.4f}"
+        elif config.data.holdout_sequence:
+            score = f"held-out {config.data.holdout_sequence} mIoU {best['val_miou']:.4f}"
         else:
             score = f"val mIoU {best['val_miou']:.4f}"
         lines.append(f"  best: {BEST} (epoch {best['epoch'] + 1}, {score})")
