@@ -67,7 +67,7 @@ def test_simulated_raw_round_trip_through_dng(tmp_path, pattern):
 
 def test_convert_cli_writes_readable_files_and_skips_bad_ones(shared_data, tmp_path, capsys):
     code = main(["convert", str(shared_data / "dng"), "--out", str(tmp_path), "--no-progress"])
-    assert code == 1  # the folder holds bad/ files, which fail
+    assert code == 2  # the folder holds bad/ files, which fail (exit 2, as every command's errors)
     err = capsys.readouterr().err
     assert "linear_raw_not_cfa.dng: not a colour-filter mosaic" in err
     assert "truncated_leica_m10.dng: LibRaw cannot read it" in err
@@ -144,7 +144,7 @@ def _simulated_dng(path, pattern="RGGB"):
 
 def test_batch_problems_are_reported_and_the_batch_goes_on(tmp_path, capsys):
     """Issue 14 item 4: a truncated DNG, a plain TIFF named .dng, two inputs with one stem, folders named like raw
-    files and a folder without raws: each is one line on stderr, the good files still convert, exit 1."""
+    files and a folder without raws: each is one line on stderr, the good files still convert, exit 2."""
     import tifffile
 
     inputs = tmp_path / "in"
@@ -159,7 +159,7 @@ def test_batch_problems_are_reported_and_the_batch_goes_on(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     out = tmp_path / "out"
     code = main(["convert", str(inputs), str(tmp_path / "empty"), "--out", str(out), "--no-progress"])
-    assert code == 1
+    assert code == 2
     err = capsys.readouterr().err
     assert "cut.dng: LibRaw cannot" in err
     assert "plain.dng: named .dng but has no DNGVersion tag" in err
@@ -181,3 +181,27 @@ def test_predict_legend_scales_with_the_image_and_the_overlay_has_no_checkerboar
     preview = preview_grey(flat)
     assert preview.shape == (5, 7)
     np.testing.assert_allclose(preview[:4, :6], 0.5)  # no checkerboard left (the odd last row / column: its edge)
+
+
+@pytest.mark.parametrize("pattern", ["empty", "*.dng", "empty/**/*.nef"])
+def test_convert_with_no_raw_file_is_one_line_error_exit_2(tmp_path, capsys, pattern):
+    """An empty folder or a pattern that matches nothing used to print "converted 0 of 0 file(s) ...; 1 failed" and
+    two empty progress bars, exit 1: it is an error naming the input, exit 2, nothing written."""
+    from tests.reliability.conftest import assert_clean_failure
+
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "notes.txt").write_text("not a raw file")
+    out = tmp_path / "out"
+    assert_clean_failure(capsys, ["convert", str(tmp_path / pattern), "--out", str(out)],
+                         ("nothing to convert:", str(tmp_path / pattern)), watched=tmp_path)
+
+
+def test_convert_exits_2_when_a_file_of_the_batch_fails(tmp_path, capsys):
+    """The batch goes on past a bad file and the good one converts, but the exit status says it failed: 2, as every
+    command's errors (it was 1)."""
+    _simulated_dng(tmp_path / "good.dng")
+    (tmp_path / "bad.dng").write_bytes(b"not a raw file\n" * 20)
+    out = tmp_path / "out"
+    assert main(["convert", str(tmp_path / "good.dng"), str(tmp_path / "bad.dng"), "--out", str(out),
+                 "--no-progress"]) == 2
+    assert "bad.dng" in capsys.readouterr().err and [p.name for p in out.iterdir()] == ["good.safetensors"]

@@ -174,13 +174,18 @@ def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True)
     """Convert every input; a failing file is reported on stderr with a one-line reason and skipped, and the batch
     goes on. Two inputs with one stem would write one output: the second is refused, naming the first.
 
-    Returns the failures [(path, reason)]; the CLI exits non-zero when there are any."""
+    Returns the failures [(path, reason)]; the CLI exits 2 when there are any.
+
+    Raises:
+        RawFileError: no input names a file to convert (empty folders, patterns that match nothing), with every
+            input's reason in one line; nothing is written.
+    """
     paths, failures = expand_inputs(inputs)
+    if not paths:  # an error, not an empty batch: "converted 0 of 0 file(s)" said nothing useful
+        reasons = "; ".join(reason for _, reason in failures) or f"no raw files in {' '.join(inputs)}"
+        raise RawFileError(f"nothing to convert: {reasons}")
     for _, reason in failures:
         print(f"warpsense convert: skipped {reason}", file=sys.stderr)
-    if not paths and not failures:
-        print(f"warpsense convert: error: no input files found in {' '.join(inputs)}", file=sys.stderr)
-        return [(Path(" ".join(inputs)), "no input files found")]
     outputs: dict[str, Path] = {}
     for path in tqdm(paths, desc="convert", unit="file", disable=not progress):
         try:
