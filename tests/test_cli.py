@@ -181,3 +181,36 @@ def test_eval_on_another_dataset_than_the_checkpoints_says_so(tmp_path, capsys):
     assert "note: the checkpoint was trained on camvid; scoring it on scenes" in capsys.readouterr().out
     payload = json.loads(out.read_text())
     assert payload["dataset"] == "scenes" and payload["trained_on"] == "camvid"
+
+
+@pytest.mark.parametrize("terminal", [False, True])
+def test_progress_bars_are_drawn_on_a_terminal_only(tmp_path, capsys, monkeypatch, terminal):
+    """Bars redrawn with carriage returns went into log files (36 KB for a 2-minute run): without --no-progress
+    they are drawn when stderr is a terminal, and not otherwise."""
+    import numpy as np
+
+    from warpsense.data.raw import write_dng
+
+    write_dng(tmp_path / "frame.dng", np.random.default_rng(0).random((32, 48)), "RGGB", black_level=64, white_level=1023)
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
+    assert main(["convert", str(tmp_path / "frame.dng"), "--out", str(tmp_path / "out")]) == 0
+    captured = capsys.readouterr()
+    assert ("convert: 100%" in captured.err) is terminal and ("\r" in captured.err) is terminal
+    assert "converted 1 of 1 file(s)" in captured.out
+
+
+def test_ctrl_c_message_starts_on_its_own_line(tmp_path, capsys, monkeypatch):
+    """The epoch's bar is left mid-line when Ctrl-C stops training: the message that says how to continue must not
+    be glued onto it."""
+    import warpsense.commands.train as train_command
+    from warpsense.train.engine import TrainingInterrupted
+
+    def interrupted_mid_epoch(config, **kwargs):
+        sys.stderr.write("\repoch 2/3 (joint):  40%|####      | 2/5")  # what tqdm leaves
+        raise TrainingInterrupted(tmp_path)
+
+    (tmp_path / "checkpoint_last.safetensors").write_bytes(b"")
+    monkeypatch.setattr(train_command, "train", interrupted_mid_epoch)
+    assert train_command.run_train(None, [f"run.output_dir={tmp_path}"], progress=True) == 130
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[-1] == f"warpsense train: interrupted; continue with: warpsense train --resume-dir {tmp_path}"

@@ -19,12 +19,18 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
                         help="override one config key (repeatable), e.g. --set train.epochs=5")
 
 
+def _progress(args) -> bool:
+    """Whether to draw progress bars: not with --no-progress, and only on a terminal (bars redrawn with carriage
+    returns fill a log file with kilobytes of partial lines)."""
+    return not args.no_progress and sys.stderr.isatty()
+
+
 def _train(args) -> int:
     from warpsense.commands.train import run_train
 
     return run_train(args.config, args.overrides, args.resume, args.resume_dir, args.allow_config_change,
                      extend=args.extend,
-                     progress=not args.no_progress, print_config=args.print_config)
+                     progress=_progress(args), print_config=args.print_config)
 
 
 def _eval(args) -> int:
@@ -37,7 +43,7 @@ def _eval(args) -> int:
     height, width = parse_size(args.latency_size, "--latency-size", "192x640")
     run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
              (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot, args.flip_tta,
-             progress=not args.no_progress, scales=args.scale_tta)
+             progress=_progress(args), scales=args.scale_tta)
     return 0
 
 
@@ -90,7 +96,7 @@ def _bench(args) -> int:
 def _convert(args) -> int:
     from warpsense.commands.convert import run_convert
 
-    return run_convert(args.inputs, args.out, progress=not args.no_progress)
+    return run_convert(args.inputs, args.out, progress=_progress(args))
 
 
 def _predict(args) -> int:
@@ -141,7 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
                             "not (train.epochs becomes the epochs trained + N, any time budget is dropped; the cosine "
                             "learning rate is laid over the new total, so it rises again and decays to 0 at the new "
                             "end; the previous config.json is kept as config.epoch<E>.json)")
-    train.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    train.add_argument("--no-progress", action="store_true",
+                       help="hide the progress bars (they are drawn only when stderr is a terminal)")
     train.add_argument("--print-config", action="store_true",
                        help="print the resolved config (after --config and --set) as JSON and exit")
     train.set_defaults(handler=_train)
@@ -168,7 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--batch-size", type=_count(1), default=4, metavar="N", help="evaluation batch size (default: %(default)s)")
     evaluate.add_argument("--limit", type=_count(0), default=0, metavar="N", help="evaluate only the first N images (default: %(default)s = all)")
     evaluate.add_argument("--device", default="auto", choices=DEVICES, help="device (default: %(default)s)")
-    evaluate.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    evaluate.add_argument("--no-progress", action="store_true",
+                          help="hide the progress bars (they are drawn only when stderr is a terminal)")
     evaluate.set_defaults(handler=_eval)
 
     bench = commands.add_parser("bench", help="kernel microbenchmarks: error against run time",
@@ -197,7 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
                                   "mosaics with metadata, through rawpy/LibRaw.")
     convert.add_argument("inputs", nargs="+", help="raw files, folders or glob patterns")
     convert.add_argument("--out", required=True, help="output folder")
-    convert.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    convert.add_argument("--no-progress", action="store_true",
+                         help="hide the progress bar (it is drawn only when stderr is a terminal)")
     convert.set_defaults(handler=_convert)
 
     predict = commands.add_parser("predict", help="segment a real raw capture with a fixed-Bayer checkpoint",

@@ -70,6 +70,8 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
     try:
         train(config, resume=run_dir, progress=progress, allow_config_change=allow_config_change)
     except TrainingInterrupted as interrupted:
+        if progress:  # the epoch's bar is left mid-line: start the message on a line of its own
+            print(file=sys.stderr)
         if not (interrupted.run_dir / LAST).is_file():
             print(f"warpsense train: interrupted before the first epoch ended; nothing to resume in "
                   f"{interrupted.run_dir}: start the run again", file=sys.stderr)
