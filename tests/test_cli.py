@@ -214,3 +214,22 @@ def test_ctrl_c_message_starts_on_its_own_line(tmp_path, capsys, monkeypatch):
     assert train_command.run_train(None, [f"run.output_dir={tmp_path}"], progress=True) == 130
     lines = capsys.readouterr().err.splitlines()
     assert lines[-1] == f"warpsense train: interrupted; continue with: warpsense train --resume-dir {tmp_path}"
+
+
+def test_predict_reports_sizes_height_by_width(tmp_path, capsys):
+    """predict printed width x height ("1734x1156") while --latency-size and the docs take height x width: one
+    convention, HxW, on a capture that is wider than tall."""
+    import numpy as np
+
+    from warpsense.data.raw import write_dng
+
+    checkpoint = _untrained_checkpoint(tmp_path / "bayer.safetensors", ["cfa.mode=fixed", "cfa.pattern=RGGB"], 11)
+    write_dng(tmp_path / "wide.dng", np.random.default_rng(0).random((32, 64)), "RGGB", black_level=64,
+              white_level=1023)
+    assert main(["predict", checkpoint, str(tmp_path / "wide.dng"), "--out", str(tmp_path / "p.png"), "--device",
+                 "cpu", "--no-legend"]) == 0
+    out = capsys.readouterr().out
+    assert "(32x64 HxW; the network ran at " in out, out
+    ran_at = out.split("the network ran at ")[1].split(",")[0]
+    height, width = (int(n) for n in ran_at.split("x"))
+    assert width == 2 * height  # the network's input keeps the capture's aspect: HxW too

@@ -160,7 +160,8 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
     out = Path(out_image)
     with atomic_write(out) as temporary:
         Image.fromarray(picture).save(temporary, format=file_format)
-    print(f"wrote {out} ({capture_width}x{capture_height}; the network ran at {prediction.shape[1]}x"
-          f"{prediction.shape[0]}, 1/{factor} of the capture after the {metadata['cfa_pattern']} -> {model_pattern} "
+    # sizes height x width, as --latency-size and every other size warpsense reads or prints
+    print(f"wrote {out} ({capture_height}x{capture_width} HxW; the network ran at {prediction.shape[0]}x"
+          f"{prediction.shape[1]}, 1/{factor} of the capture after the {metadata['cfa_pattern']} -> {model_pattern} "
           f"crop ({dy}, {dx}){'; legend strip below' if legend else ''})")
     return out
