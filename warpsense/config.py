@@ -369,6 +369,11 @@ def _apply_file(config: Config, name_or_path: str | Path, depth: int) -> None:
         data = read_toml(path, label)
     else:
         raise ConfigError(f"config {str(name_or_path)!r}: no such file or preset; presets: {', '.join(preset_names())}")
+    if all(isinstance(value, dict) and not value for value in data.values()):
+        # an empty file (or one of comments and empty sections) is more likely a mistake, the wrong file or one not
+        # yet saved, than a request for the defaults, which leaving out --config gives
+        raise ConfigError(f"{label}: the config file sets no key (empty); give it keys or a base preset, or leave "
+                          f"--config out for the defaults")
     base = data.pop("base", None)
     if base is not None:
         if not isinstance(base, str) or depth > 8:

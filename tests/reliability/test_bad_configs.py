@@ -57,6 +57,9 @@ def test_value_out_of_range_is_refused_before_any_folder(override, tmp_path, cap
     ("[train\nlr = 0.1\n", ()),
     ("train = 3\n", ("train",)),
     ("base = \"no_such_preset\"\n", ("no_such_preset",)),
+    ("", ("sets no key",)),  # an empty file was silently all defaults
+    ("# a comment only\n\n", ("sets no key",)),
+    ("[train]\n[data]\n", ("sets no key",)),
 ])
 def test_malformed_config_files(text, names, tmp_path, capsys):
     path = tmp_path / "bad.toml"
