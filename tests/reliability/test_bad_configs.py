@@ -57,14 +57,21 @@ def test_value_out_of_range_is_refused_before_any_folder(override, tmp_path, cap
     ("[train\nlr = 0.1\n", ()),
     ("train = 3\n", ("train",)),
     ("base = \"no_such_preset\"\n", ("no_such_preset",)),
-    ("", ("sets no key",)),  # an empty file was silently all defaults
-    ("# a comment only\n\n", ("sets no key",)),
-    ("[train]\n[data]\n", ("sets no key",)),
 ])
 def test_malformed_config_files(text, names, tmp_path, capsys):
     path = tmp_path / "bad.toml"
     path.write_text(text)
     assert_clean_failure(capsys, ["train", "--config", str(path)], (str(path), *names), watched=tmp_path)
+
+
+@pytest.mark.parametrize("text", ["", "# a comment only\n\n", "[train]\n[data]\n"])
+def test_a_config_file_that_sets_nothing_is_an_error(text, tmp_path, capsys):
+    """An empty file (the wrong file, or one not yet saved) was taken silently as all defaults; --print-config
+    resolves the config without training, so a regression fails fast instead of starting a default run."""
+    path = tmp_path / "empty.toml"
+    path.write_text(text)
+    assert_clean_failure(capsys, ["train", "--config", str(path), "--print-config"], (str(path), "sets no key"),
+                         watched=tmp_path)
 
 
 def test_unreadable_config_files(tmp_path, capsys):
