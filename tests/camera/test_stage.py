@@ -49,10 +49,10 @@ def test_summary_is_the_union_of_stage_summaries_and_reports_learned_values():
     config = load_config("camvid_codesign", ALL_STAGES + ["cfa.pattern=BGGR", "noise.shot=0.02", "noise.read=0.004"])
     camera = Camera.from_config(config)
     summary = camera.summary()
-    assert set(summary) == {"zernike_waves", "exposure_gain", "cfa_layout", "cfa_phi", "temperature", "noise_shot",
-                            "noise_read"}
+    assert set(summary) == {"zernike_waves", "exposure_gain", "cfa_layout", "cfa_choice", "cfa_phi", "temperature",
+                            "noise_shot", "noise_read"}
     assert summary["cfa_layout"] == "BGGR"
-    assert summary["exposure_gain"] == pytest.approx(float(camera.exposure.gain()))
+    assert summary["exposure_gain"] == pytest.approx(float(camera.exposure.gain().detach()))
     assert summary["noise_shot"] == pytest.approx(0.02) and summary["noise_read"] == pytest.approx(0.004)
     assert torch.tensor(summary["cfa_phi"]).shape == (2, 2, 3)
     assert summary["zernike_waves"] == camera.optics.lens.coefficients().tolist()

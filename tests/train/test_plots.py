@@ -144,3 +144,71 @@ def test_predictions_plot_takes_an_evaluation_set_kept_on_the_device(tmp_path):
     model = build_system(load_config(None, ["model.width=4"]), len(dataset.classes))
     plot_predictions(model, dataset, "cpu", tmp_path / "predictions.png", count=2)
     assert (tmp_path / "predictions.png").stat().st_size > 0
+
+
+def _visible_ticks(axis) -> list[float]:
+    low, high = axis.get_xlim()
+    return [tick for tick in axis.get_xticks() if low <= tick <= high]
+
+
+@pytest.mark.parametrize("epochs", [1, 2, 3])
+def test_short_runs_plot_every_point_on_whole_epoch_ticks(tmp_path, figures, epochs):
+    """A one-epoch curves.png had an empty loss panel (one point of a line without markers) and ticks at 0.96 to
+    1.04; design.png had ticks at 1.5 epochs."""
+    records = [{"epoch": e, "train_loss": 1.0 - 0.1 * e, "val_miou": 0.2 + 0.1 * e, "phase": "joint",
+                "exposure_gain": 1.0 + 0.01 * e, "cfa_layout": "RGGB" if e else "RRRR"} for e in range(epochs)]
+    plots.plot_curves(records, tmp_path / "curves.png")
+    for axis in figures[0].axes:
+        assert axis.get_lines()[0].get_marker() not in (None, "None", "", " ")
+        ticks = _visible_ticks(axis)
+        assert ticks == [float(e) for e in range(1, epochs + 1)], ticks
+    if epochs > 1:
+        assert plots.plot_design(records, tmp_path / "design.png")
+        for axis in figures[1].axes:
+            assert _visible_ticks(axis) == [float(e) for e in range(1, epochs + 1)]
+
+
+def test_design_marks_a_uniform_cfa_start_undecided_not_as_its_argmax(tmp_path, figures):
+    """A CFA started uniform exported "RRRR" (the argmax of a tie, the first candidate) and design.png titled
+    "CFA: RRRR -> CCRB": the recorded choice marks tied sites "?", drawn grey."""
+    from warpsense.camera.cfa import CFA, FILTERS, UNDECIDED_COLOUR
+
+    cfa = CFA("RCCB", 2, "softmax", init_logit=0.0, candidates="RGBC")
+    start = cfa.summary()
+    assert start["cfa_layout"] == "RRRR" and start["cfa_choice"] == "????"  # the export is unchanged
+    with torch.no_grad():
+        cfa.logits.copy_(torch.tensor([[[0.3, 0.8, 0.0, 1.0], [0.2, 0.9, 0.0, 1.0]],
+                                       [[1.0, 0.5, 0.0, 0.2], [0.0, 0.0, 1.0, 0.5]]]))
+    end = cfa.summary()
+    assert end["cfa_layout"] == end["cfa_choice"] == "CCRB"
+    records = [{"epoch": 0, **start}, {"epoch": 1, **end}]
+    assert plots.plot_design(records, tmp_path / "design.png")
+    strip = figures[0].axes[-1]
+    assert strip.get_title() == "CFA: ???? -> CCRB"
+    colours = strip.get_images()[0].get_array()  # [sites, epochs, 3]
+    np.testing.assert_allclose(colours[:, 0], [UNDECIDED_COLOUR] * 4)
+    np.testing.assert_allclose(colours[:, 1], [FILTERS[letter] for letter in "CCRB"])
+    # records written before the choice was recorded still plot, from the export
+    old = [{k: v for k, v in record.items() if k != "cfa_choice"} for record in records]
+    assert plots.plot_design(old, tmp_path / "design_old.png")
+    assert figures[1].axes[-1].get_title() == "CFA: RRRR -> CCRB"
+
+
+def test_camera_picture_shows_each_sites_exported_filter_beside_its_mix(figures):
+    """camera.png drew the four sites near-yellow (the softmax mix in use) under the letters C, C, R, B: each site
+    now has a strip in its exported filter's colour, its letter with that filter's weight, in a readable colour."""
+    from warpsense.camera.cfa import CFA, FILTERS
+
+    cfa = CFA("RCCB", 2, "softmax", init_logit=0.0, candidates="RGBC")
+    with torch.no_grad():
+        cfa.logits.copy_(torch.tensor([[[0.3, 0.8, 0.0, 1.0], [0.2, 0.9, 0.0, 1.0]],
+                                       [[1.0, 0.5, 0.0, 0.2], [0.0, 0.0, 1.0, 0.5]]]))
+    figure, axis = plt.subplots()
+    figures.append(figure)
+    cfa.draw(axis)
+    strips = [tuple(patch.get_facecolor()[:3]) for patch in axis.patches]
+    assert strips == [FILTERS[letter] for letter in "CCRB"]
+    weights = torch.softmax(cfa.logits.detach(), dim=-1).amax(dim=-1).flatten()
+    texts = [(text.get_text(), text.get_color()) for text in axis.texts]
+    assert [text for text, _ in texts] == [f"{letter} {float(w):.0%}" for letter, w in zip("CCRB", weights)]
+    assert [colour for _, colour in texts] == ["black", "black", "white", "white"]  # on clear, red, blue

@@ -17,6 +17,19 @@ sensors), Y (yellow) passes red and green (RYYB phone sensors). In a flat white 
 light of a green one and a yellow pixel 2x."""
 assert tuple(FILTERS) == tuple(CFA_FILTERS)
 
+UNDECIDED = "?"
+"""The letter of a site whose candidates tie (`CFA.hard_letters` with ``undecided``): no filter chosen yet."""
+
+UNDECIDED_COLOUR = (0.5, 0.5, 0.5)
+"""How plots draw an undecided site."""
+
+
+def text_colour(background) -> str:
+    """Black or white, whichever reads on ``background`` (RGB in [0, 1]): by its luma (ITU-R BT.601 weights), so
+    that a letter on a green or yellow filter is black and one on red or blue is white."""
+    red, green, blue = background[:3]
+    return "black" if 0.299 * red + 0.587 * green + 0.114 * blue > 0.45 else "white"
+
 
 def layout_letters(pattern: str, tile: int) -> list[list[str]]:
     """T x T filter letters of a 2x2 layout tiled (and cropped) to a T x T tile."""
@@ -109,10 +122,13 @@ class CFA(Stage):
             raise ValueError(f"{where}: cfa.candidates: {problem}")
 
     def summary(self) -> dict:
-        """The exported layout (letters row by row, e.g. "RGGB"), the responses phi [T, T, 3] in use (a gumbel CFA:
-        its exported layout's) and the temperature."""
+        """The exported layout (letters row by row, e.g. "RGGB"), the layout as chosen so far ("cfa_choice": "?"
+        where a site's top candidates tie, as they all do at a uniform start, whose export is only the argmax's
+        first candidate), the responses phi [T, T, 3] in use (a gumbel CFA: its exported layout's) and the
+        temperature."""
         phi = self.hard_phi() if self.mode == "gumbel" else self.phi()
         return {"cfa_layout": "".join("".join(row) for row in self.hard_letters()),
+                "cfa_choice": "".join("".join(row) for row in self.hard_letters(undecided=UNDECIDED)),
                 "cfa_phi": phi.detach().cpu().tolist(), "temperature": float(self.temperature)}
 
     def on_epoch(self, schedule, epoch: int) -> None:
@@ -138,16 +154,33 @@ class CFA(Stage):
             return torch.sigmoid(self.responses)
         return self.fixed_phi
 
-    def hard_letters(self) -> list[list[str]]:
+    def hard_letters(self, undecided: str | None = None) -> list[list[str]]:
         """The exported layout: argmax filter per site (softmax, gumbel), nearest candidate by cosine (free), or
-        fixed."""
+        fixed.
+
+        Args:
+            undecided: if given, the letter for a site whose top two logits are equal (softmax, gumbel), where the
+                argmax names the first of the tied candidates as if it had been chosen.
+        """
         if self.mode in ("softmax", "gumbel"):
             index = self.logits.argmax(dim=-1)
         else:
             phi = self.phi().detach()
             cosine = F.normalize(phi, dim=-1) @ F.normalize(self.candidates, dim=-1).T
             index = cosine.argmax(dim=-1)
-        return [[self.filter_names[int(k)] for k in row] for row in index]
+        letters = [[self.filter_names[int(k)] for k in row] for row in index]
+        if undecided is not None and self.mode in ("softmax", "gumbel"):
+            top = self.logits.detach().topk(2, dim=-1).values
+            for y, x in (top[..., 0] == top[..., 1]).nonzero().tolist():
+                letters[y][x] = undecided
+        return letters
+
+    def choice_weights(self) -> torch.Tensor | None:
+        """[T, T] the weight of each site's exported filter in the responses in use (softmax: its softmax
+        probability at the current temperature), or None for modes without a choice among candidates."""
+        if self.mode != "softmax":
+            return None
+        return torch.softmax(self.logits.detach() / self.temperature, dim=-1).amax(dim=-1)
 
     def hard_phi(self) -> torch.Tensor:
         return letters_to_phi(self.hard_letters()).to(self.candidates.device)
@@ -157,10 +190,19 @@ class CFA(Stage):
         return cfa_mosaic(image, self.phi())
 
     def draw(self, axis) -> None:
-        """The responses as colours with the exported letters."""
+        """Each site as the colour of its responses in use, over a strip in its exported filter's colour with the
+        exported letter (and, for a softmax CFA, that filter's weight in the mix): a site still mixing its
+        candidates shows a colour unlike its letter's, and the strip and weight say so instead of contradicting it.
+        """
+        from matplotlib.patches import Rectangle
+
         phi = self.phi().detach().cpu().numpy()
         axis.imshow((phi / max(float(phi.max()), 1e-6)).clip(0, 1), interpolation="nearest")
-        for y, row in enumerate(self.hard_letters()):
+        weights = self.choice_weights()
+        for y, row in enumerate(self.hard_letters(undecided=UNDECIDED)):
             for x, letter in enumerate(row):
-                axis.text(x, y, letter, ha="center", va="center", color="white", fontsize=14)
-        axis.set_title("learned CFA (phi, export letters)")
+                colour = FILTERS.get(letter, UNDECIDED_COLOUR)
+                axis.add_patch(Rectangle((x - 0.5, y + 0.1), 1.0, 0.4, facecolor=colour, edgecolor="0.3", lw=0.5))
+                text = letter if weights is None else f"{letter} {float(weights[y, x]):.0%}"
+                axis.text(x, y + 0.3, text, ha="center", va="center", fontsize=11, color=text_colour(colour))
+        axis.set_title("CFA: responses in use (colours);\nexported filter per site (strips)", fontsize=10)

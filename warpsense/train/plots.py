@@ -10,26 +10,37 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from warpsense.data.labels import colorize  # noqa: E402
 from warpsense.train.run_dir import METRICS, read_metrics  # noqa: E402
 
 
+def epoch_axis(axis, epochs: list[int]) -> None:
+    """Whole-epoch ticks on ``axis``'s x axis, and half an epoch of room either side when the run is short (one
+    epoch alone would otherwise span 0.96 to 1.04, a few epochs show ticks at 1.5)."""
+    axis.xaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))
+    if epochs and max(epochs) - min(epochs) < 4:
+        axis.set_xlim(min(epochs) - 0.5, max(epochs) + 0.5)
+
+
 def plot_curves(records: list[dict], path: Path) -> None:
     """Training losses and validation mIoU per epoch, with the warm-up / joint boundary (the camera starts to
-    learn there) drawn on both panels."""
+    learn there) drawn on both panels. Every value is marked, so that a one-epoch run shows its point."""
     epochs = [r["epoch"] + 1 for r in records]
     figure, (left, right) = plt.subplots(1, 2, figsize=(10, 3.5))
-    left.plot(epochs, [r["train_loss"] for r in records], label="total")
+    left.plot(epochs, [r["train_loss"] for r in records], label="total", marker="o", markersize=3)
     for key in ("train_ohem", "train_lovasz", "train_distill"):
         if all(key in r for r in records) and any(r[key] > 0 for r in records):
-            left.plot(epochs, [r[key] for r in records], label=key[6:], alpha=0.7)
+            left.plot(epochs, [r[key] for r in records], label=key[6:], alpha=0.7, marker="o", markersize=3)
     evaluated = [r for r in records if "val_miou" in r]
     right.plot([r["epoch"] + 1 for r in evaluated], [r["val_miou"] for r in evaluated], marker="o")
     joint = [r["epoch"] + 1 for r in records if r.get("phase") == "joint"]
     if joint and any(r.get("phase") == "warmup" for r in records):
         for axis in (left, right):
             axis.axvline(min(joint) - 0.5, color="0.5", linestyle=":", label="warm-up | joint")
+    for axis in (left, right):
+        epoch_axis(axis, epochs)
     left.set_xlabel("epoch"), left.set_ylabel("training loss"), left.legend(fontsize=8)
     right.set_xlabel("epoch"), right.set_ylabel("validation mIoU")
     figure.tight_layout()
@@ -60,14 +71,15 @@ DESIGN_KEYS = {"f_number": "f-number", "exposure_ms": "exposure time (ms)", "ana
 
 def plot_design(records: list[dict], path: Path) -> bool:
     """The learned design over training: one panel per scalar design value that changes (`DESIGN_KEYS`) and the
-    exported CFA layout per epoch (a strip of filter colours, one column per epoch); whether ``path`` was written
-    (not when nothing was learned)."""
-    from warpsense.camera.cfa import FILTERS
+    CFA layout chosen per epoch (a strip of filter colours, one column per epoch; grey and "?" where a site's
+    candidates still tie, as at a uniform start); whether ``path`` was written (not when nothing was learned)."""
+    from warpsense.camera.cfa import FILTERS, UNDECIDED_COLOUR
 
     epochs = [r["epoch"] + 1 for r in records]
     scalars = [key for key in DESIGN_KEYS if all(key in r for r in records)
                and len({round(r[key], 9) for r in records}) > 1]
-    layouts = [r.get("cfa_layout") for r in records]
+    # the choice with ties marked; records written before it was recorded have the export (the argmax) only
+    layouts = [r.get("cfa_choice", r.get("cfa_layout")) for r in records]
     show_cfa = all(layouts) and len(set(layouts)) > 1
     panels = len(scalars) + show_cfa
     if not panels:
@@ -77,12 +89,15 @@ def plot_design(records: list[dict], path: Path) -> bool:
         axis.plot(epochs, [r[key] for r in records], marker=".")
         axis.ticklabel_format(axis="y", useOffset=False)
         axis.set_xlabel("epoch"), axis.set_ylabel(DESIGN_KEYS[key])
+        epoch_axis(axis, epochs)
     if show_cfa:
         axis = axes[0][-1]
-        colours = np.array([[FILTERS[letter] for letter in layout] for layout in layouts])  # [E, sites, 3]
+        colours = np.array([[FILTERS.get(letter, UNDECIDED_COLOUR) for letter in layout]
+                            for layout in layouts])  # [E, sites, 3]
         axis.imshow(colours.transpose(1, 0, 2), aspect="auto", interpolation="nearest",
                     extent=(epochs[0] - 0.5, epochs[-1] + 0.5, colours.shape[1] - 0.5, -0.5))
         axis.set_yticks(range(colours.shape[1]), [f"site {i}" for i in range(colours.shape[1])])
+        axis.xaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))
         axis.set_xlabel("epoch"), axis.set_title(f"CFA: {layouts[0]} -> {layouts[-1]}", fontsize=10)
     figure.suptitle("learned camera design over training", fontsize=10)
     figure.tight_layout()
