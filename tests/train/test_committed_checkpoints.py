@@ -19,3 +19,19 @@ def test_committed_checkpoint_reproduces_its_val_miou_on_cpu(name, shared_data):
     # training scored a JPEG copy of the images on the GPU in bf16; here: PNG originals, float32
     assert payload["miou"] == pytest.approx(recorded["val_miou"], abs=0.005)
     assert payload["miou"] >= 0.64  # issue 13's bar at the default low-light operating point
+
+
+def test_results_doc_quotes_the_co_design_checkpoints_learned_exposure_gain():
+    """docs/results.md gave 1.025 "in the checkpoint's record" while the record (and the loaded camera) say
+    1.0396: the quoted figure is the record's, to the three decimals it is given with."""
+    import re
+
+    from warpsense.system import load_system
+
+    text = (CHECKPOINTS.parent / "docs" / "results.md").read_text()
+    quoted = re.search(r"exposure gain \(1\.000 at the start, ([0-9.]+) in the checkpoint's\s+record\)", text)
+    assert quoted, "docs/results.md no longer quotes the co-design checkpoint's exposure gain"
+    recorded = json.loads((CHECKPOINTS / "camvid_codesign.json").read_text())["state"]["record"]["exposure_gain"]
+    model, _, _ = load_system(CHECKPOINTS / "camvid_codesign.safetensors", "cpu")
+    assert model.camera.learned().exposure_gain == pytest.approx(recorded, abs=1e-6)
+    assert quoted.group(1) == f"{recorded:.3f}"
