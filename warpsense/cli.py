@@ -155,7 +155,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     evaluate = commands.add_parser("eval", help="evaluate a checkpoint (mIoU, per-class IoU, sweeps, latency)",
                                    description="Evaluate a trained checkpoint on a dataset split.")
-    evaluate.add_argument("--checkpoint", required=True, help="checkpoint .safetensors (with its .json beside it)")
+    evaluate.add_argument("--checkpoint", required=True,
+                          help="a checkpoint .safetensors written by `warpsense train` (its config and classes are "
+                               "inside it; the .json beside it is a readable copy, not needed)")
     evaluate.add_argument("--data", choices=DATASETS,
                           help="dataset kind (default: the one the checkpoint was trained on)")
     evaluate.add_argument("--data-root", help="dataset folder (not needed for scenes; default: the checkpoint's "
