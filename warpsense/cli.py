@@ -109,11 +109,17 @@ def _predict(args) -> int:
 
 
 def _study(args) -> int:
-    from warpsense.commands.study import report_study, run_study
+    from warpsense.commands.study import report_study, run_study, status_study
 
     if args.study_command == "run":
+        slurm = {"partition": args.slurm_partition, "time_minutes": args.slurm_time,
+                 "gpus_per_cell": args.gpus_per_cell, "array_parallelism": args.array_parallelism,
+                 "extra": args.slurm_option, "wait": args.wait}
         return run_study(args.plan, args.out, args.overrides, args.cell, args.plan_only, args.gpus, args.per_gpu,
-                         progress=args.progress, worker=args.worker, reuse=args.reuse)
+                         progress=args.progress, worker=args.worker, reuse=args.reuse, executor=args.executor,
+                         slurm=slurm)
+    if args.study_command == "status":
+        return status_study(args.study_dir)
     return report_study(args.study_dir, args.json, args.plot, args.split, args.resamples, args.block_frames)
 
 
@@ -227,7 +233,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 description="Run a study plan (one training run per camera, light level and seed, "
                                 "judged at its final epoch) and report which camera wins, by how much, with what "
                                 "confidence.")
-    study_commands = study.add_subparsers(dest="study_command", metavar="run|report", required=True)
+    study_commands = study.add_subparsers(dest="study_command", metavar="run|status|report", required=True)
     study_run = study_commands.add_parser(
         "run", help="run the plan's cells (resumable; finished cells are never retrained)",
         description="Run every cell of a plan into OUT/runs/<camera>.<light>[.<fold>].seed<N>. Finished cells are skipped, "
@@ -251,6 +257,36 @@ def build_parser() -> argparse.ArgumentParser:
                            help="copy in another study's finished runs for the cells whose config they trained "
                            "(all but run.name and run.output_dir equal; repeatable)")
     study_run.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)  # the local pool's processes
+    study_run.add_argument("--executor", choices=("local", "slurm"), default="local",
+                           help="local: the cells run here (this process, or the local pool over the GPUs); slurm: "
+                           "submit the pending cells to Slurm through submitit as one job array, one cell per task, "
+                           "and return once submitted (OUT must be on a file system the nodes share); "
+                           "`warpsense study status OUT` follows them (default: %(default)s)")
+    slurm = study_run.add_argument_group(
+        "Slurm executor (--executor slurm)",
+        "A finished cell is never submitted again, nor one still queued; a cancelled, killed or failed task's cell "
+        "resumes from its last checkpoint when the same command runs again; a preempted task, or one whose time "
+        "runs out, is checkpointed and requeued by submitit. The options are checked with sbatch --test-only "
+        "before anything is written or submitted.")
+    slurm.add_argument("--slurm-partition", metavar="NAME", help="the partition (default: the cluster's default)")
+    slurm.add_argument("--slurm-time", type=int, metavar="MINUTES",
+                       help="time limit of each task; a cell that needs longer is requeued and resumes, up to 3 times "
+                       "(default: 60)")
+    slurm.add_argument("--gpus-per-cell", type=int, metavar="N",
+                       help="GPUs of each task (default: 0 where every cell's config runs on the CPU, else 1)")
+    slurm.add_argument("--array-parallelism", type=int, metavar="N",
+                       help="tasks of the array running at once (default: 256)")
+    slurm.add_argument("--slurm-option", action="append", default=[], metavar="KEY=VALUE",
+                       help="a further sbatch option without its dashes, e.g. qos=high, account=vision, "
+                       "cpus-per-task=8, or KEY alone for a flag (repeatable)")
+    slurm.add_argument("--wait", action="store_true",
+                       help="follow the tasks until every cell has finished or failed, a line per cell as it ends")
+    study_status = study_commands.add_parser(
+        "status", help="each cell pending, running, done or failed",
+        description="One line per cell of a study directory: done (evaluated), running, pending (queued, or not "
+        "submitted yet) or failed (its last Slurm task ended without finishing it: run the study again to resume "
+        "it), from the directory and, for cells submitted with --executor slurm, from squeue.")
+    study_status.add_argument("study_dir", metavar="DIR", help="a study directory (warpsense study run --out)")
     study_report = study_commands.add_parser(
         "report", help="per camera and light: mIoU with intervals, differences to the reference",
         description="Mean mIoU and per-class IoU with 95% t intervals over seeds (over the folds' means with "

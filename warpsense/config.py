@@ -94,7 +94,7 @@ class DataConfig:
     scenes_val: int = _field(32, minimum=1)
     scene_height: int = _field(96, minimum=8, maximum=8192)
     scene_width: int = _field(128, minimum=8, maximum=8192)
-    scene_sequences: int = _field(3, minimum=1, maximum=1024)
+    scene_sequences: int = _field(1, minimum=1, maximum=1024)
     unprocess: bool = False
 
 

@@ -7,8 +7,10 @@ import pytest
 import torch
 
 from warpsense.study.statistics import (
-    bootstrap_difference,
+    block_bootstrap_difference,
+    block_weights,
     distinguishable,
+    fold_interval,
     iou_from_counts,
     miou_from_counts,
     paired_difference,
@@ -77,16 +79,67 @@ def test_per_image_counts_agree_with_the_confusion_matrix():
     assert matrix.compute()["confusion"] == expected
 
 
-def test_bootstrap_difference():
+def test_block_bootstrap_difference():
     generator = np.random.default_rng(1)
     reference = generator.integers(0, 50, size=(3, 20, 4, 3))
-    same = bootstrap_difference(reference, reference, resamples=200)
+    sequences = {"a": ["a"] * 20}
+    same = block_bootstrap_difference([(r, r, "a") for r in reference], sequences, block=4, resamples=200)
     assert same["mean"] == 0 and same["low"] == 0 and same["high"] == 0
     better = reference.copy()
     better[..., 0] += 20  # more true positives on every image: every resample prefers it
-    result = bootstrap_difference(better, reference, resamples=200)
+    pairs = [(b, r, "a") for b, r in zip(better, reference)]
+    result = block_bootstrap_difference(pairs, sequences, block=4, resamples=200)
     expected = (miou_from_counts(better.sum(1)) - miou_from_counts(reference.sum(1))).mean()
     assert result["mean"] == pytest.approx(expected) and 0 < result["low"] <= result["mean"] <= result["high"]
-    assert bootstrap_difference(better, reference, resamples=200) == result  # seeded: reproducible
+    assert result["block"] == 4
+    assert block_bootstrap_difference(pairs, sequences, block=4, resamples=200) == result  # seeded: reproducible
     with pytest.raises(ValueError, match="one shape"):
-        bootstrap_difference(better[:, :5], reference, resamples=10)
+        block_bootstrap_difference([(better[0, :5], reference[0], "a")], sequences, resamples=10)
+
+
+def test_block_bootstrap_by_hand_two_frames():
+    """Two frames, blocks of one: a resample is {A, A}, {A, B} or {B, B} with chances 1/4, 1/2, 1/4, so the 2.5%
+    and 97.5% percentiles are the {A, A} and {B, B} differences, worked out by hand."""
+    # one class; the camera: A has TP 1, FN 1 and B TP 3, FN 1; the reference: A and B TP 1, FN 1 (IoU 1/2)
+    camera = np.array([[[1, 0, 1]], [[3, 0, 1]]])
+    reference = np.array([[[1, 0, 1]], [[1, 0, 1]]])
+    result = block_bootstrap_difference([(camera, reference, "s")], {"s": ["x", "x"]}, block=1, resamples=4000)
+    assert result["mean"] == pytest.approx(4 / 6 - 1 / 2)  # both frames: TP 4, FN 2 against TP 2, FN 2
+    assert result["low"] == pytest.approx(1 / 2 - 1 / 2)  # {A, A}: TP 2, FN 2
+    assert result["high"] == pytest.approx(6 / 8 - 1 / 2)  # {B, B}: TP 6, FN 2
+
+
+def test_block_weights_stay_within_sequences_and_keep_blocks_together():
+    sequences = ["a"] * 7 + ["b"] * 3 + ["a"] * 2  # a sequence's frames need not be adjacent in the list
+    weights = block_weights(sequences, block=3, resamples=500, generator=np.random.default_rng(0))
+    a, b = np.array([s == "a" for s in sequences]), np.array([s == "b" for s in sequences])
+    assert (weights[:, a].sum(1) == 9).all() and (weights[:, b].sum(1) == 3).all()  # each keeps its size
+    # b (3 frames, blocks of 3) is drawn whole every time; a's 9 frames come as 3 blocks of 3 consecutive ones
+    assert (weights[:, b] == 1).all()
+    assert weights[:, a].max() <= 3 and (weights[:, a] > 0).sum(1).min() >= 3
+    single = block_weights(["s"] * 5, block=1, resamples=2000, generator=np.random.default_rng(1))
+    assert single.mean(0) == pytest.approx(np.ones(5), abs=0.1)  # blocks of one: the ordinary bootstrap
+
+
+def test_fold_interval_by_hand():
+    # one fold: the t interval over its seeds
+    one = fold_interval({("", 0): 0.5, ("", 1): 0.6, ("", 2): 0.7})
+    assert one["mean"] == pytest.approx(0.6) and one["low"] == pytest.approx(0.6 - T_975_2 * 0.1 / math.sqrt(3))
+    assert one["folds"] == 1 and one["n"] == 3
+    # three folds of two seeds: fold means 0.4, 0.5, 0.6 (sd 0.1), t over the folds with 2 degrees of freedom
+    values = {("a", 0): 0.35, ("a", 1): 0.45, ("b", 0): 0.5, ("b", 1): 0.5, ("c", 0): 0.7, ("c", 1): 0.5}
+    three = fold_interval(values)
+    half = T_975_2 * 0.1 / math.sqrt(3)
+    assert three["mean"] == pytest.approx(0.5) and three["n"] == 6 and three["folds"] == 3
+    assert three["low"] == pytest.approx(0.5 - half) and three["high"] == pytest.approx(0.5 + half)
+    with pytest.raises(ValueError):
+        fold_interval({})
+
+
+def test_paired_difference_over_fold_seed_pairs():
+    camera = {("a", 0): 0.60, ("a", 1): 0.70, ("b", 0): 0.65, ("b", 1): 0.2}
+    reference = {("a", 0): 0.50, ("a", 1): 0.65, ("b", 0): 0.60}  # ("b", 1) unpaired: left out
+    result = paired_difference(camera, reference)
+    assert result["seeds"] == [("a", 0), ("a", 1), ("b", 0)]
+    assert result["mean"] == pytest.approx(1 / 15)  # as the seed-paired case by hand above
+    assert result["low"] == pytest.approx(1 / 15 - T_975_2 * math.sqrt(1 / 1200) / math.sqrt(3))

@@ -23,12 +23,18 @@ def parse_gpus(text: str) -> list[str]:
 
 def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None = None, plan_only: bool = False,
               gpus: str = "auto", per_gpu: int = 1, progress: bool = False, worker: bool = False,
-              reuse: list[str] | None = None) -> int:
+              reuse: list[str] | None = None, executor: str = "local", slurm: dict | None = None) -> int:
     """The `warpsense study run` command; returns the exit code. ``worker``: be one of the local pool's worker
-    processes (`warpsense.study.runner.cell_worker`, cell ids on stdin)."""
+    processes (`warpsense.study.runner.cell_worker`, cell ids on stdin). ``executor`` "slurm": submit the cells to
+    Slurm (`warpsense.study.slurm.submit_study`) with ``slurm``, the keyword arguments of
+    `warpsense.study.slurm.slurm_options` (None: not given)."""
     from warpsense.study.plan import load_plan
     from warpsense.study.runner import cell_worker, plan_commands, run_cells
+    from warpsense.study.slurm import slurm_options, submit_study
 
+    cluster = slurm_options(executor, **(slurm or {}))  # before the plan loads: nothing is read or written
+    if cluster is not None and plan_only:
+        raise ValueError("--plan-only prints the commands for a scheduler of your own: leave out --executor slurm")
     plan = load_plan(plan_name, overrides)
     if worker:
         return cell_worker(plan, Path(out))
@@ -38,6 +44,8 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         print("\n".join(plan_commands(plan, Path(out))))
         return 0
     reuse_dirs = [Path(path) for path in reuse or []]
+    if cluster is not None:
+        return submit_study(plan, Path(out), cluster, None if cell is None else [plan.cell(cell)], reuse_dirs)
     if cell is not None:
         return run_cells(plan, Path(out), [plan.cell(cell)], progress=progress, record=False, reuse=reuse_dirs)
     devices = parse_gpus(gpus)
@@ -46,6 +54,13 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     if code == 0:
         print(f"study finished; report: warpsense study report {out}")
     return code
+
+
+def status_study(study_dir: str) -> int:
+    """The `warpsense study status` command: each cell pending, running, done or failed."""
+    from warpsense.study.slurm import print_status
+
+    return print_status(study_dir)
 
 
 def report_study(study_dir: str, json_out: str | None = None, plot_out: str | None = None,

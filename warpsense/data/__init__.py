@@ -24,7 +24,7 @@ def _source(data_config, split: str, train: bool, seed: int, limit: int = 0):
     if name == "scenes":
         count = data_config.scenes_train if train else data_config.scenes_val
         return StreetScenes(count, data_config.scene_height, data_config.scene_width, seed=seed + (0 if train else 7919),
-                            sequence_blocks=data_config.scene_sequences)
+                            sequence_blocks=data_config.scene_sequences, stream="train" if train else "val")
     if not data_config.root:
         raise DatasetError(f"data.root is empty: set it to the {name} folder (train: --set data.root=PATH; "
                            f"eval: --data-root PATH)")

@@ -117,22 +117,22 @@ class StreetScenes(Dataset):
     """``count`` generated scenes of ``height`` x ``width``; returns (uint8 [3, H, W], int64 [H, W]).
 
     ``sequences`` cut the scenes into blocks of consecutive generator indices, as a drive is a block of frames:
-    scene i of ``count`` belongs to block ``i * sequence_blocks // count``, named "block<k>" (the training and
-    validation streams' block k share the name: a fold holds out block k of both)."""
+    scene i of ``count`` belongs to block ``i * sequence_blocks // count``, named "<stream><k>" (``stream``: "train"
+    or "val", the generator streams `warpsense.data.build_dataset` draws each split from, which share no scene)."""
 
     classes = CAMVID_CLASSES
 
     def __init__(self, count: int = 256, height: int = 96, width: int = 128, seed: int = 0,
-                 sequence_blocks: int = 1):
+                 sequence_blocks: int = 1, stream: str = "train"):
         self.count, self.height, self.width, self.seed = count, height, width, seed
-        self.sequence_blocks = sequence_blocks
+        self.sequence_blocks, self.stream = sequence_blocks, stream
 
     def __len__(self) -> int:
         return self.count
 
     @property
     def sequences(self) -> list[str]:
-        return [f"block{i * self.sequence_blocks // self.count}" for i in range(self.count)]
+        return [f"{self.stream}{i * self.sequence_blocks // self.count}" for i in range(self.count)]
 
     def __getitem__(self, index: int):
         rng = np.random.default_rng([self.seed, index])

@@ -334,9 +334,6 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                     if light.scene else "the camera has a photon budget (photons.enabled): state the light as a "
                     "scene level (scene), not as noise-stage electrons"))
             data = (config.data.dataset, config.data.root, config.data.train_split, config.data.val_split)
-            if plan.folds == "sequence" and config.data.holdout_prefix:
-                raise PlanError(f"{where}: data.holdout_prefix: a sequence fold holds its sequence out; leave the "
-                                f"prefix empty with study.folds = \"sequence\"")
             if data not in checked_data:
                 checked_data.add(data)
                 try:  # the split lists exist (reads file lists only)

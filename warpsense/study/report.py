@@ -372,7 +372,8 @@ def plot_study(record: dict, path: str | Path, split: str | None = None) -> None
             score_axis.errorbar(miou["mean"], y, xerr=error, fmt="o", color=colour, capsize=4)
         score_axis.set_yticks(range(len(groups)), [g["camera"] for g in groups])
         score_axis.invert_yaxis()
-        score_axis.set_xlabel(f"{split} mIoU (mean over seeds, {record['level']:.0%} interval)")
+        over = "(fold, seed)" if record.get("folds") == "sequence" else "seeds"
+        score_axis.set_xlabel(f"{split} mIoU (mean over {over}, {record['level']:.0%} interval)")
         score_axis.set_title(f"{light}: score per camera (red: reference {record['reference']})", fontsize=10)
         score_axis.grid(axis="x", alpha=0.3)
         comparisons = [c for c in part["comparisons"] if c["light"] == light]

@@ -19,7 +19,7 @@ from warpsense.camera.camera import set_finite_check
 from warpsense.data import HELDOUT_SPLIT, DatasetError, build_dataset, build_fold, evaluation_splits, frame_sequences
 from warpsense.data.on_device import DecodedDataset, DeviceBatches, dataset_megabytes
 from warpsense.data.transforms import EpochSampler
-from warpsense.files import environment, write_json
+from warpsense.files import atomic_write, environment, write_json
 from warpsense.models import count_parameters
 from warpsense.system import build_system, check_config, load_teacher
 from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
@@ -263,6 +263,27 @@ def _run_epoch(training_step, model, batches, steps: int, step: int, joint: bool
     return step
 
 
+def _write_run_files(run_dir: Path, config, versions: dict, history: list[dict], start_epoch: int,
+                     resume: bool) -> None:
+    """The run's config.json, environment.json and metrics.jsonl (``history``: the records it keeps), each written
+    atomically. A new run writes them before its first epoch; a continuation only at the end of its first epoch,
+    after every check and that epoch have passed, so a continuation refused or stopped before then leaves the run
+    as it was. A continuation that changed the config first copies the old config.json to
+    config.epoch<start_epoch>.json, the config the epochs before it trained with (one already there is that
+    config, from an earlier continuation of the same epoch that kept no epoch of its own, and stays); a copy, not a
+    move, so that a kill between the two writes still leaves a config.json."""
+    saved = run_dir / "config.json"
+    if resume and saved.is_file() and json.loads(saved.read_text()) != json.loads(json.dumps(config.to_dict())):
+        earlier = run_dir / f"config.epoch{start_epoch}.json"
+        if not earlier.exists():
+            with atomic_write(earlier) as temporary:
+                shutil.copyfile(saved, temporary)
+    config.save(saved)
+    write_json(run_dir / "environment.json", versions)
+    with atomic_write(run_dir / METRICS) as temporary:
+        temporary.write_text("".join(json.dumps(r) + "\n" for r in history))
+
+
 def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: bool, is_resume_point: bool,
                  ema=None) -> None:
     """Append the epoch's record to metrics.jsonl, then write the checkpoints: the best one when the epoch scored
@@ -331,14 +352,9 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         # each rank draws its own noise seeds from here on (parameters stay identical: DDP syncs gradients)
         torch.manual_seed(config.run.seed * 1000 + context.rank + 1)
     if context.is_main:
-        saved = run_dir / "config.json"
-        if resume and saved.is_file() and json.loads(saved.read_text()) != json.loads(json.dumps(config.to_dict())):
-            # a continued run that changed its config keeps the config its earlier epochs trained with
-            saved.replace(run_dir / f"config.epoch{start_epoch}.json")
-        config.save(saved)
         versions = environment()
-        write_json(run_dir / "environment.json", versions)
-        (run_dir / METRICS).write_text("".join(json.dumps(r) + "\n" for r in history))
+        if not resume:  # a continuation's own files wait for its first complete epoch (`_write_run_files`)
+            _write_run_files(run_dir, config, versions, history, start_epoch, resume)
         print(f"run directory: {run_dir}")
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
               f"{sum(p.numel() for p in model.camera.learnable_parameters()):,}; device: {device}; ranks: {context.world_size}")
@@ -401,6 +417,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         is_best = score > best_miou
         best_miou = max(best_miou, score)
         if context.is_main:
+            if resume and epoch == start_epoch:
+                _write_run_files(run_dir, config, versions, history, start_epoch, resume)
             state = {"epoch": epoch, "step": step, "best_miou": best_miou, "num_classes": num_classes,
                      "class_names": list(datasets.train.classes), "record": record, "environment": versions,
                      "schedule": {**schedule.to_dict(), "requested": [requested.epochs, requested.warmup_epochs]}}

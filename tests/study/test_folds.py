@@ -1,0 +1,161 @@
+"""Sequence folds: frames know their sequence, a fold trains on the other sequences of train + val and is judged on
+its own, and `warpsense study` runs, resumes and reports folds (per-sequence rows); bad fold plans are one-line
+errors with nothing written."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from warpsense.cli import main
+from warpsense.config import ConfigError, load_config
+from warpsense.data import DatasetError, build_fold, frame_sequences, sequence_fold, sequence_names
+from warpsense.data.datasets import KITTI360, CamVid, Cityscapes
+from warpsense.data.scenes import StreetScenes
+from warpsense.resources import CONFIG_DIR
+from warpsense.study import load_plan, render_text, run_cells, study_record
+from warpsense.study.plan import PlanError
+from warpsense.train import engine
+
+FAST = ["train.epochs=2", "data.scenes_train=8", "data.scenes_val=8", "train.eval_every=2", "study.folds=sequence",
+        "study.seeds=[0]", "data.scene_height=32", "data.scene_width=48", "data.crop_height=32", "data.crop_width=48"]
+
+
+def _plan_file(tmp_path: Path, extra: str = "", study: str = "") -> Path:
+    text = (CONFIG_DIR / "studies" / "smoke.toml").read_text()
+    path = tmp_path / "plan.toml"
+    path.write_text(text.replace('reference = "rggb"\n', f'reference = "rggb"\n{study}') + extra)
+    return path
+
+
+def test_sequences_of_each_dataset():
+    assert CamVid.sequence_of(Path("train/0016E5_07959.png")) == "0016E5"
+    assert Cityscapes.sequence_of(Path("leftImg8bit/train/aachen/aachen_000000_000019_leftImg8bit.png")) == "aachen"
+    drive = "2013_05_28_drive_0003_sync"
+    assert KITTI360.sequence_of(Path(f"data_2d_raw/{drive}/image_00/data_rect/0000000001.png")) == drive
+    with pytest.raises(DatasetError, match="frame.png: no sequence prefix"):
+        CamVid.sequence_of(Path("train/frame.png"))
+    with pytest.raises(DatasetError, match="no drive folder"):
+        KITTI360.sequence_of(Path("images/1.png"))
+    scenes = StreetScenes(count=6, height=8, width=8, sequence_blocks=3, stream="val")
+    assert scenes.sequences == ["val0", "val0", "val1", "val1", "val2", "val2"]
+
+
+def test_sequence_fold_cardinality_and_errors():
+    train = StreetScenes(count=4, height=8, width=8, sequence_blocks=2)
+    val = StreetScenes(count=2, height=8, width=8, seed=5, sequence_blocks=1, stream="val")
+    rest, held = sequence_fold([train, val], "train1")
+    assert held.frames == [(0, 2), (0, 3)] and rest.frames == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    assert held.sequences == ["train1", "train1"] and set(rest.sequences) == {"train0", "val0"}
+    assert (held[1][0] == train[3][0]).all() and (rest[2][1] == val[0][1]).all()  # the frames themselves
+    with pytest.raises(DatasetError, match="'train7' holds no frame; sequences: train0, train1, val0"):
+        sequence_fold([train, val], "train7")
+    with pytest.raises(DatasetError, match="holds every frame"):
+        sequence_fold([StreetScenes(count=2, height=8, width=8)], "train0")
+    with pytest.raises(DatasetError, match="carry no sequence names"):
+        frame_sequences(object())
+
+
+def test_camvid_folds_by_drive(shared_data):
+    config = load_config("camvid", [f'data.root="{shared_data / "camvid"}"'])
+    assert sequence_names(config.data) == ["0001TP", "0006R0", "0016E5"]
+    # train holds 0001TP 62, 0006R0 101, 0016E5 204; val 101 more of 0016E5
+    for drive, held_count in (("0001TP", 62), ("0006R0", 101), ("0016E5", 305)):
+        fold = load_config("camvid", [f'data.root="{shared_data / "camvid"}"', f'data.holdout_sequence="{drive}"'])
+        held, train = build_fold(fold.data, train=False), build_fold(fold.data, train=True)
+        assert len(held) == held_count and len(train) == 468 - held_count
+        assert set(held.sequences) == {drive} and drive not in set(train.dataset.sequences)
+
+
+def test_holdout_sequence_config_checks():
+    with pytest.raises(ConfigError, match="data.holdout_sequence and data.holdout_prefix both"):
+        load_config(None, ['data.holdout_sequence="train0"', 'data.holdout_prefix="x"'])
+    with pytest.raises(ConfigError, match="data.holdout_sequence must be a sequence name"):
+        load_config(None, ['data.holdout_sequence="a/b"'])
+
+
+def test_camvid_cameras_plan_lists_a_cell_per_drive_and_seed(shared_data, capsys):
+    assert main(["study", "run", "camvid_cameras", "--out", "unused", "--plan-only",
+                 "--set", f'data.root="{shared_data / "camvid"}"']) == 0
+    cells = [line.split("--cell ")[1].split()[0] for line in capsys.readouterr().out.splitlines()]
+    night = {cell for cell in cells if cell.startswith("fixed_isp/night/")}
+    assert night == {f"fixed_isp/night/{drive}/{seed}" for drive in ("0001TP", "0006R0", "0016E5") for seed in range(3)}
+    assert len(cells) == (8 + 4) * 3 * 3  # 8 cameras at night, 4 by day
+    assert not Path("unused").exists()
+
+
+@pytest.mark.parametrize(("study", "overrides", "message"), [
+    ('folds = "sequence"\nsequences = ["train0", "nowhere"]\n', [],
+     "study.sequences: 'nowhere' holds no frame of the labelled splits (train, val); sequences: train0, val0"),
+    ('folds = "loo"\n', [], "study.folds: 'loo' is not a protocol; valid: none, sequence"),
+    ('sequences = ["train0"]\n', [], "study.sequences: held-out sequences need folds = \"sequence\""),
+    ('folds = "sequence"\n', ["data.holdout_prefix=train"], "data.holdout_sequence and data.holdout_prefix both"),
+    ("", ["study.folds=sequence", "data.dataset=camvid", "data.root=ROOT"], "study.folds: "),
+])
+def test_bad_fold_plans_are_one_line_errors_with_nothing_written(tmp_path, study, overrides, message, capsys):
+    plan = _plan_file(tmp_path, study=study)
+    root = tmp_path / "camvid"  # a CamVid copy whose frames are not named SEQUENCE_FRAME
+    (root / "img").mkdir(parents=True)
+    (root / "train.txt").write_text("img/a.png img/a.png\n")
+    (root / "val.txt").write_text("img/b.png img/b.png\n")
+    overrides = [text.replace("ROOT", str(root)) for text in overrides]
+    out = tmp_path / "study"
+    arguments = ["study", "run", str(plan), "--out", str(out)]
+    for text in overrides:
+        arguments += ["--set", text]
+    assert main(arguments) == 2
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1 and str(plan) in error and message in error
+    if "data.dataset=camvid" in overrides:
+        assert "a.png: no sequence prefix in the file name" in error
+    assert not out.exists()
+
+
+def test_smoke_study_by_sequence_folds_runs_resumes_and_reports(tmp_path, monkeypatch, capsys):
+    plan = load_plan(_plan_file(tmp_path), FAST)
+    assert plan.sequences == ("train0", "val0")
+    ids = [cell.id for cell in plan.cells()]
+    assert ids[:4] == ["rggb/night/train0/0", "rccb/night/train0/0", "learned/night/train0/0", "rggb/night/val0/0"]
+    assert len(ids) == 3 * 2
+    out = tmp_path / "study"
+    write_epoch = engine._write_epoch
+
+    def interrupting(run_dir, *args, **kwargs):  # Ctrl-C after the first epoch of the fourth cell
+        write_epoch(run_dir, *args, **kwargs)
+        if run_dir.name == "rggb.night.val0.seed0":
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(engine, "_write_epoch", interrupting)
+    assert run_cells(plan, out) == 130
+    monkeypatch.setattr(engine, "_write_epoch", write_epoch)
+    trained = []
+    real_train = engine.train
+    monkeypatch.setattr(engine, "train", lambda config, resume=False, **kw: trained.append(
+        (config.run.name, config.data.holdout_sequence, bool(resume))) or real_train(config, resume=resume, **kw))
+    assert run_cells(plan, out) == 0
+    assert trained[0] == ("rggb.night.val0.seed0", "val0", True)  # the interrupted fold resumed ...
+    assert all(name != "rggb.night.train0.seed0" for name, _, _ in trained)  # ... the finished ones were kept
+    assert [name for name, _, _ in trained] == ["rggb.night.val0.seed0", "rccb.night.val0.seed0",
+                                                "learned.night.val0.seed0"]
+    capsys.readouterr()
+
+    evaluation = json.loads((out / "runs" / "rccb.night.train0.seed0" / "evaluation.json").read_text())
+    assert evaluation["holdout_sequence"] == "train0" and evaluation["train_sequences"] == ["val0"]
+    assert list(evaluation["splits"]) == ["heldout"]
+    assert evaluation["splits"]["heldout"]["image_sequences"] == ["train0"] * 8  # judged on the 8 train scenes
+
+    record = study_record(out, resamples=50, block=3)
+    part = record["splits"]["heldout"]
+    assert record["folds"] == "sequence" and part["shared_sequences"] == []
+    group = part["groups"][0]
+    assert group["folds"] == ["train0", "val0"] and group["cells"] == 2 and group["miou"]["folds"] == 2
+    assert [(row["sequence"], sorted(row["cameras"])) for row in part["per_sequence"]] == [
+        ("train0", ["learned", "rccb", "rggb"]), ("val0", ["learned", "rccb", "rggb"])]
+    comparison = part["comparisons"][0]
+    assert comparison["paired"]["seeds"] == [("train0", 0), ("val0", 0)] and comparison["bootstrap"]["block"] == 3
+    text = render_text(record)
+    assert "per held-out sequence" in text and "night/train0" in text and "night/val0" in text
+    assert "paired over (fold, seed)" in text
+    with pytest.raises(SystemExit) as exited:
+        main(["study", "report", str(out), "--resamples", "0"])
+    assert exited.value.code == 2 and "argument --resamples: must be >= 1" in capsys.readouterr().err
