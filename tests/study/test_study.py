@@ -121,9 +121,10 @@ def test_every_shipped_plan_resolves_each_cell(name, tmp_path):
     """load_plan resolves every cell's config (presets, overrides, light); the cells are distinct runs."""
     plan = load_plan(name)
     cells = plan.cells()
-    assert len({cell.run_name for cell in cells}) == len(cells) == len(plan.seeds) * sum(
+    assert len({cell.run_name for cell in cells}) == len(cells) == len(plan.seeds) * max(1, len(plan.sequences)) * sum(
         len(light.cameras or plan.cameras) for light in plan.lights)
     assert {plan.config(cell, tmp_path).run.seed for cell in cells} == set(plan.seeds)
+    assert {plan.config(cell, tmp_path).data.holdout_sequence for cell in cells} == set(plan.sequences or [""])
 
 
 def test_plan_only_prints_one_command_per_cell(tmp_path, capsys):

@@ -117,7 +117,8 @@ def _frames(run: dict) -> list:
 def _comparison(camera: str, light: str, runs: dict, reference: dict, plan: dict, classes: list[str],
                 resamples: int, block: int) -> dict:
     keys = sorted(set(runs) & set(reference))
-    paired = paired_difference({k: runs[k]["miou"] for k in keys}, {k: reference[k]["miou"] for k in keys})
+    label = (lambda key: key) if any(fold for fold, _ in keys) else (lambda key: key[1])  # no folds: the seed
+    paired = paired_difference({label(k): runs[k]["miou"] for k in keys}, {label(k): reference[k]["miou"] for k in keys})
     pairs = [(runs[k]["image_counts"], reference[k]["image_counts"], k[0]) for k in keys
              if np.shape(runs[k]["image_counts"]) == np.shape(reference[k]["image_counts"])]
     sequences = {k[0]: _frames(reference[k]) for k in keys}
