@@ -67,6 +67,13 @@ def test_camvid_folds_by_drive(shared_data):
         assert set(held.sequences) == {drive} and drive not in set(train.dataset.sequences)
 
 
+def test_camvid_train_plus_val_joins_the_lists(shared_data):
+    joined = CamVid(shared_data / "camvid", "train+val")
+    assert len(joined) == 367 + 101 and joined.pairs[-1] == CamVid(shared_data / "camvid", "val").pairs[-1]
+    with pytest.raises(DatasetError, match="test.txt: CamVid split list not found"):
+        CamVid(shared_data / "camvid", "train+test")
+
+
 def test_holdout_sequence_config_checks():
     with pytest.raises(ConfigError, match="data.holdout_sequence and data.holdout_prefix both"):
         load_config(None, ['data.holdout_sequence="train0"', 'data.holdout_prefix="x"'])

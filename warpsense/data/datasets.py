@@ -142,16 +142,19 @@ class PairDataset(Dataset):
 
 class CamVid(PairDataset):
     """CamVid as distributed with the SegNet tutorial: ``<root>/<split>.txt`` lists "image label" paths relative
-    to root (SegNet's absolute "/SegNet/CamVid/..." prefixes are also accepted); 11 classes, 11 = ignore."""
+    to root (SegNet's absolute "/SegNet/CamVid/..." prefixes are also accepted); 11 classes, 11 = ignore. A split
+    "train+val" joins the lists."""
 
     classes = CAMVID_CLASSES
 
     def __init__(self, root: str | Path, split: str = "train", limit: int = 0):
         root = Path(root)
-        listing = root / f"{split}.txt"
-        if not listing.is_file():
-            raise DatasetError(f"{listing}: CamVid split list not found (expected <root>/{split}.txt)")
-        pairs = read_pair_list(listing, lambda p: root / p.split("/CamVid/")[-1].lstrip("/"))
+        pairs = []
+        for part in split.split("+"):  # "train+val": both lists, in order (a final model's training set)
+            listing = root / f"{part}.txt"
+            if not listing.is_file():
+                raise DatasetError(f"{listing}: CamVid split list not found (expected <root>/{part}.txt)")
+            pairs += read_pair_list(listing, lambda p: root / p.split("/CamVid/")[-1].lstrip("/"))
         table = np.arange(256, dtype=np.uint8)
         table[11:] = IGNORE_INDEX
         super().__init__(pairs, table, limit)
