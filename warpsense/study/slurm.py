@@ -1,0 +1,551 @@
+"""Running a study's cells on a Slurm cluster through submitit, and the state of every cell of a study directory.
+
+`warpsense study run PLAN --out DIR --executor slurm` submits the cells that are neither finished nor queued as one
+job array (`submitit.SlurmExecutor.map_array`), one cell per task; each task trains its cell in the ordinary run
+directory DIR/runs/<cell> (`warpsense.study.runner.train_cell`), so that the report reads the same directory
+whichever executor ran it. DIR must be on a file system the cluster's nodes share.
+
+Resuming is the run directory's: a finished cell (its evaluation written) is never submitted again, and a cell whose
+task was cancelled, killed, timed out or failed resumes from its last checkpoint when the study is submitted again.
+A task that Slurm preempts, or whose time limit nears (Slurm's signal, ``--signal USR2@90`` as submitit asks it), is
+checkpointed and requeued by submitit (`CellTask` is a `submitit.helpers.Checkpointable`: its checkpoint is the run
+directory's last epoch, the call is the same) and resumes in the same array task.
+
+The ids of the submitted tasks are kept in DIR/`JOBS`; `warpsense study status DIR` reads them with the directory:
+a cell is done (evaluated), running or pending (queued or not submitted) as squeue says, or failed (its last task
+ended without finishing it). squeue rather than submitit's sacct watcher: sacct needs Slurm's accounting database,
+which many small clusters (and tools/slurm/local-cluster.sh's) do without.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+from warpsense.files import write_json
+from warpsense.study import runner
+from warpsense.study.plan import Cell, Plan, PlanError
+
+try:
+    from submitit.helpers import Checkpointable
+except ImportError:  # without submitit the local executor and `study status` work; `require_slurm` says what to install
+    Checkpointable = object
+
+EXECUTORS = ("local", "slurm")
+JOBS = "slurm/jobs.json"
+"""The study directory's record of its Slurm submissions: each one's array job id and the task id of every cell."""
+
+SUBMITIT_FOLDER = "slurm/%j"
+"""submitit's folder of each task (its sbatch script, pickles and logs), under the study directory."""
+
+POLL_SECONDS = 10.0
+"""How often `--wait` asks squeue."""
+
+DEFAULT_TIME_MINUTES = 60
+DEFAULT_ARRAY_PARALLELISM = 256  # submitit's
+
+PARTITION_NAME = re.compile(r"^[A-Za-z0-9_.-]+(,[A-Za-z0-9_.-]+)*$")
+SBATCH_KEY = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
+MANAGED = {"array": "--array-parallelism", "partition": "--slurm-partition", "time": "--slurm-time",
+           "gpus-per-node": "--gpus-per-cell", "output": None, "error": None, "open-mode": None, "signal": None,
+           "wrap": None, "test-only": None}
+"""sbatch options the executor sets itself (and the option of this command that sets each, where there is one)."""
+
+ACTIVE = ("PENDING", "CONFIGURING", "RUNNING", "COMPLETING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "RESIZING",
+          "SUSPENDED", "STOPPED", "SIGNALING", "STAGE_OUT", "RESV_DEL_HOLD")
+"""squeue states of a task that still holds its cell (queued, running or being requeued)."""
+
+
+@dataclass(frozen=True)
+class SlurmOptions:
+    """The Slurm executor's options, checked (`slurm_options`).
+
+    Attributes:
+        partition: sbatch --partition (None: the cluster's default partition).
+        time_minutes: each task's time limit (sbatch --time); a cell that needs longer is checkpointed and requeued
+            by submitit (up to 3 times).
+        gpus_per_cell: sbatch --gpus-per-node of each task (None: 0 where every cell's config runs on the CPU,
+            else 1).
+        array_parallelism: tasks of the array running at once (sbatch --array=...%N).
+        extra: further sbatch options, name (without dashes) to value (True: a flag without value).
+        wait: follow the tasks until every cell has finished or failed.
+    """
+
+    partition: str | None = None
+    time_minutes: int = DEFAULT_TIME_MINUTES
+    gpus_per_cell: int | None = None
+    array_parallelism: int = DEFAULT_ARRAY_PARALLELISM
+    extra: tuple[tuple[str, str | bool], ...] = ()
+    wait: bool = False
+
+
+def sbatch_option(text: str) -> tuple[str, str | bool]:
+    """One ``--slurm-option`` (``KEY=VALUE``, or ``KEY`` for a flag such as ``exclusive``) as (key, value)."""
+    key, sep, value = text.partition("=")
+    key = key.strip().lstrip("-").replace("_", "-")
+    if not SBATCH_KEY.match(key) or (sep and not value.strip()):
+        raise ValueError(f"--slurm-option {text!r}: expected KEY=VALUE, an sbatch option without its dashes (e.g. "
+                         "qos=high, cpus-per-task=8), or KEY alone for a flag (e.g. exclusive)")
+    if key in MANAGED:
+        instead = f"; use {MANAGED[key]}" if MANAGED[key] else ""
+        raise ValueError(f"--slurm-option {text!r}: --{key} is set by the executor{instead}")
+    return key, value.strip() if sep else True
+
+
+def slurm_options(executor: str, partition: str | None = None, time_minutes: int | None = None,
+                  gpus_per_cell: int | None = None, array_parallelism: int | None = None,
+                  extra: list[str] | tuple[str, ...] = (), wait: bool = False) -> SlurmOptions | None:
+    """Check the executor options of `warpsense study run` without asking Slurm.
+
+    Args:
+        executor: "local" or "slurm" (`EXECUTORS`).
+        partition, time_minutes, gpus_per_cell, array_parallelism: ``--slurm-partition``, ``--slurm-time``,
+            ``--gpus-per-cell`` and ``--array-parallelism``; None where not given.
+        extra: the ``--slurm-option`` texts (`sbatch_option`).
+        wait: ``--wait``.
+
+    Returns:
+        The Slurm executor's `SlurmOptions`, or None for the local executor (which takes none of them).
+
+    Raises:
+        ValueError: a one-line message naming the option.
+    """
+    if executor not in EXECUTORS:
+        raise ValueError(f"--executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
+    given = {"--slurm-partition": partition, "--slurm-time": time_minutes, "--gpus-per-cell": gpus_per_cell,
+             "--array-parallelism": array_parallelism, "--slurm-option": list(extra) or None, "--wait": wait or None}
+    if executor == "local":
+        for option, value in given.items():
+            if value is not None:
+                raise ValueError(f"{option} is an option of --executor slurm (the local executor runs the cells here "
+                                 "and waits for them)")
+        return None
+    if partition is not None and not PARTITION_NAME.match(partition):
+        raise ValueError(f"--slurm-partition {partition!r}: not a partition name (letters, digits, '_', '-' and '.'; "
+                         "several separated by commas)")
+    if time_minutes is not None and time_minutes < 1:
+        raise ValueError(f"--slurm-time must be a positive number of minutes, got {time_minutes}")
+    if gpus_per_cell is not None and gpus_per_cell < 0:
+        raise ValueError(f"--gpus-per-cell must be >= 0, got {gpus_per_cell}")
+    if array_parallelism is not None and array_parallelism < 1:
+        raise ValueError(f"--array-parallelism must be >= 1, got {array_parallelism}")
+    options = dict(sbatch_option(text) for text in extra)
+    return SlurmOptions(partition, DEFAULT_TIME_MINUTES if time_minutes is None else time_minutes, gpus_per_cell,
+                        DEFAULT_ARRAY_PARALLELISM if array_parallelism is None else array_parallelism,
+                        tuple(options.items()), wait)
+
+
+def require_slurm() -> None:
+    """Refuse the Slurm executor where submitit or Slurm's commands are missing (one-line ValueError)."""
+    if Checkpointable is object:
+        raise ValueError("--executor slurm needs the submitit package: pip install 'warpsense[slurm]'")
+    missing = [command for command in ("sbatch", "squeue", "srun") if shutil.which(command) is None]
+    if missing:
+        raise ValueError(f"--executor slurm: Slurm's {', '.join(missing)} not found on PATH (submit from a machine "
+                         "of the cluster, or start one: bash tools/slurm/local-cluster.sh start)")
+
+
+def _sbatch_flags(options: SlurmOptions, gpus: int, count: int) -> list[str]:
+    """The sbatch options of a job array of ``count`` cells (what `submit` asks submitit for)."""
+    flags = [f"--array=0-{count - 1}%{min(count, options.array_parallelism)}", f"--time={options.time_minutes}"]
+    if options.partition:
+        flags.append(f"--partition={options.partition}")
+    if gpus:
+        flags.append(f"--gpus-per-node={gpus}")
+    return flags + [f"--{key}" if value is True else f"--{key}={value}" for key, value in options.extra]
+
+
+def _described(options: SlurmOptions, gpus: int) -> str:
+    words = [f"--slurm-partition {options.partition}" if options.partition else "the default partition",
+             f"--slurm-time {options.time_minutes}", f"--gpus-per-cell {gpus}"]
+    return ", ".join(words + [f"--slurm-option {key}" + ("" if value is True else f"={value}")
+                              for key, value in options.extra])
+
+
+def check_submission(options: SlurmOptions, gpus: int, count: int) -> None:
+    """Ask Slurm whether it would take the job array (``sbatch --test-only``: nothing is submitted); a refusal is a
+    one-line ValueError naming the option it concerns."""
+    command = ["sbatch", "--test-only", *_sbatch_flags(options, gpus, count), "--output=/dev/null", "--wrap=true"]
+    try:
+        result = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        raise ValueError("--executor slurm: the Slurm controller did not answer sbatch --test-only in 120 s") from None
+    if result.returncode == 0:
+        return
+    lines = [line.strip() for line in (result.stderr + result.stdout).splitlines() if line.strip()]
+    message = next((line for line in lines if "error" in line.lower() or "unrecognized" in line.lower()),
+                   lines[0] if lines else f"exit status {result.returncode}")
+    message = message.removeprefix("sbatch: error: ").removeprefix("Batch job submission failed: ")
+    lowered = message.lower()
+    unknown = re.search(r"unrecognized option '--([^'=]+)", message)
+    if unknown:
+        raise ValueError(f"--slurm-option {unknown.group(1)}: sbatch does not know this option ({message})")
+    if "unable to contact" in lowered or "connection refused" in lowered or "connect failure" in lowered:
+        raise ValueError(f"--executor slurm: the Slurm controller does not answer ({message})")
+    if "partition" in lowered:
+        raise ValueError(f"--slurm-partition {options.partition or '(default)'}: Slurm refused it ({message})")
+    if "time limit" in lowered:
+        raise ValueError(f"--slurm-time {options.time_minutes}: Slurm refused it ({message})")
+    if gpus and ("gres" in lowered or "gpu" in lowered or "node configuration" in lowered):
+        raise ValueError(f"--gpus-per-cell {gpus}: Slurm refused it ({message})")
+    raise ValueError(f"--executor slurm: Slurm refused the job array ({_described(options, gpus)}): {message}")
+
+
+class CellTask(Checkpointable):
+    """One array task: trains (or resumes) one cell and returns its evaluation record.
+
+    It holds the plan's file, the command line's overrides and the study directory, and reloads the plan in the
+    task. As a `submitit.helpers.Checkpointable`, a task Slurm preempts or whose time runs out is requeued with the
+    same call, which resumes the cell from the last checkpoint its run directory holds.
+    """
+
+    def __init__(self, plan_source: str, overrides: tuple[str, ...], out: str):
+        self.plan_source, self.overrides, self.out = plan_source, tuple(overrides), out
+
+    def __call__(self, cell_id: str) -> dict:
+        import torch
+
+        from warpsense.study.plan import load_plan
+
+        cpus = os.environ.get("SLURM_CPUS_PER_TASK") or os.environ.get("SLURM_CPUS_ON_NODE")
+        if cpus and cpus.isdigit() and "OMP_NUM_THREADS" not in os.environ:
+            torch.set_num_threads(int(cpus))  # the task's CPUs, not the node's
+        plan = load_plan(self.plan_source, self.overrides)
+        cell = plan.cell(cell_id)
+        state = runner.cell_state(Path(self.out), cell)
+        job = os.environ.get("SLURM_ARRAY_JOB_ID", os.environ.get("SLURM_JOB_ID", "?"))
+        task = os.environ.get("SLURM_ARRAY_TASK_ID")
+        restarts = os.environ.get("SLURM_RESTART_COUNT", "0")
+        print(f"{cell.id}: {'resuming' if state == 'partial' else 'training' if state == 'new' else 'finished'} "
+              f"in Slurm job {job}{'_' + task if task else ''} (restart {restarts}), {torch.get_num_threads()} "
+              "thread(s)", flush=True)
+        return runner.train_cell(plan, Path(self.out), cell)
+
+
+def read_jobs(out: Path) -> list[dict]:
+    """The study directory's Slurm submissions (`JOBS`), oldest first."""
+    path = Path(out) / JOBS
+    return json.loads(path.read_text())["submissions"] if path.is_file() else []
+
+
+def latest_jobs(out: Path) -> dict[str, str]:
+    """Each submitted cell's latest task id ("<array job>_<index>", or a job id)."""
+    jobs: dict[str, str] = {}
+    for submission in read_jobs(out):
+        jobs.update(submission["cells"])
+    return jobs
+
+
+def queue_states() -> dict[str, tuple[str, str]] | None:
+    """This user's Slurm tasks as squeue lists them (arrays one line per task): id to (state, reason); None where
+    squeue cannot be run or the controller does not answer."""
+    try:
+        result = subprocess.run(["squeue", "--me", "--noheader", "--array", "--format=%i|%T|%r"], capture_output=True,
+                                text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    if result.returncode != 0:
+        return None
+    states = {}
+    for line in result.stdout.splitlines():
+        parts = line.strip().split("|")
+        if len(parts) == 3:
+            states[parts[0]] = (parts[1], parts[2])
+    return states
+
+
+def _epochs(out: Path, cell: Cell) -> str:
+    """"epoch k of n": the epochs the cell's run has finished, of its config's; "" before its first epoch."""
+    from warpsense.train.run_dir import METRICS, read_metrics
+
+    folder = runner.run_dir(out, cell)
+    records = read_metrics(folder / METRICS) if (folder / METRICS).is_file() else []
+    if not records:
+        return ""
+    try:
+        total = json.loads((folder / "config.json").read_text())["train"]["epochs"]
+    except (OSError, ValueError, KeyError):
+        total = "?"
+    return f"epoch {records[-1]['epoch'] + 1} of {total}"
+
+
+def _submitit_job(out: Path, job_id: str):
+    import submitit
+
+    return submitit.SlurmJob(folder=Path(out) / SUBMITIT_FOLDER, job_id=job_id)
+
+
+def failure(out: Path, job_id: str) -> str:
+    """Why a cell's task ended without finishing the cell: the exception it raised (submitit's result), or the last
+    line of its log (Slurm's "CANCELLED ... DUE TO TIME LIMIT", a crash)."""
+    from submitit.core.utils import pickle_load
+
+    job = _submitit_job(out, job_id)
+    with contextlib.suppress(Exception):
+        outcome, trace = pickle_load(job.paths.result_pickle)
+        if outcome == "error":
+            lines = [line for line in str(trace).strip().splitlines() if line.strip()]
+            return lines[-1].strip() if lines else "the task raised an error"
+    for log in (job.paths.stderr, job.paths.stdout):
+        with contextlib.suppress(OSError):
+            lines = [line.strip() for line in log.read_text(errors="replace").splitlines() if line.strip()]
+            if lines:
+                return lines[-1]
+    return "the task ended without finishing the cell (no log)"
+
+
+@dataclass(frozen=True)
+class CellStatus:
+    """A cell's state in a study directory: "done", "running", "pending" or "failed", and a few words on it."""
+
+    cell: Cell
+    state: str
+    detail: str
+
+
+def _lock_holder(out: Path, cell: Cell) -> int | None:
+    """The pid of a live process of this machine training the cell (its run directory's lock), if any."""
+    from warpsense.train.run_dir import LOCK
+
+    with contextlib.suppress(OSError, ValueError):
+        pid = int((runner.run_dir(out, cell) / LOCK).read_text().strip())
+        os.kill(pid, 0)
+        return pid
+    return None
+
+
+def _score(record: dict) -> str:
+    return ", ".join(f"{split} mIoU {metrics['miou']:.4f}" for split, metrics in record["splits"].items())
+
+
+def cell_status(out: Path, cell: Cell, job_id: str | None, queue: dict[str, tuple[str, str]] | None) -> CellStatus:
+    """One cell's `CellStatus`.
+
+    Args:
+        out: the study directory.
+        cell: the cell.
+        job_id: its latest Slurm task (`latest_jobs`); None if it was never submitted.
+        queue: squeue's states (`queue_states`); None where the scheduler does not answer.
+
+    Returns:
+        "done" where its evaluation is written; "running" or "pending" while squeue lists its task so (or, never
+        submitted, while a process of this machine holds its run directory); "failed" where its task is gone
+        without finishing it; else "pending" (not submitted, or the scheduler does not answer).
+    """
+    state = runner.cell_state(out, cell)
+    progress = _epochs(out, cell)
+    if state == "done":
+        try:
+            return CellStatus(cell, "done", _score(runner.read_evaluation(out, cell)))
+        except (OSError, ValueError, KeyError):
+            return CellStatus(cell, "done", "evaluated")
+    if job_id is not None and queue is not None and job_id in queue and queue[job_id][0] in ACTIVE:
+        slurm_state, reason = queue[job_id]
+        if slurm_state in ("RUNNING", "COMPLETING"):
+            return CellStatus(cell, "running", f"job {job_id}" + (f", {progress}" if progress else ""))
+        why = f" ({reason})" if reason and reason != "None" else ""
+        return CellStatus(cell, "pending", f"job {job_id} {slurm_state.lower()}{why}"
+                          + (f", {progress}" if progress else ""))
+    if job_id is not None and queue is not None:
+        where = f"stopped at {progress}" if progress else "no epoch finished"
+        return CellStatus(cell, "failed", f"job {job_id} ended, {where}: {failure(out, job_id)}")
+    if job_id is not None:
+        return CellStatus(cell, "pending", f"submitted as job {job_id} (the scheduler does not answer)")
+    pid = _lock_holder(out, cell)  # never submitted: perhaps training here (the local executor)
+    if pid is not None:
+        return CellStatus(cell, "running", f"process {pid} on this machine" + (f", {progress}" if progress else ""))
+    return CellStatus(cell, "pending", "not submitted" + (f", checkpoint at {progress}" if progress else ""))
+
+
+def study_status(out: Path, plan: Plan, cells: list[Cell] | None = None) -> tuple[list[CellStatus], bool]:
+    """Every cell's `CellStatus`, and whether the scheduler answered (True also where nothing was submitted)."""
+    jobs = latest_jobs(out)
+    queue = queue_states() if jobs else {}
+    return [cell_status(out, cell, jobs.get(cell.id), queue) for cell in cells or plan.cells()], queue is not None
+
+
+def print_status(study_dir: str | Path) -> int:
+    """`warpsense study status DIR`: one line per cell (pending, running, done or failed, from the directory and the
+    scheduler) and the counts."""
+    out = Path(study_dir)
+    path = out / runner.PLAN_RECORD
+    if not out.is_dir():
+        raise PlanError(f"{out}: no such study directory")
+    if not path.is_file():
+        raise PlanError(f"{out}: not a study directory (no {runner.PLAN_RECORD}); run `warpsense study run PLAN "
+                        f"--out {out}` first")
+    plan = Plan.from_dict(json.loads(path.read_text()))
+    statuses, answered = study_status(out, plan)
+    submissions = read_jobs(out)
+    jobs = f" (Slurm job{'s' if len(submissions) > 1 else ''} {', '.join(s['job_id'] for s in submissions)})" \
+        if submissions else ""
+    print(f"study {plan.name}: {len(statuses)} cells in {out}{jobs}")
+    if not answered:
+        print("study: squeue does not answer: the states of submitted cells are from the directory alone")
+    width = max(len(status.cell.id) for status in statuses)
+    for status in statuses:
+        print(f"  {status.cell.id:<{width}}  {status.state:<7}  {status.detail}")
+    counts = {state: sum(s.state == state for s in statuses) for state in ("done", "running", "pending", "failed")}
+    print(f"{len(statuses)} cells: " + ", ".join(f"{count} {state}" for state, count in counts.items()))
+    if counts["failed"]:
+        print("failed cells resume from their last checkpoint when the study is run again")
+    if counts["done"] == len(statuses):
+        print(f"report: warpsense study report {out}")
+    return 0
+
+
+def default_gpus(plan: Plan, out: Path, cells: list[Cell]) -> int:
+    """GPUs per task when --gpus-per-cell is not given: 0 where every cell's config runs on the CPU, else 1."""
+    return 0 if all(plan.config(cell, Path(out) / "runs").run.device == "cpu" for cell in cells) else 1
+
+
+def submit_study(plan: Plan, out: Path, options: SlurmOptions, cells: list[Cell] | None = None,
+                 reuse: list[Path] | None = None) -> int:
+    """Submit the cells that are neither finished nor queued as one job array, one cell per task.
+
+    Nothing is written and nothing submitted until submitit and Slurm's commands are found and ``sbatch --test-only``
+    takes the options.
+
+    Args:
+        plan: the study plan.
+        out: the study directory (on a file system the cluster's nodes share).
+        options: the executor's options (`slurm_options`); with ``options.wait`` the tasks are followed (`follow`).
+        cells: the cells to run (default: all of the plan).
+        reuse: other study directories whose finished runs are copied in for the cells they already trained
+            (`warpsense.study.runner.reuse_cells`), before the rest is submitted.
+
+    Returns:
+        The exit code: 0 once submitted (or, with ``options.wait``, `follow`'s).
+
+    Raises:
+        ValueError: submitit or Slurm's commands missing, or options Slurm refuses (one line naming the option).
+    """
+    out = Path(out).absolute()
+    all_cells = plan.cells()
+    cells = all_cells if cells is None else cells
+    require_slurm()
+    finished = runner.finished_runs(list(reuse or []))  # a bad --reuse directory is refused before anything is written
+    jobs = latest_jobs(out)
+    queue = queue_states() if jobs else {}
+    if queue is None:
+        raise ValueError("--executor slurm: squeue does not answer (is the Slurm controller up?)")
+    queued = {cell: jobs[cell.id] for cell in cells if cell.id in jobs and jobs[cell.id] in queue
+              and queue[jobs[cell.id]][0] in ACTIVE}
+    todo = [cell for cell in cells if cell not in queued and runner.cell_state(out, cell) != "done"]
+    gpus = options.gpus_per_cell if options.gpus_per_cell is not None else default_gpus(plan, out, todo or cells)
+    if todo:
+        check_submission(options, gpus, len(todo))
+    runner.record_plan(plan, out)
+    reused = runner.reuse_cells(plan, out, todo, finished)
+    todo = [cell for cell in todo if cell not in reused]
+    numbering = {cell: all_cells.index(cell) + 1 for cell in cells}
+    total = len(all_cells)
+    for cell in cells:
+        prefix = f"[{numbering[cell]}/{total}] {cell.id}"
+        if cell in reused:
+            print(f"{prefix}: the same training as {reused[cell]}, copied in", flush=True)
+        elif cell in queued:
+            print(f"{prefix}: queued or running as job {queued[cell]}, not submitted again", flush=True)
+        elif cell not in todo:
+            print(f"{prefix}: finished earlier, skipped", flush=True)
+    if todo:
+        array = submit(plan, out, todo, options, gpus)
+        resumed = sum(runner.cell_state(out, cell) == "partial" for cell in todo)
+        print(f"study: submitted {len(todo)} cell(s) ({resumed} resuming from a checkpoint) as Slurm job {array} "
+              f"({_described(options, gpus)}); logs in {out / 'slurm'}", flush=True)
+    if options.wait:
+        return follow(plan, out, cells)
+    if todo or queued:
+        print(f"study: the cells run on the cluster; follow them with: warpsense study status {shlex.quote(str(out))}")
+    else:
+        print(f"study finished; report: warpsense study report {shlex.quote(str(out))}")
+    return 0
+
+
+def submit(plan: Plan, out: Path, cells: list[Cell], options: SlurmOptions, gpus: int) -> str:
+    """Submit ``cells`` as one job array through submitit and record the tasks' ids in <out>/`JOBS`; returns the
+    array's job id."""
+    import submitit
+    from submitit.core.utils import FailedJobError, FailedSubmissionError
+
+    executor = submitit.SlurmExecutor(folder=Path(out) / SUBMITIT_FOLDER)
+    parameters = {"job_name": f"warpsense-{plan.name}", "time": options.time_minutes,
+                  "array_parallelism": options.array_parallelism, "additional_parameters": dict(options.extra)}
+    if options.partition:
+        parameters["partition"] = options.partition
+    if gpus:
+        parameters["gpus_per_node"] = gpus
+    executor.update_parameters(**parameters)
+    task = CellTask(str(Path(plan.source).absolute()), plan.overrides, str(out))
+    try:
+        jobs = executor.map_array(task, [cell.id for cell in cells])
+    except (subprocess.CalledProcessError, FailedJobError, FailedSubmissionError) as error:
+        output = getattr(error, "output", None) or getattr(error, "stderr", None) or str(error)
+        output = output.decode(errors="replace") if isinstance(output, bytes) else str(output)
+        raise ValueError(f"--executor slurm: sbatch refused the job array: {output.strip().splitlines()[-1]}") \
+            from None
+    array = jobs[0].job_id.split("_")[0]
+    submissions = read_jobs(out) + [{
+        "job_id": array, "submitted": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "sbatch": _sbatch_flags(options, gpus, len(cells)),
+        "cells": {cell.id: job.job_id for cell, job in zip(cells, jobs)}}]
+    (Path(out) / JOBS).parent.mkdir(parents=True, exist_ok=True)
+    write_json(Path(out) / JOBS, {"submissions": submissions})
+    return array
+
+
+def follow(plan: Plan, out: Path, cells: list[Cell], poll: float | None = None) -> int:
+    """Follow the submitted cells of ``cells`` until each has finished or failed, one line per cell as it ends.
+
+    Args:
+        plan: the study plan.
+        out: the study directory.
+        cells: the cells to follow (those never submitted are passed over).
+        poll: seconds between two looks at squeue (default: `POLL_SECONDS`).
+
+    Returns:
+        0 (all finished), 1 (some failed: the same command resumes them) or 130 (Ctrl-C: the tasks go on).
+    """
+    out = Path(out)
+    all_cells = plan.cells()
+    total = len(all_cells)
+    jobs = latest_jobs(out)
+    waiting = [cell for cell in cells if runner.cell_state(out, cell) != "done" and cell.id in jobs]
+    started, failed = time.perf_counter(), []
+    try:
+        while waiting:
+            queue = queue_states()
+            for cell in list(waiting):
+                status = cell_status(out, cell, jobs[cell.id], queue)
+                if status.state not in ("done", "failed"):
+                    continue
+                waiting.remove(cell)
+                prefix = f"[{all_cells.index(cell) + 1}/{total}] {cell.id}"
+                after = f"after {time.perf_counter() - started:.0f} s"
+                if status.state == "done":
+                    print(f"{prefix}: done {after} (job {jobs[cell.id]}), {status.detail}", flush=True)
+                else:
+                    failed.append(cell)
+                    print(f"{prefix}: FAILED {after}: {status.detail}", file=sys.stderr, flush=True)
+            if waiting:
+                time.sleep(POLL_SECONDS if poll is None else poll)
+    except KeyboardInterrupt:
+        print(f"study: stopped following; the tasks go on (warpsense study status {out})", file=sys.stderr)
+        return 130
+    if failed:
+        print(f"study: {len(failed)} of {total} cells failed: {', '.join(cell.id for cell in failed)}; run the same "
+              "command again to resume them (finished cells are kept)", file=sys.stderr)
+        return 1
+    if all(runner.cell_state(out, cell) == "done" for cell in cells):
+        print(f"study finished; report: warpsense study report {out}")
+    return 0
