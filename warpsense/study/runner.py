@@ -25,6 +25,8 @@ from pathlib import Path
 
 from warpsense.errors import first_line
 from warpsense.files import write_json
+from warpsense.study.mps import mps_daemon
+from warpsense.study.mps import wanted as mps_wanted
 from warpsense.study.plan import Cell, Plan, PlanError
 
 PLAN_RECORD = "plan.json"
@@ -80,10 +82,10 @@ class BusySampler:
 
 
 def record_throughput(out: Path, finished: int, seconds: float, gpus: list[str] | None, per_gpu: int,
-                      busy: list[float] | None) -> dict:
+                      busy: list[float] | None, mps: bool = False) -> dict:
     """Append this invocation's throughput to <out>/`THROUGHPUT` and print it in one line."""
     entry = {"cells_finished": finished, "seconds": seconds, "cells_per_hour": finished * 3600 / max(seconds, 1e-9),
-             "gpus": list(gpus or []), "per_gpu": per_gpu if gpus else 1, "gpu_busy_fraction": busy}
+             "gpus": list(gpus or []), "per_gpu": per_gpu if gpus else 1, "gpu_busy_fraction": busy, "mps": mps}
     path = Path(out) / THROUGHPUT
     history = json.loads(path.read_text()) if path.is_file() else []
     write_json(path, history + [entry])
@@ -94,6 +96,7 @@ def record_throughput(out: Path, finished: int, seconds: float, gpus: list[str] 
 def throughput_line(entry: dict) -> str:
     """One `THROUGHPUT` entry in words (the run's last line, and the report's)."""
     where = f"{len(entry['gpus'])} GPU(s) x {entry['per_gpu']}" if entry["gpus"] else "one process"
+    where += " under MPS" if entry.get("mps") else ""
     busy = entry.get("gpu_busy_fraction")
     busy_text = f"; GPU busy {', '.join(f'{fraction:.0%}' for fraction in busy)}" if busy else ""
     return (f"{entry['cells_finished']} cell(s) in {entry['seconds']:.0f} s on {where}: "
@@ -233,7 +236,7 @@ def _score(record: dict) -> str:
 
 def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list[str] | None = None,
               per_gpu: int = 1, progress: bool = False, record: bool = True,
-              sample_gpus: list[str] | None = None, reuse: list[Path] | None = None) -> int:
+              sample_gpus: list[str] | None = None, reuse: list[Path] | None = None, mps: str = "auto") -> int:
     """Run the cells not finished yet; a progress line per cell; returns the exit code (0 all finished, 1 some
     failed, 130 interrupted).
 
@@ -246,9 +249,12 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
             visible GPUs also when the cells run in this process on one GPU).
         reuse: other study directories whose finished runs are copied in for the cells they already trained
             (`reuse_cells`).
+        mps: run the pool's workers under a CUDA MPS daemon of its own (`warpsense.study.mps`): "auto" (with
+            ``per_gpu`` > 1 where the control program is on the PATH), "on" or "off".
     """
     out = Path(out)
     cells = plan.cells() if cells is None else cells
+    shared = bool(gpus) and mps_wanted(mps, per_gpu)  # a bad mode, or "on" without MPS, before anything is written
     finished = finished_runs(list(reuse or []))  # a bad directory is refused before anything is written
     record_plan(plan, out)
     reused = reuse_cells(plan, out, cells, finished)
@@ -266,12 +272,13 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
     sampled = list(sample_gpus if sample_gpus is not None else gpus or []) if record else []
     with BusySampler(sampled) as sampler:
         if gpus:
-            failed = _pool(plan, out, pending, numbering, total, gpus, per_gpu)
+            with mps_daemon(shared) as environment:
+                failed = _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment)
         else:
             failed = _in_process(plan, out, pending, numbering, total, progress)
     if record:
         finished = sum(cell_state(out, cell) == "done" for cell in pending)
-        record_throughput(out, finished, time.perf_counter() - started, gpus, per_gpu, sampler.fractions())
+        record_throughput(out, finished, time.perf_counter() - started, gpus, per_gpu, sampler.fractions(), shared)
     if failed is None:
         return 130
     if failed:
@@ -359,7 +366,8 @@ def cell_worker(plan: Plan, out: Path) -> int:
     return 0
 
 
-def worker_environment(gpu: str, workers: int, environ=None, cores: int | None = None) -> dict[str, str]:
+def worker_environment(gpu: str, workers: int, environ=None, cores: int | None = None,
+                       extra: dict[str, str] | None = None) -> dict[str, str]:
     """The environment of a pool worker: its GPU alone (``CUDA_VISIBLE_DEVICES``) and its share of the CPU's cores
     as OpenMP threads (``OMP_NUM_THREADS`` = cores // workers, at least 1; kept where the caller set it), as
     torchrun limits its ranks: every worker running an OpenMP pool of all the cores oversubscribes the CPU, and on
@@ -369,10 +377,11 @@ def worker_environment(gpu: str, workers: int, environ=None, cores: int | None =
     environment["CUDA_VISIBLE_DEVICES"] = gpu
     cores = cores or os.cpu_count() or 1
     environment.setdefault("OMP_NUM_THREADS", str(max(1, cores // max(workers, 1))))
+    environment.update(extra or {})  # the pool's MPS daemon (warpsense.study.mps)
     return environment
 
 
-def _pool(plan, out, pending, numbering, total, gpus, per_gpu) -> list[Cell] | None:
+def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None) -> list[Cell] | None:
     """Cells on ``per_gpu`` worker processes per GPU (`cell_worker`), each taking the next pending cell when it is
     free; each cell writes its output to <out>/logs/<cell>.log. A worker that dies fails its cell and is replaced for
     the next. The failed cells, or None after Ctrl-C (every worker is interrupted; a cell's last checkpoint resumes
@@ -386,7 +395,8 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu) -> list[Cell] | N
 
     def start(gpu: str) -> subprocess.Popen:
         process = subprocess.Popen(worker_command(plan, out), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                   text=True, bufsize=1, env=worker_environment(gpu, len(gpus) * per_gpu))
+                                   text=True, bufsize=1, env=worker_environment(gpu, len(gpus) * per_gpu,
+                                                                          extra=environment))
         with lock:
             running.add(process)
         return process
