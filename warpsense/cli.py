@@ -116,8 +116,8 @@ def _study(args) -> int:
                  "gpus_per_cell": args.gpus_per_cell, "array_parallelism": args.array_parallelism,
                  "extra": args.slurm_option, "wait": args.wait}
         return run_study(args.plan, args.out, args.overrides, args.cell, args.plan_only, args.gpus, args.per_gpu,
-                         progress=args.progress, worker=args.worker, reuse=args.reuse, executor=args.executor,
-                         slurm=slurm)
+                         progress=args.progress, worker=args.worker, reuse=args.reuse, mps=args.mps,
+                         executor=args.executor, slurm=slurm)
     if args.study_command == "status":
         return status_study(args.study_dir)
     return report_study(args.study_dir, args.json, args.plot, args.split, args.resamples, args.block_frames)
@@ -251,7 +251,12 @@ def build_parser() -> argparse.ArgumentParser:
     study_run.add_argument("--gpus", default="auto",
                            help="GPUs of the local pool: auto (all torch sees), none (this process), or ids 0,1 "
                                 "(default: %(default)s)")
-    study_run.add_argument("--per-gpu", type=int, default=1, help="cells at once on each GPU (default: %(default)s)")
+    study_run.add_argument("--per-gpu", type=_count(1), default=1, metavar="N",
+                           help="cells at once on each GPU (default: %(default)s)")
+    study_run.add_argument("--mps", choices=("auto", "on", "off"), default="auto",
+                           help="run the pool's workers under a CUDA MPS daemon of the study's own, so that cells "
+                           "sharing a GPU run concurrently instead of time-sliced: auto (with --per-gpu > 1 where "
+                           "nvidia-cuda-mps-control is on the PATH), on, off (default: %(default)s)")
     study_run.add_argument("--progress", action="store_true", help="show each cell's progress bars")
     study_run.add_argument("--reuse", action="append", default=[], metavar="STUDY_DIR",
                            help="copy in another study's finished runs for the cells whose config they trained "

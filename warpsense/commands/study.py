@@ -23,23 +23,29 @@ def parse_gpus(text: str) -> list[str]:
 
 def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None = None, plan_only: bool = False,
               gpus: str = "auto", per_gpu: int = 1, progress: bool = False, worker: bool = False,
-              reuse: list[str] | None = None, executor: str = "local", slurm: dict | None = None) -> int:
+              reuse: list[str] | None = None, executor: str = "local", slurm: dict | None = None,
+              mps: str = "auto") -> int:
     """The `warpsense study run` command; returns the exit code. ``worker``: be one of the local pool's worker
     processes (`warpsense.study.runner.cell_worker`, cell ids on stdin). ``executor`` "slurm": submit the cells to
     Slurm (`warpsense.study.slurm.submit_study`) with ``slurm``, the keyword arguments of
     `warpsense.study.slurm.slurm_options` (None: not given)."""
+    from warpsense.study.mps import MPS_MODES
     from warpsense.study.plan import load_plan
     from warpsense.study.runner import cell_worker, plan_commands, run_cells
     from warpsense.study.slurm import slurm_options, submit_study
 
+    # every option is checked here, whichever path follows (worker, plan-only, one cell, pool, Slurm)
+    if per_gpu < 1:
+        raise ValueError(f"--per-gpu must be >= 1, got {per_gpu}")
+    if mps not in MPS_MODES:
+        raise ValueError(f"--mps must be one of {', '.join(MPS_MODES)}, got {mps!r}")
+    devices = parse_gpus(gpus)
     cluster = slurm_options(executor, **(slurm or {}))  # before the plan loads: nothing is read or written
     if cluster is not None and plan_only:
         raise ValueError("--plan-only prints the commands for a scheduler of your own: leave out --executor slurm")
     plan = load_plan(plan_name, overrides)
     if worker:
         return cell_worker(plan, Path(out))
-    if per_gpu < 1:
-        raise ValueError(f"--per-gpu must be >= 1, got {per_gpu}")
     if plan_only:
         print("\n".join(plan_commands(plan, Path(out))))
         return 0
@@ -48,9 +54,8 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         return submit_study(plan, Path(out), cluster, None if cell is None else [plan.cell(cell)], reuse_dirs)
     if cell is not None:
         return run_cells(plan, Path(out), [plan.cell(cell)], progress=progress, record=False, reuse=reuse_dirs)
-    devices = parse_gpus(gpus)
     code = run_cells(plan, Path(out), gpus=devices if len(devices) * per_gpu > 1 else None, per_gpu=per_gpu,
-                     progress=progress, sample_gpus=devices, reuse=reuse_dirs)
+                     progress=progress, sample_gpus=devices, reuse=reuse_dirs, mps=mps)
     if code == 0:
         print(f"study finished; report: warpsense study report {out}")
     return code
