@@ -265,9 +265,11 @@ def test_photon_stage_gradcheck_float64():
     (["photons.enabled=true", "noise.enabled=false"], "exposure.enabled = false"),
     (["photons.enabled=true", "noise.enabled=false", "exposure.enabled=false", "optics.enabled=true"],
      "normalize_mean = 0"),
-    (["optics.f_number_learnable=true", "optics.normalize_mean=0.0", "optics.f_number=9.0"], "inside"),
+    (["optics.f_number_learnable=true", "optics.normalize_mean=0.0", "optics.f_number=9.0"],
+     r"optics.f_number = 9.0 must lie within \[optics.f_number_min, optics.f_number_max\]"),
     (["optics.exposure_learnable=true"], "normalize_mean = 0"),
-    (["photons.gain_learnable=true"], "inside"),
+    (["photons.gain_learnable=true", "photons.analog_gain=100.0"],
+     r"photons.analog_gain = 100.0 must lie within \[1, photons.gain_max\]"),
     (["cfa.candidates=\"RGQ\""], "unknown filter letter 'Q'"),
     (["cfa.pattern=\"RYYB\""], "'Y', which is not a candidate"),
 ])

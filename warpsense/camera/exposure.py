@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -10,13 +12,19 @@ from warpsense.ops.exposure import exposure, exposure_gain
 
 
 class Exposure(Stage):
-    """Global gain a(g) = 0.25 + 3.75 sigmoid(g) in [0.25, 4]; owns the logit g."""
+    """Global gain a(g) = 0.25 + 3.75 sigmoid(g) in [0.25, 4]; owns the logit g.
+
+    a(g) reaches its bounds 0.25 and 4 at a large finite g (|g| >~ 20 in float32, where its gradient vanishes too);
+    an infinite g is refused, as an infinite parameter is non-finite from the first optimizer step on.
+    """
 
     config_section = "exposure"
     takes = gives = "rgb"
 
     def __init__(self, gain_logit: float = 0.0, learnable: bool = True):
         super().__init__()
+        if not math.isfinite(gain_logit):
+            raise ValueError(f"exposure.gain_logit must be finite, got {gain_logit}")
         self.gain_logit = nn.Parameter(torch.tensor(float(gain_logit)), requires_grad=learnable)
 
     @classmethod

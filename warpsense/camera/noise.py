@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -84,15 +86,16 @@ class NoisySensor(Stage):
 class SensorNoise(NoisySensor):
     """Poisson-Gaussian noise with shot (variance coefficient) and read (std) levels stated directly or from the
     full well (see `from_config`). Learnable levels are bounded to [0, 2x] their initial values:
-    level = 2 * init * sigmoid(p). Seeds and exact counts: `NoisySensor`.
+    level = 2 * init * sigmoid(p), started at p = 0, so a level starts in the middle of its bounds (a level of 0
+    stays 0, with a finite gradient). Seeds and exact counts: `NoisySensor`.
     """
 
     config_section = "noise"
 
     def __init__(self, shot: float = 0.015, read: float = 0.002, learnable: bool = False, eval_seed: int = 1234):
         super().__init__(eval_seed)
-        if not (shot >= 0 and read >= 0):
-            raise ValueError(f"noise levels must be >= 0, got shot={shot}, read={read}")
+        if not (0 <= shot < math.inf and 0 <= read < math.inf):
+            raise ValueError(f"noise.shot and noise.read must be finite and >= 0, got shot={shot}, read={read}")
         self.register_buffer("shot_init", torch.tensor(float(shot)))
         self.register_buffer("read_init", torch.tensor(float(read)))
         self.shot_logit = nn.Parameter(torch.tensor(0.0), requires_grad=learnable)

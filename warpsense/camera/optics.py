@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from warpsense.camera.bounds import log_bounded, log_bounded_parameter
+from warpsense.camera.bounds import check_log_bounds, log_bounded, log_bounded_parameter
 from warpsense.camera.stage import Stage
 from warpsense.ops.psf import psf_conv
 from warpsense.optics.lens import Lens, LensFileError, read_lens_spec
@@ -15,6 +15,8 @@ from warpsense.optics.psf_support import collapse_grid, crop_to_energy, display_
 
 REFERENCE_F_NUMBER, REFERENCE_EXPOSURE_MS = 2.0, 10.0
 """The throughput 1 of the photon budget (`warpsense.camera.photons`): f/2 for 10 ms."""
+BOUND_KEYS = {key: (f"optics.{key}_min", f"optics.{key}_max") for key in ("f_number", "exposure_ms")}
+"""The config keys of the bounds of a learned f-number and exposure time."""
 
 
 class Optics(Stage):
@@ -31,7 +33,8 @@ class Optics(Stage):
     Light: ``normalize_mean`` > 0 rescales each output image to that mean (section 4.4 of the paper; the photon count is
     then hidden). With ``normalize_mean`` = 0 the output is the radiance times the relative throughput
     (2 / F#)^2 * t / 10 ms: one stop (F# x sqrt 2) halves it, doubling t doubles it.
-    Learnable f-number and exposure time are bounded log-uniformly (`warpsense.camera.bounds`).
+    Learnable f-number and exposure time are bounded log-uniformly (`warpsense.camera.bounds`); a start on a bound
+    (f/1.4 with f_number_min = 1.4) is learned from just inside it.
     """
 
     config_section = "optics"
@@ -57,13 +60,15 @@ class Optics(Stage):
         self.stopped = f_number_learnable or f_number > 0  # rendered at another f-number than the file's
         start_f = f_number if f_number > 0 else lens.spec.f_number
         if f_number_learnable:
-            self.f_number_logit = log_bounded_parameter(start_f, *self.f_number_bounds)
+            self.f_number_logit = log_bounded_parameter(start_f, *self.f_number_bounds, key="optics.f_number",
+                                                        bound_keys=BOUND_KEYS["f_number"])
         else:
             # from the config, not learned: not in the state dict (checkpoints from before it existed still load)
             self.register_buffer("fixed_f_number", torch.tensor(float(start_f)), persistent=False)
         self.grid_f_number = self.f_number_bounds[0] if f_number_learnable else float(start_f)
         if exposure_learnable:
-            self.exposure_logit = log_bounded_parameter(exposure_ms, *self.exposure_bounds)
+            self.exposure_logit = log_bounded_parameter(exposure_ms, *self.exposure_bounds, key="optics.exposure_ms",
+                                                        bound_keys=BOUND_KEYS["exposure_ms"])
         else:
             self.register_buffer("fixed_exposure_ms", torch.tensor(float(exposure_ms)), persistent=False)
         longest = self.exposure_bounds[1] if exposure_learnable else exposure_ms
@@ -96,8 +101,8 @@ class Optics(Stage):
     @classmethod
     def check_section(cls, section, where: str) -> None:
         """The lens file must parse, even while optics is off: a saved config must run when it is turned on. A
-        learned f-number or exposure time starts inside its bounds and trades light, so it needs the photon count
-        (normalize_mean = 0)."""
+        learned f-number or exposure time starts within its bounds (a bound included: `warpsense.camera.bounds`)
+        and trades light, so it needs the photon count (normalize_mean = 0)."""
         try:
             spec = read_lens_spec(section.lens)
         except LensFileError as error:
@@ -106,10 +111,11 @@ class Optics(Stage):
         for key, learnable_key in (("f_number", "f_number_learnable"), ("exposure_ms", "exposure_learnable")):
             if not getattr(section, learnable_key):
                 continue
-            start, low, high = starts[key], getattr(section, f"{key}_min"), getattr(section, f"{key}_max")
-            if not low < start < high:
-                raise ValueError(f"{where}: optics.{key} = {start} must lie inside (optics.{key}_min, ..._max) = "
-                                 f"({low}, {high}) to be learned")
+            name = f"optics.{key}" if key != "f_number" or section.f_number else "optics.f_number (0: the lens file's)"
+            problem = check_log_bounds(name, starts[key], getattr(section, f"{key}_min"),
+                                       getattr(section, f"{key}_max"), BOUND_KEYS[key])
+            if problem:
+                raise ValueError(f"{where}: {problem} (optics.{learnable_key} = true)")
             if section.normalize_mean > 0:
                 raise ValueError(f"{where}: optics.{learnable_key} needs optics.normalize_mean = 0: rescaling each "
                                  "frame hides the light it trades")

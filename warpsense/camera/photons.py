@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import torch
 
-from warpsense.camera.bounds import log_bounded, log_bounded_parameter
+from warpsense.camera.bounds import check_log_bounds, log_bounded, log_bounded_parameter
 from warpsense.camera.noise import NoisySensor
 from warpsense.camera.stage import SensorArguments
 from warpsense.choices import LIGHT_LEVELS
@@ -43,19 +43,17 @@ def light_electrons(light: str, mid_grey_electrons: float = 0.0) -> float:
     return LIGHT_LEVELS[light]
 
 
-def gain_problem(analog_gain: float, gain_max: float, learnable: bool) -> str | None:
-    """Why an analog gain cannot start at ``analog_gain`` (a message naming the key), or None."""
-    if not 1 <= analog_gain <= gain_max:
-        return f"analog_gain must be in [1, gain_max = {gain_max}], got {analog_gain}"
-    if learnable and not 1 < analog_gain < gain_max:
-        return f"analog_gain must start inside (1, gain_max = {gain_max}) to be learned, got {analog_gain}"
-    return None
+def gain_problem(analog_gain: float, gain_max: float) -> str | None:
+    """Why an analog gain cannot start at ``analog_gain`` (a message naming the key), or None. A learned gain may
+    start on a bound (unity gain, the default, included): `warpsense.camera.bounds` starts it just inside."""
+    return check_log_bounds("photons.analog_gain", analog_gain, 1.0, gain_max, ("1", "photons.gain_max"))
 
 
 class PhotonBudget(NoisySensor):
     """Relative exposure [B, 1, H, W] (phi . L, after the CFA) -> noisy signal in ADC units; owns the analog gain.
 
-    Learnable gain: G = G_max ** sigmoid(p) in [1, G_max] (log-uniform), started at ``analog_gain``.
+    Learnable gain: G = G_max ** sigmoid(p) in [1, G_max] (log-uniform), started at ``analog_gain`` (a start on a
+    bound, unity gain included, just inside it: `warpsense.camera.bounds`). A fixed gain on a bound is exact.
     """
 
     config_section = "photons"
@@ -67,9 +65,6 @@ class PhotonBudget(NoisySensor):
         if not (mid_grey_electrons > 0 and pixel_pitch_um > 0 and quantum_efficiency > 0 and full_well_electrons > 0
                 and read_electrons >= 0):
             raise ValueError("photons: light, pitch, quantum efficiency and full well must be > 0, read noise >= 0")
-        problem = gain_problem(analog_gain, gain_max, gain_learnable)
-        if problem:
-            raise ValueError(f"photons: {problem}")
         super().__init__(eval_seed)
         # electrons per unit of relative exposure phi . L (a clear pixel on the mid-grey patch collects E_mid)
         self.electrons_per_unit = (mid_grey_electrons / (3 * MID_GREY) * (pixel_pitch_um / REFERENCE_PITCH_UM) ** 2
@@ -77,7 +72,8 @@ class PhotonBudget(NoisySensor):
         self.full_well = float(full_well_electrons)
         self.read_electrons = float(read_electrons)
         self.gain_max = float(gain_max)
-        self.gain_logit = log_bounded_parameter(analog_gain, 1.0, gain_max, learnable=gain_learnable)
+        self.gain_logit = log_bounded_parameter(analog_gain, 1.0, gain_max, learnable=gain_learnable,
+                                                key="photons.analog_gain", bound_keys=("1", "photons.gain_max"))
         if digital_gain <= 0:  # the mid-grey patch through a clear filter at the starting design -> 0.5
             digital_gain = 0.5 * self.full_well / (mid_grey_electrons * analog_gain)
         self.register_buffer("digital_gain", torch.tensor(float(digital_gain)))
@@ -91,9 +87,9 @@ class PhotonBudget(NoisySensor):
 
     @classmethod
     def check_section(cls, section, where: str) -> None:
-        problem = gain_problem(section.analog_gain, section.gain_max, section.gain_learnable)
+        problem = gain_problem(section.analog_gain, section.gain_max)
         if problem:
-            raise ValueError(f"{where}: photons.{problem}")
+            raise ValueError(f"{where}: {problem}")
 
     @classmethod
     def check_design(cls, config, where: str) -> None:

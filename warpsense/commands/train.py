@@ -6,7 +6,7 @@ import json
 import sys
 from pathlib import Path
 
-from warpsense.config import load_config, with_overrides
+from warpsense.config import ConfigError, load_config, with_overrides
 from warpsense.files import check_output_folder
 from warpsense.system.checkpoint import read_checkpoint, resume_state
 from warpsense.train.engine import TrainingInterrupted, train
@@ -43,6 +43,10 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
     if print_config:
         print(json.dumps(load_config(config_file, overrides).to_dict(), indent=2))
         return 0
+    if extend is not None and not (resume or resume_dir):
+        raise ValueError("--extend continues a run: give --resume or --resume-dir")
+    if extend is not None and extend < 1:
+        raise ValueError(f"--extend must be a number of epochs >= 1, got {extend}")
     if not (resume or resume_dir):
         config, run_dir = load_config(config_file, overrides), False
         check_output_folder(config.run.output_dir, "run.output_dir")
@@ -54,19 +58,23 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
         else:
             located = load_config(config_file, locating)
             run_dir = newest_run(located.run.output_dir, located.run.name)
-        if config_file is not None:
-            config = load_config(config_file, overrides)
-        else:
-            config = with_overrides(resumed_config(run_dir, None), changes) if changes else None
-    if extend is not None:
-        if not run_dir:
-            raise ValueError("--extend continues a run: give --resume or --resume-dir")
-        if extend < 1:
-            raise ValueError(f"--extend must be a number of epochs >= 1, got {extend}")
-        trained = trained_epochs(run_dir)
-        config = with_overrides(config or resumed_config(run_dir, None),
-                                [f"train.epochs={trained + extend}", "train.time_budget_minutes=0.0"])
-        allow_config_change = True
+        extended = []
+        if extend is not None:  # validated with the user's changes, as one config: a warm-up may need the new epochs
+            trained = trained_epochs(run_dir)
+            extended = [f"train.epochs={trained + extend}", "train.time_budget_minutes=0.0"]
+            allow_config_change = True
+        try:
+            if config_file is not None:
+                config = load_config(config_file, [*overrides, *extended])
+            else:
+                config = with_overrides(resumed_config(run_dir, None), [*changes, *extended]) \
+                    if changes or extended else None
+        except ConfigError as error:
+            if not extended or "train.epochs" not in str(error):
+                raise
+            # say where train.epochs came from: the user did not set it
+            raise ConfigError(f"{error} (--extend {extend}: train.epochs = {trained} trained + {extend})") from None
+    # train() checks the rest (a change of task, the stages' checks, the files the run needs) before it writes
     try:
         train(config, resume=run_dir, progress=progress, allow_config_change=allow_config_change)
     except TrainingInterrupted as interrupted:

@@ -15,6 +15,12 @@ METRICS = "metrics.jsonl"  # one JSON record per epoch
 LOCK = "train.lock"
 # keys a resumed run may change without asking: where the run is found and which device it runs on
 RELOCATABLE_KEYS = ("run.output_dir", "run.name", "run.device")
+# keys that make a run another task (what it trains and is judged on, its classes, its network's shape), refused for
+# a continued run even with --allow-config-change: its checkpoints, metrics and evaluation would mix two tasks. Every
+# "<section>.enabled" (a camera stage or the ISP turned on or off) counts too (`task_changes`).
+TASK_KEYS = ("data.dataset", "data.root", "data.train_split", "data.val_split", "data.holdout_prefix",
+             "data.holdout_sequence", "model.num_classes", "model.name", "model.width", "model.context",
+             "model.squeeze", "model.full_width", "model.full_depth", "model.decoder_join", "model.input", "cfa.tile")
 
 
 def fresh_run_dir(base: Path) -> Path:
@@ -60,9 +66,20 @@ def config_changes(saved: Config, requested: Config) -> list[str]:
             if key not in RELOCATABLE_KEYS and before.get(key) != after.get(key)]
 
 
+def is_task_key(key: str) -> bool:
+    """Whether changing ``key`` ("section.key") makes a run another task: `TASK_KEYS` and every "<section>.enabled"."""
+    return key in TASK_KEYS or key.endswith(".enabled")
+
+
+def task_changes(saved: Config, requested: Config) -> list[str]:
+    """The entries of `config_changes` whose key `is_task_key`."""
+    return [change for change in config_changes(saved, requested) if is_task_key(change.split(":", 1)[0])]
+
+
 def resumed_config(run_dir: Path, requested: Config | None, allow_change: bool = False) -> Config:
     """The config a resumed run trains with: its own config.json. A ``requested`` config that differs from it (other
-    than `RELOCATABLE_KEYS`) is refused with the differing keys named, unless ``allow_change``; then it is used."""
+    than `RELOCATABLE_KEYS`) is refused with the differing keys named, unless ``allow_change``; then it is used. A
+    change of task (`task_changes`) is refused either way: that is a new run. Reads only; writes nothing."""
     path = run_dir / "config.json"
     try:
         saved = config_from_dict(json.loads(path.read_text()), str(path))
@@ -73,6 +90,11 @@ def resumed_config(run_dir: Path, requested: Config | None, allow_change: bool =
     if requested is None:
         return saved
     changes = config_changes(saved, requested)
+    task = task_changes(saved, requested)
+    if task:
+        raise ConfigError(f"resuming {run_dir}: {'; '.join(task)} would make it another task (data, classes, network "
+                          "shape or camera stages), so it is not continued and nothing in it changed; train it as a "
+                          "new run (without --resume/--resume-dir)")
     if changes and not allow_change:
         raise ConfigError(f"resuming {run_dir} with a config that differs from the run's ({'; '.join(changes)}); "
                           "drop --config/--set to continue as it was, or pass --allow-config-change")
