@@ -275,3 +275,24 @@ def test_eval_help_does_not_ask_for_the_json_beside_the_checkpoint(capsys):
         main(["eval", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "with its .json beside it" not in text and "the .json beside it is a readable copy, not needed" in text
+
+
+@pytest.mark.parametrize("inherited,policy,spins", [(None, "PASSIVE", "0"), ("ACTIVE", "ACTIVE", "30000000000")])
+def test_commands_load_torch_with_openmp_threads_that_sleep_when_idle(inherited, policy, spins):
+    """Beside another CPU job the quickstart's training ran 14x slower: libgomp's idle threads spin at each barrier
+    (300000 turns when the policy is unset) and take the cores from those with work. A command's process loads
+    torch's OpenMP runtime with OMP_WAIT_POLICY=PASSIVE (no spinning) unless the caller set the policy.
+    OMP_DISPLAY_ENV=VERBOSE makes the runtime print what it read: its OMP_WAIT_POLICY line says PASSIVE when unset
+    too, its GOMP_SPINCOUNT line tells them apart."""
+    import os
+
+    environment = {key: value for key, value in os.environ.items() if key not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    environment["OMP_DISPLAY_ENV"] = "VERBOSE"
+    if inherited:
+        environment["OMP_WAIT_POLICY"] = inherited
+    result = subprocess.run([sys.executable, "-m", "warpsense", "eval", "--checkpoint", "missing.safetensors"],
+                            capture_output=True, text=True, timeout=120, env=environment)
+    assert result.returncode == 2 and "missing.safetensors" in result.stderr
+    if "GOMP_SPINCOUNT" not in result.stderr:
+        pytest.skip("torch's OpenMP runtime here is not libgomp (no GOMP_SPINCOUNT in its OMP_DISPLAY_ENV)")
+    assert f"OMP_WAIT_POLICY = '{policy}'" in result.stderr and f"GOMP_SPINCOUNT = '{spins}'" in result.stderr

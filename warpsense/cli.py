@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from warpsense import __version__
@@ -319,7 +320,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+CPU_THREAD_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
+"""Environment defaults for torch's OpenMP runtime that `main` sets before torch loads, where the caller has not set
+them: an OpenMP thread waiting for work sleeps instead of spinning. libgomp's default spins at every barrier, which
+takes the cores from the threads with work whenever another job shares them: beside another CPU job the quickstart's
+training ran 14x slower, and on a loaded 2-core machine 5-10x slower than with PASSIVE (tools/bench_threads.py,
+docs/benchmarks.md). OMP_WAIT_POLICY=ACTIVE in the environment keeps spinning on a machine of one's own."""
+
+
+def _cpu_thread_defaults() -> None:
+    """Set `CPU_THREAD_DEFAULTS` where the environment does not; child processes (a study's workers, torchrun's
+    ranks) inherit them."""
+    for key, value in CPU_THREAD_DEFAULTS.items():
+        os.environ.setdefault(key, value)
+
+
 def main(argv: list[str] | None = None) -> int:
+    _cpu_thread_defaults()  # before anything imports torch, which loads the OpenMP runtime that reads them once
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:

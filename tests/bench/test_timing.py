@@ -55,3 +55,20 @@ def test_feature_median_interval_order_statistics():
     assert timing.median_interval([float(v) for v in reversed(range(100))]) == (40.0, 59.0)
     assert timing.median_interval([3.0, 1.0, 2.0]) == (1.0, 3.0)
     assert timing.median_interval([5.0]) == (5.0, 5.0)
+
+
+def test_timings_whose_spread_exceeds_their_median_are_flagged_not_printed_as_results(capsys):
+    """Rows measured on a busy machine were printed as results: a timing whose IQR exceeds its median is flagged in
+    the record and on its line."""
+    from warpsense.bench.runner import Bench
+    from warpsense.bench.timing import UNSTABLE_NOTE, _summary
+
+    steady, busy = _summary([1.0, 1.1, 0.9, 1.0, 1.05]), _summary([1.0, 9.0, 0.8, 12.0, 1.1, 10.0])
+    assert steady["unstable"] is False and busy["unstable"] is True
+    assert busy["iqr_ms"] > busy["median_ms"]
+    bench = Bench("cpu", repeats=5)
+    bench.record("cfa_mosaic", "warp", "float32", (1, 3, 8, 8), "fwd", steady)
+    bench.record("cfa_mosaic", "warp", "float32", (1, 3, 8, 8), "bwd", busy)
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert UNSTABLE_NOTE not in lines[1] and lines[2].endswith(UNSTABLE_NOTE)
+    assert [row["unstable"] for row in bench.records] == [False, True]

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from warpsense.bench import BENCH_SUITES
-from warpsense.bench.timing import _summary, _sync, time_cuda_graph, time_function
+from warpsense.bench.timing import UNSTABLE_NOTE, _summary, _sync, is_unstable, time_cuda_graph, time_function
 from warpsense.files import environment, write_json
 from warpsense.ops import (
     cfa_mosaic,
@@ -71,6 +71,7 @@ class Bench:
     def record(self, kernel, method, dtype, shape, pass_name, timing, errors=None, bytes_moved=None, **extra):
         row = {"kernel": kernel, "method": method, "device": self.device, "dtype": dtype, "shape": list(shape),
                "pass": pass_name, "median_ms": timing["median_ms"], "iqr_ms": timing["iqr_ms"],
+               "unstable": is_unstable(timing["median_ms"], timing["iqr_ms"]),
                "max_abs_err": (errors or {}).get("max_abs_err"), "max_rel_err": (errors or {}).get("max_rel_err")}
         if bytes_moved is not None:
             row["bandwidth_gb_s"] = bytes_moved / (timing["median_ms"] * 1e-3) / 1e9
@@ -81,7 +82,8 @@ class Bench:
                   f"{'IQR ms':>9s} {'max rel err':>11s}", flush=True)
         error = f"{row['max_rel_err']:11.3g}" if row["max_rel_err"] is not None else f"{'-':>11s}"
         print(f"{kernel:>16s} {method:>12s} {dtype:>13s} {str(tuple(shape)):>22s} {pass_name:>7s} "
-              f"{timing['median_ms']:10.3f} {timing['iqr_ms']:9.3f} {error}", flush=True)
+              f"{timing['median_ms']:10.3f} {timing['iqr_ms']:9.3f} {error}"
+              + (f"  {UNSTABLE_NOTE}" if row["unstable"] else ""), flush=True)
 
     def case(self, kernel, method, shape, function, inputs64, bytes_fwd=None, bytes_bwd=None, precisions=("float32",),
              reference=None, compare=True):
@@ -143,6 +145,10 @@ def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = N
         if plot_out:
             plot_time_to_accuracy(records, plot_out)
         plot_out = None
+    unstable = [record for record in records if record.get("unstable")]
+    if unstable:
+        print(f"{len(unstable)} of {len(records)} rows UNSTABLE (their IQR exceeds their median; \"unstable\": true "
+              "in the JSON): rerun them on an idle machine before quoting them", flush=True)
     if json_out:
         write_json(json_out, {"metadata": metadata, "records": records})
     if plot_out:

@@ -16,8 +16,18 @@ def _sync(device) -> None:
 
 def _summary(samples_ms: list[float]) -> dict:
     quartiles = statistics.quantiles(samples_ms, n=4) if len(samples_ms) > 1 else [samples_ms[0]] * 3
-    return {"median_ms": statistics.median(samples_ms), "iqr_ms": quartiles[2] - quartiles[0],
-            "repeats": len(samples_ms)}
+    median, iqr = statistics.median(samples_ms), quartiles[2] - quartiles[0]
+    return {"median_ms": median, "iqr_ms": iqr, "repeats": len(samples_ms), "unstable": is_unstable(median, iqr)}
+
+
+def is_unstable(median_ms: float, iqr_ms: float) -> bool:
+    """Whether a timing's spread (its IQR) exceeds its median: the calls were not measuring the code alone (another
+    job on the cores, OpenMP threads waiting on each other, frequency changes), and the median is not a result."""
+    return iqr_ms > median_ms
+
+
+UNSTABLE_NOTE = "UNSTABLE: IQR > median, not a result (a busy machine?)"
+"""What a benchmark prints beside a row `is_unstable` flags."""
 
 
 def time_function(function, device, repeats: int = 20, warmup: int = 3) -> dict:

@@ -16,7 +16,7 @@ import time
 import torch
 from torch import nn
 
-from warpsense.bench.timing import _sync, time_cuda_graph, time_function
+from warpsense.bench.timing import UNSTABLE_NOTE, _sync, is_unstable, time_cuda_graph, time_function
 from warpsense.camera import Camera
 from warpsense.camera.camera import cached_cameras, set_finite_check
 from warpsense.config import load_config
@@ -192,9 +192,12 @@ def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
         if len(records) == 1:
             print(f"train-suite {'method':>15s} {'camera':>9s} {'loss':>6s} {'compile':>8s} {'graph':>5s} "
                   "img/s or median ms [IQR ms]", flush=True)
+        if "median_ms" in record:
+            record["unstable"] = is_unstable(record["median_ms"], record["iqr_ms"])
         figure = (f"{record['images_per_s']:8.1f} img/s" if "images_per_s" in record
                   else f"{record['median_ms']:8.3f} ms [{record['iqr_ms']:.3f}]" if "median_ms" in record
                   else f"failed: {record['error']}")
+        figure += f"  {UNSTABLE_NOTE}" if record.get("unstable") else ""
         print(f"train-suite {record['method']:>15s} {record['camera']:>9s} {record.get('loss', record.get('mode')):>6s}"
               f" {record.get('compile', ''):>8s} {'graph' if record.get('cuda_graph') else '':>5s} {figure}", flush=True)
 
