@@ -10,7 +10,8 @@ time, pinned to the same cores: what "another CPU job" does to each setting.
     python tools/bench_threads.py --settings default,passive --repeats 3 --json threads.json
 
 Settings (environment variables of the training process, read by torch's OpenMP runtime when it loads):
-    default   what the process inherits (warpsense's own defaults apply)
+    default   the OpenMP runtime's own (libgomp: idle threads spin 300000 turns at each barrier), as a Python
+              program that imports warpsense gets; the `warpsense` commands set PASSIVE (warpsense.cli)
     active    OMP_WAIT_POLICY=ACTIVE: idle OpenMP threads spin at barriers (libgomp's default spin time is long)
     passive   OMP_WAIT_POLICY=PASSIVE: idle OpenMP threads sleep at once
     one       OMP_NUM_THREADS=1: one intra-op thread
