@@ -310,10 +310,11 @@ def build_parser() -> argparse.ArgumentParser:
                               "%(default)s)")
     study.set_defaults(handler=_study)
 
-    lens = commands.add_parser("lens", help="a lens's energy outside its PSF kernel and pixel-integration error",
+    lens = commands.add_parser("lens", help="a lens's energy outside its PSF kernel and its sampling",
                                description="Report, per PSF grid node, the energy the lens's K x K kernel leaves out "
-                               "(renormalised into the core), the K a tolerance needs, and the pixel-integration "
-                               "error against 15 x 15 samples per pixel.")
+                               "(renormalised into the core) and the K a tolerance needs; whether its samples per "
+                               "pixel reach the Nyquist rate at which the pixel integration is exact; and how far "
+                               "its rendering moves at 15 samples per pixel (the pupil sampling's share).")
     lens.add_argument("lens", help="packaged lens name (configs/lenses/) or a lens JSON file")
     lens.add_argument("--json", action="store_true", help="print the report as JSON")
     lens.set_defaults(handler=_lens)
