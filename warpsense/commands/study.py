@@ -70,7 +70,8 @@ def status_study(study_dir: str) -> int:
 
 def report_study(study_dir: str, json_out: str | None = None, plot_out: str | None = None,
                  split: str | None = None, resamples: int = 2000, block_frames: int = 10) -> int:
-    """The `warpsense study report` command: console text, and the same record as JSON and a plot."""
+    """The `warpsense study report` command: console text, and the same record as JSON and a plot (with sweeps, and
+    the design map beside it: OUT_map.png for ``--plot OUT.png``)."""
     from warpsense.study.report import plot_study, render_text, study_record
 
     check_output_file(json_out, "--json")
@@ -84,4 +85,9 @@ def report_study(study_dir: str, json_out: str | None = None, plot_out: str | No
     if plot_out:
         plot_study(record, plot_out, split)
         print(f"wrote {plot_out}")
+        if record["maps"]:  # a plan with sweeps: the design map beside the plot
+            from warpsense.study.maps import map_path, plot_maps
+
+            if plot_maps(record, map_path(plot_out), split):
+                print(f"wrote {map_path(plot_out)}")
     return 0

@@ -24,6 +24,13 @@ A plan is a TOML file (see `configs/studies/`)::
     bits = 10                       # ADC bit depth
     cameras = []                    # the cameras studied at this level (default: all)
 
+    [[sweep]]                       # a grid of cameras: the Cartesian product of the values, one camera each
+    name = "grid"                   # the cameras' name prefix (and the sweep's name on the report's map)
+    preset = ""                     # as a camera's (optional)
+    set = []                        # overrides of every point (optional)
+    grid = { "optics.f_number" = [1.4, 2.0], "optics.exposure_ms" = [3.0, 30.0] }  # config key -> values
+    labels = { "optics.f_number" = "f", "optics.exposure_ms" = "t" }  # name labels (default: the key's last part)
+
     [[light]]                       # or, with the photon budget (photons.enabled): a scene light level
     name = "day"
     scene = "day"                   # photons.light: night | dusk | day
@@ -33,7 +40,10 @@ A plan is a TOML file (see `configs/studies/`)::
 Every cell (camera x light x seed, and x fold with ``folds = "sequence"``) is one ordinary training run; its config
 is the base, the camera's preset, the study's and the camera's overrides, the light's sensor keys, the fold's
 ``data.holdout_sequence``, the seed, then the command line's ``--set`` (whose ``study.KEY=VALUE`` entries change the
-plan's [study] table instead, e.g. ``--set study.folds=none``). Unknown keys, wrong types, duplicate or unknown names,
+plan's [study] table instead, e.g. ``--set study.folds=none``). A sweep's point is a camera like the others (crossed
+with lights, folds and seeds; the reference may be one), named ``<name>_<label><value>_...`` in the grid's key order
+(``grid_f1p4_t30``): camera names hold no '.', which separates a run directory's parts, so a value's decimal point
+is written ``p`` and a minus sign ``m``. Unknown keys, wrong types, duplicate or unknown names,
 folds that hold no frame, a dataset without sequence names and configs that do not resolve are one-line `PlanError`s
 naming the plan file and key, found before anything is written.
 """
@@ -60,6 +70,26 @@ class CameraSpec:
     name: str
     preset: str = ""
     set: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """A ``[[sweep]]`` table as the plan resolved it: the swept config keys (``parameters``, in the grid's order),
+    their name labels and values, and per grid point its camera's name and its value of each key (``points``)."""
+
+    name: str
+    preset: str = ""
+    set: tuple[str, ...] = ()
+    parameters: tuple[str, ...] = ()
+    labels: tuple[str, ...] = ()
+    values: tuple[tuple, ...] = ()
+    points: tuple[tuple[str, tuple], ...] = ()  # (camera, (value per parameter))
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "SweepSpec":
+        return cls(data["name"], data.get("preset", ""), tuple(data.get("set", ())), tuple(data["parameters"]),
+                   tuple(data["labels"]), tuple(tuple(v) for v in data["values"]),
+                   tuple((camera, tuple(values)) for camera, values in data["points"]))
 
 
 @dataclass(frozen=True)
@@ -128,6 +158,7 @@ class Plan:
     overrides: tuple[str, ...] = ()  # from the command line, applied last
     folds: str = "none"  # FOLDS
     sequences: tuple[str, ...] = ()  # the held-out sequences, one fold each (folds = "sequence")
+    sweeps: tuple[SweepSpec, ...] = ()  # where the cameras of [[sweep]] tables came from (they are in ``cameras``)
 
     def cells(self) -> list[Cell]:
         """Every cell, light by light, seed by seed, fold by fold, camera by camera (so a partial study has whole
@@ -154,7 +185,12 @@ class Plan:
         return load_config(files, overrides)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The plan as JSON-ready data; ``sweeps`` only where it has some (a study directory recorded before plans
+        had sweeps holds the same plan)."""
+        data = dataclasses.asdict(self)
+        if not self.sweeps:
+            del data["sweeps"]
+        return data
 
     @classmethod
     def from_dict(cls, data: dict) -> "Plan":
@@ -166,7 +202,8 @@ class Plan:
                    lights=tuple(LightSpec(x["name"], x.get("full_well_electrons"), x.get("read_electrons"),
                                           x["bits"], tuple(x["cameras"]), x.get("scene", ""),
                                           x.get("analog_gain"), tuple(x.get("set", ()))) for x in data["lights"]),
-                   overrides=tuple(data.get("overrides", ())))
+                   overrides=tuple(data.get("overrides", ())),
+                   sweeps=tuple(SweepSpec.from_dict(sweep) for sweep in data.get("sweeps", ())))
 
 
 STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str, "folds": str, "sequences": list}
@@ -192,6 +229,7 @@ def _study_overrides(study: dict, overrides, source: str) -> dict:
                 raise PlanError(f"{source}: {error}") from None
     return study
 CAMERA_KEYS = {"name": str, "preset": str, "set": list}
+SWEEP_KEYS = {"name": str, "preset": str, "set": list, "grid": dict, "labels": dict}
 LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons": (int, float), "bits": int,
               "cameras": list, "scene": str, "analog_gain": (int, float), "set": list}
 
@@ -226,15 +264,79 @@ def _float(value) -> float | None:
     return None if value is None else float(value)
 
 
-def _names(items: list, where: str) -> None:
+def _names(items: list, where: str, other: str = "") -> None:
     seen = set()
     for item in items:
         name = item["name"]
         if not name or "/" in name or "." in name or name != name.strip():
             raise PlanError(f"{where}.name: {name!r} must be a plain name (no '/', '.' or spaces at the ends)")
         if name in seen:
-            raise PlanError(f"{where}.name: duplicate name {name!r}")
+            raise PlanError(f"{where}.name: duplicate name {name!r}" + (f" (also {other})" if other else ""))
         seen.add(name)
+
+
+def _config_key(key: str, where: str) -> None:
+    """``key`` ("section.field") names a field of the config, else a PlanError at ``where``."""
+    section, _, name = key.partition(".")
+    part = getattr(Config(), section, None) if section in {f.name for f in dataclasses.fields(Config)} else None
+    if part is None or name not in {f.name for f in dataclasses.fields(part)}:
+        raise PlanError(f"{where}: {key!r} is not a config key (section.key, e.g. optics.f_number)")
+
+
+def value_label(value) -> str:
+    """A grid value as it appears in a camera name: "1.4" -> "1p4", -2 -> "m2", True -> "true"."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    text = f"{value:g}" if isinstance(value, float) else str(value)
+    return text.replace("+", "").replace("-", "m").replace(".", "p")
+
+
+def _flatten(grid: dict, prefix: str = "") -> dict:
+    """``{"optics": {"f_number": [...]}}`` (a [sweep.grid] sub-table) as ``{"optics.f_number": [...]}``."""
+    flat = {}
+    for key, value in grid.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _sweep(table: dict, where: str) -> SweepSpec:
+    """A checked ``[[sweep]]`` table with its points (the grid's Cartesian product, first key slowest)."""
+    import itertools
+
+    table = _table(table, SWEEP_KEYS, where, ("name", "grid"))
+    grid, labels = _flatten(table["grid"]), _flatten(table.get("labels", {}))
+    if not grid:
+        raise PlanError(f"{where}.grid: give at least one config key and its values")
+    for key, values in grid.items():
+        _config_key(key, f"{where}.grid.{key}")
+        if not isinstance(values, list) or not values:
+            raise PlanError(f"{where}.grid.{key}: expected a non-empty list of values, got {values!r}")
+        if not all(isinstance(v, (str, int, float, bool)) for v in values) or len(set(map(repr, values))) != len(values):
+            raise PlanError(f"{where}.grid.{key}: expected distinct numbers, strings or booleans, got {values!r}")
+    for key, label in labels.items():
+        if key not in grid:
+            raise PlanError(f"{where}.labels.{key}: not a key of the grid; keys: {', '.join(grid)}")
+        if not isinstance(label, str) or "/" in label or "." in label or label != label.strip():
+            raise PlanError(f"{where}.labels.{key}: expected a plain string (no '/', '.' or spaces), got {label!r}")
+    names = tuple(labels.get(key, key.rsplit(".", 1)[-1]) for key in grid)
+    points, seen = [], {}
+    for values in itertools.product(*grid.values()):
+        camera = "_".join([table["name"], *(f"{label}{value_label(v)}" for label, v in zip(names, values))])
+        if camera in seen:
+            raise PlanError(f"{where}.labels: points {seen[camera]!r} and {values!r} are both named {camera!r}; give "
+                            "the grid's keys distinct labels or its values distinct names")
+        seen[camera] = values
+        points.append((camera, tuple(values)))
+    return SweepSpec(table["name"], table.get("preset", ""), _strings(table.get("set", []), f"{where}.set"),
+                     tuple(grid), names, tuple(tuple(v) for v in grid.values()), tuple(points))
+
+
+def _point_overrides(sweep: SweepSpec, values: tuple) -> list[str]:
+    """A grid point's overrides: ``key=value`` per swept key (after the sweep's ``set``)."""
+    return [f"{key}={json.dumps(value)}" for key, value in zip(sweep.parameters, values)]
 
 
 def _locate(name_or_path: str | Path) -> Path:
@@ -256,8 +358,9 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
         hint = "" if path.is_file() else f"; shipped plans: {', '.join(study_names())}"
         raise PlanError(f"{error}{hint}") from None
     for key in data:
-        if key not in ("study", "camera", "light"):
-            raise PlanError(f"{source}: unknown table [{key}]; valid tables: [study], [[camera]], [[light]]")
+        if key not in ("study", "camera", "light", "sweep"):
+            raise PlanError(f"{source}: unknown table [{key}]; valid tables: [study], [[camera]], [[sweep]], "
+                            "[[light]]")
     study = data.get("study")
     if not isinstance(study, dict):
         raise PlanError(f"{source}: [study] table missing")
@@ -266,14 +369,22 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
         raise PlanError(f"{source}: study.folds: {study['folds']!r} is not a protocol; valid: {', '.join(FOLDS)}")
     if study.get("sequences") and study.get("folds", "none") != "sequence":
         raise PlanError(f"{source}: study.sequences: held-out sequences need folds = \"sequence\"")
-    cameras, lights = data.get("camera"), data.get("light")
-    if not isinstance(cameras, list) or not cameras:
-        raise PlanError(f"{source}: camera: at least one [[camera]] table is needed")
+    cameras, lights, sweep_tables = data.get("camera", []), data.get("light"), data.get("sweep", [])
+    if not isinstance(sweep_tables, list) or not all(isinstance(table, dict) for table in sweep_tables):
+        raise PlanError(f"{source}: sweep: expected [[sweep]] tables")
+    if not isinstance(cameras, list) or not all(isinstance(c, dict) for c in cameras) or not (cameras or sweep_tables):
+        raise PlanError(f"{source}: camera: at least one [[camera]] or [[sweep]] table is needed")
     if not isinstance(lights, list) or not lights:
         raise PlanError(f"{source}: light: at least one [[light]] table is needed")
     cameras = [_table(c, CAMERA_KEYS, f"{source}: camera[{i}]", ("name",)) for i, c in enumerate(cameras)]
     lights = [_table(x, LIGHT_KEYS, f"{source}: light[{i}]", ("name",)) for i, x in enumerate(lights)]
     _names(cameras, f"{source}: camera")
+    sweeps = [_sweep(table, f"{source}: sweep[{i}]") for i, table in enumerate(sweep_tables)]
+    _names([*cameras, *({"name": camera} for sweep in sweeps for camera, _ in sweep.points)], f"{source}: camera",
+           "a [[camera]] or another sweep's point")
+    _names([{"name": sweep.name} for sweep in sweeps], f"{source}: sweep")
+    cameras += [{"name": camera, "preset": sweep.preset, "set": [*sweep.set, *_point_overrides(sweep, values)]}
+                for sweep in sweeps for camera, values in sweep.points]
     _names(lights, f"{source}: light")
     seeds = study["seeds"]
     if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds) \
@@ -313,7 +424,7 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                                x.get("bits", 10), tuple(x.get("cameras", [])), x.get("scene", ""),
                                _float(x.get("analog_gain")),
                                _strings(x.get("set", []), f"{source}: light {x['name']}.set")) for x in lights),
-        overrides=tuple(overrides), folds=study.get("folds", "none"))
+        overrides=tuple(overrides), folds=study.get("folds", "none"), sweeps=tuple(sweeps))
     if plan.folds == "sequence":
         plan = dataclasses.replace(plan, sequences=_fold_sequences(plan, study.get("sequences", [])))
     checked_data = set()

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from warpsense.study.maps import design_maps, map_lines
 from warpsense.study.plan import Plan, PlanError
 from warpsense.study.runner import PLAN_RECORD, THROUGHPUT, evaluation_path, throughput_line
 from warpsense.study.statistics import (
@@ -199,7 +200,8 @@ def _check_scores(evaluation: dict, cell: str, path: Path) -> None:
 
 def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) -> dict:
     """Everything the report says, as JSON-ready data: the plan, each cell (its scores and learned camera, or
-    that it is missing), and per split the groups, comparisons and, with sequence folds, the per-sequence table.
+    that it is missing), and per split the groups, comparisons and, with sequence folds, the per-sequence table;
+    ``maps``: per sweep of the plan, light and split, the design map (`warpsense.study.maps.design_maps`).
     ``block``: frames per block of the clustered bootstrap."""
     if resamples < 1 or block < 1:
         raise ValueError(f"{'--resamples' if resamples < 1 else '--block-frames'} must be >= 1")
@@ -229,10 +231,11 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
     splits = list(dict.fromkeys(split for e in evaluations.values() for split in e["splits"]))
     throughput_path = study_dir / THROUGHPUT
     throughput = json.loads(throughput_path.read_text()) if throughput_path.is_file() else []
+    parts = {split: _split_record(plan, evaluations, run_s, split, resamples, block) for split in splits}
     return {"study": plan["name"], "directory": str(study_dir), "reference": plan["reference"], "level": LEVEL,
             "folds": plan.get("folds", "none"), "sequences": plan.get("sequences", []), "block_frames": block,
-            "plan": plan, "cells": cells, "missing": missing, "throughput": throughput,
-            "splits": {split: _split_record(plan, evaluations, run_s, split, resamples, block) for split in splits}}
+            "plan": plan, "cells": cells, "missing": missing, "throughput": throughput, "splits": parts,
+            "maps": design_maps(study_dir, plan, cells, parts)}
 
 
 def _interval(record: dict | None, signed: bool = False) -> str:
@@ -338,6 +341,7 @@ def render_text(record: dict) -> str:
                          f"{_sign_count(comparison['paired'], folds)}")
         lines += _per_sequence_lines(split, part, record["reference"])
         lines += _per_class_lines(split, part)
+    lines += map_lines(record.get("maps", []), level)
     if record.get("throughput"):
         lines.append("\nthroughput (each `study run`)")
         lines += [f"  {throughput_line(entry)}" for entry in record["throughput"]]

@@ -1,0 +1,330 @@
+"""The camera designer's map: per ``[[sweep]]`` of a study plan, light level and split, the score of every grid point
+(mean over (fold, seed) cells with the groups' interval, `warpsense.study.statistics.fold_interval`), the best point,
+and each learned design's path through the same parameters over its epochs, with its final score beside the grid's.
+
+A camera is drawn on a sweep's map when its config learns at least one of the swept keys (`LEARNED_KEYS`); a swept
+key it does not learn stays at its config value along the path. The path starts at the config's value and then
+follows the learned values each epoch's record of the run's metrics.jsonl holds (`Camera.summary`).
+
+`design_maps` builds the JSON-ready record (the report's ``maps``), `map_lines` its console text and `plot_maps` the
+figure (a curve for one swept key, a heatmap for two; grids of more keys are in the text and JSON only).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from warpsense.study.plan import Plan
+from warpsense.study.runner import run_dir
+from warpsense.train.run_dir import METRICS, read_metrics
+
+LEARNED_KEYS = {"optics.f_number": ("optics.f_number_learnable", "f_number"),
+                "optics.exposure_ms": ("optics.exposure_learnable", "exposure_ms"),
+                "photons.analog_gain": ("photons.gain_learnable", "analog_gain")}
+"""Swept config key -> (the config flag that makes it learnable, the key of its learned value in each epoch's
+metrics record)."""
+
+CONFIG = "config.json"
+"""A run directory's resolved config (`warpsense.config.Config.save`)."""
+
+
+def _lookup(config: dict, key: str):
+    section, _, name = key.partition(".")
+    return config.get(section, {}).get(name)
+
+
+def learned_parameters(config: dict, parameters) -> list[str]:
+    """The swept ``parameters`` a run's resolved ``config`` (a config.json) learns."""
+    return [key for key in parameters if key in LEARNED_KEYS and _lookup(config, LEARNED_KEYS[key][0]) is True]
+
+
+def trajectory(directory: Path, parameters, config: dict) -> dict | None:
+    """A learned run's path through ``parameters``: its start (the config's values) and each epoch's values.
+
+    Args:
+        directory: the run directory (its metrics.jsonl).
+        parameters: the sweep's keys.
+        config: the run's resolved config.
+
+    Returns:
+        {"epochs": [None (the start), 0, 1, ...], "path": [[value per parameter], ...]}, or None when a coordinate
+        is unknown (a fixed key that is not a number, or no epoch recorded yet).
+    """
+    learned = set(learned_parameters(config, parameters))
+    by_epoch = {}
+    for record in read_metrics(directory / METRICS):  # a resumed run may repeat an epoch: its last record counts
+        if "epoch" in record:
+            by_epoch[record["epoch"]] = record
+    if not by_epoch:
+        return None
+    epochs, path = [], []
+    for epoch, record in [(None, None), *sorted(by_epoch.items())]:
+        point = []
+        for key in parameters:
+            value = _lookup(config, key)
+            if key in learned and record is not None:
+                value = record.get(LEARNED_KEYS[key][1])
+            elif key in learned and not value:  # f_number 0: the lens file's, known from the first record
+                value = by_epoch[min(by_epoch)].get(LEARNED_KEYS[key][1])
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                return None
+            point.append(float(value))
+        epochs.append(epoch)
+        path.append(point)
+    return {"epochs": epochs, "path": path}
+
+
+def _read_config(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def _inside(interval: dict | None, value: float | None) -> bool | None:
+    if interval is None or interval["low"] is None or value is None:
+        return None
+    return bool(interval["low"] <= value <= interval["high"])
+
+
+def _cost(groups: list[dict]) -> dict:
+    """Runs and measured wall seconds (summed over the timed runs) of ``groups``."""
+    timed = [g for g in groups if g.get("run_s") is not None]
+    return {"runs": sum(g["cells"] for g in groups),
+            "run_s": float(sum(g["run_s"] * g["timed_runs"] for g in timed)) if timed else None}
+
+
+def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: dict) -> list[dict]:
+    """The report's ``maps``: one per sweep, light level and split with a scored grid point.
+
+    Args:
+        study_dir: the study directory (the learned runs' metrics.jsonl and config.json).
+        plan: the study's plan.json.
+        cells: the report's evaluated cells (`warpsense.study.report.study_record`'s ``cells``).
+        splits: the report's per-split records (their ``groups``: mean mIoU with its interval per camera and light).
+
+    Returns:
+        Per map: split, sweep, light, parameters (the swept keys), labels, values (per key), grid (per point: camera,
+        values, miou interval or None, cells), best (the grid point of highest mean), learned (per learned camera:
+        its learned keys, miou interval, difference to the best point's mean, whether its mean lies inside the best
+        point's interval (None without one), and per run its trajectory and final score) and cost (runs and
+        seconds of the grid and of each learned camera).
+    """
+    study_dir, plan_spec = Path(study_dir), Plan.from_dict(plan)
+    swept = {camera for sweep in plan_spec.sweeps for camera, _ in sweep.points}
+    finished = {cell["cell"]: cell for cell in cells}
+    configs: dict[str, dict | None] = {}  # per camera: the config of one of its finished runs
+    for cell in plan_spec.cells():
+        if cell.camera not in swept and cell.id in finished and configs.get(cell.camera) is None:
+            configs[cell.camera] = _read_config(run_dir(study_dir, cell) / CONFIG)
+    maps = []
+    for sweep in plan_spec.sweeps:
+        for light in plan_spec.lights:
+            for split, part in splits.items():
+                groups = {g["camera"]: g for g in part["groups"] if g["light"] == light.name}
+                grid = [{"camera": camera, "values": list(values),
+                         "miou": groups[camera]["miou"] if camera in groups else None,
+                         "cells": groups[camera]["cells"] if camera in groups else 0}
+                        for camera, values in sweep.points]
+                scored = [point for point in grid if point["miou"] is not None]
+                if not scored:
+                    continue
+                best = max(scored, key=lambda point: point["miou"]["mean"])
+                learned = []
+                for camera in plan_spec.cameras:
+                    config = configs.get(camera.name)
+                    keys = learned_parameters(config, sweep.parameters) if config else []
+                    if camera.name in swept or not keys or camera.name not in groups:
+                        continue
+                    runs = []
+                    for cell in plan_spec.cells():
+                        if cell.camera != camera.name or cell.light != light.name or cell.id not in finished:
+                            continue
+                        directory = run_dir(study_dir, cell)
+                        path = trajectory(directory, sweep.parameters, _read_config(directory / CONFIG) or config)
+                        if path is not None:
+                            runs.append({"cell": cell.id, "fold": cell.fold, "seed": cell.seed,
+                                         "miou": finished[cell.id]["miou"].get(split), **path})
+                    score = groups[camera.name]["miou"]
+                    learned.append({"camera": camera.name, "learns": keys, "miou": score,
+                                    "difference_to_best": score["mean"] - best["miou"]["mean"],
+                                    "inside_best_interval": _inside(best["miou"], score["mean"]), "runs": runs,
+                                    "cost": _cost([groups[camera.name]])})
+                maps.append({"split": split, "sweep": sweep.name, "light": light.name,
+                             "parameters": list(sweep.parameters), "labels": list(sweep.labels),
+                             "values": [list(v) for v in sweep.values], "grid": grid,
+                             "best": {"camera": best["camera"], "values": best["values"], "miou": best["miou"]},
+                             "learned": learned,
+                             "cost": {"points": len(grid), **_cost([groups[p["camera"]] for p in scored])}})
+    return maps
+
+
+def _score(interval: dict | None) -> str:
+    if interval is None:
+        return "-"
+    if interval["low"] is None:
+        return f"{interval['mean']:.4f} [n=1]"
+    return f"{interval['mean']:.4f} [{interval['low']:.4f}, {interval['high']:.4f}]"
+
+
+def _point(parameters, values) -> str:
+    return ", ".join(f"{key} {value:g}" if isinstance(value, float) else f"{key} {value}"
+                     for key, value in zip(parameters, values))
+
+
+def _seconds(cost: dict) -> str:
+    return "" if cost["run_s"] is None else f", {cost['run_s']:.0f} s"
+
+
+def map_lines(maps: list[dict], level: str = "95%") -> list[str]:
+    """The console text of the report's ``maps``: the grid (a table for two keys), the best point, each learned
+    design's path (start -> end per run) and score beside the best point's, and what each cost."""
+    lines = []
+    for entry in maps:
+        parameters, grid = entry["parameters"], entry["grid"]
+        lines.append(f"\n[{entry['split']}] map of sweep {entry['sweep']!r} at {entry['light']}: mIoU mean over "
+                     f"(fold, seed) [{level} interval] per point of {' x '.join(parameters)}; * the best")
+        cells = {tuple(map(repr, p["values"])): ("*" if p["camera"] == entry["best"]["camera"] else "") +
+                 _score(p["miou"]) for p in grid}
+        if len(parameters) == 2:
+            rows, columns = entry["values"]
+            heads = [f"{entry['labels'][1]}{c:g}" if isinstance(c, float) else f"{entry['labels'][1]}{c}"
+                     for c in columns]
+            names = [f"{entry['labels'][0]}{r:g}" if isinstance(r, float) else f"{entry['labels'][0]}{r}" for r in rows]
+            table = [[cells[(repr(r), repr(c))] for c in columns] for r in rows]
+            widths = [max(len(h), *(len(row[i]) for row in table)) for i, h in enumerate(heads)]
+            name_width = max(len(n) for n in names)
+            lines.append(f"  {'':<{name_width}s}  " + "  ".join(f"{h:>{w}s}" for h, w in zip(heads, widths)))
+            lines += [f"  {n:<{name_width}s}  " + "  ".join(f"{c:>{w}s}" for c, w in zip(row, widths))
+                      for n, row in zip(names, table)]
+        else:
+            width = max(len(p["camera"]) for p in grid)
+            lines += [f"  {p['camera']:<{width}s}  {_point(parameters, p['values'])}: "
+                      f"{cells[tuple(map(repr, p['values']))]}" for p in grid]
+        best = entry["best"]
+        lines.append(f"  best: {best['camera']} ({_point(parameters, best['values'])}): {_score(best['miou'])}")
+        for learned in entry["learned"]:
+            inside = {True: "inside", False: "outside", None: "not comparable with"}[learned["inside_best_interval"]]
+            lines.append(f"  learned {learned['camera']} (learns {', '.join(learned['learns'])}): "
+                         f"{_score(learned['miou'])}, {learned['difference_to_best']:+.4f} to the best; {inside} the "
+                         "best point's interval")
+            for run in learned["runs"]:
+                moves = ", ".join(f"{key} {start:.3g} -> {end:.3g}" for key, start, end in
+                                  zip(parameters, run["path"][0], run["path"][-1]))
+                score = "-" if run["miou"] is None else f"{run['miou']:.4f}"
+                lines.append(f"    {run['cell']}: {moves} ({len(run['path']) - 1} epochs); mIoU {score}")
+        cost = entry["cost"]
+        learned_cost = "; ".join(f"{x['camera']} {x['cost']['runs']} runs{_seconds(x['cost'])}"
+                                 for x in entry["learned"])
+        lines.append(f"  cost: grid {cost['points']} points, {cost['runs']} runs{_seconds(cost)}"
+                     + (f"; learned {learned_cost}" if learned_cost else ""))
+    return lines
+
+
+def _positions(values: list):
+    """A function from a parameter's value to its position on the map's axis (grid point i at i), interpolated
+    between grid points on a log scale where every value is positive (linearly otherwise) and extrapolated past
+    the ends; None where the values are not numbers (no path can be placed)."""
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+        return None
+    log = all(v > 0 for v in values)
+    scale = (lambda v: math.log(v)) if log else float
+    points = sorted((scale(v), i) for i, v in enumerate(values))
+
+    def position(value: float) -> float:
+        if len(points) == 1 or (log and value <= 0):
+            return float(points[0][1])
+        x = scale(value)
+        k = next((k for k in range(1, len(points) - 1) if x < points[k][0]), len(points) - 1)
+        (x0, i0), (x1, i1) = points[k - 1], points[k]
+        return i0 + (x - x0) / (x1 - x0) * (i1 - i0)
+
+    return position
+
+
+def _tick(label: str, value) -> str:
+    return f"{label}{value:g}" if isinstance(value, float) else f"{label}{value}"
+
+
+def plot_maps(record: dict, path: str | Path, split: str | None = None) -> bool:
+    """Draw the maps of ``split`` (default: the first split with one): per sweep and light, a heatmap (two swept
+    keys) or a curve (one) of mean mIoU with its interval per grid point, the best point outlined, and each learned
+    run's path from start (o) to end (*). Returns False (nothing written) where no map has one or two keys."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    maps = [m for m in record.get("maps", []) if len(m["parameters"]) in (1, 2)]
+    split = split if split is not None else (maps[0]["split"] if maps else None)
+    maps = [m for m in maps if m["split"] == split]
+    if not maps:
+        return False
+    figure, axes = plt.subplots(1, len(maps), figsize=(6.5 * len(maps), 5.5), squeeze=False)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for axis, entry in zip(axes[0], maps):
+        values, labels, grid = entry["values"], entry["labels"], entry["grid"]
+        places = [_positions(v) for v in values]
+        best = entry["best"]["camera"]
+        if len(values) == 2:
+            means = np.full((len(values[1]), len(values[0])), np.nan)
+            scores = [p["miou"]["mean"] for p in grid if p["miou"] is not None]
+            middle = (min(scores) + max(scores)) / 2
+            for point in grid:
+                i, j = values[0].index(point["values"][0]), values[1].index(point["values"][1])
+                if point["miou"] is not None:
+                    means[j, i] = point["miou"]["mean"]
+                    low, high = point["miou"]["low"], point["miou"]["high"]
+                    text = f"{point['miou']['mean']:.3f}" + ("" if low is None else f"\n[{low:.3f}, {high:.3f}]")
+                    axis.text(i, j, text, ha="center", va="center", fontsize=7,  # dark text on viridis' bright half
+                              color="black" if point["miou"]["mean"] > middle else "white")
+                if point["camera"] == best:
+                    axis.add_patch(plt.Rectangle((i - 0.5, j - 0.5), 1, 1, fill=False, edgecolor="red", linewidth=2.5))
+            image = axis.imshow(means, origin="lower", cmap="viridis", aspect="auto")
+            figure.colorbar(image, ax=axis, label=f"{entry['split']} mIoU (mean over (fold, seed))")
+            axis.set_xticks(range(len(values[0])), [_tick(labels[0], v) for v in values[0]])
+            axis.set_yticks(range(len(values[1])), [_tick(labels[1], v) for v in values[1]])
+            axis.set_ylabel(entry["parameters"][1])
+        else:
+            for i, point in enumerate(grid):
+                if point["miou"] is None:
+                    continue
+                miou = point["miou"]
+                error = None if miou["low"] is None else [[miou["mean"] - miou["low"]], [miou["high"] - miou["mean"]]]
+                axis.errorbar(i, miou["mean"], yerr=error, fmt="s", capsize=4,
+                              color="red" if point["camera"] == best else "tab:blue")
+            axis.set_xticks(range(len(values[0])), [_tick(labels[0], v) for v in values[0]])
+            axis.set_ylabel(f"{entry['split']} mIoU (mean over (fold, seed), interval)")
+            axis.grid(alpha=0.3)
+        axis.set_xlabel(entry["parameters"][0])
+        for n, learned in enumerate(entry["learned"]):
+            colour = colours[n % len(colours)]
+            inside = {True: "inside", False: "outside", None: "n/a"}[learned["inside_best_interval"]]
+            label = f"{learned['camera']}: {learned['miou']['mean']:.3f} ({inside} best's interval)"
+            for k, run in enumerate(learned["runs"]):
+                if any(place is None for place in places):
+                    continue
+                xs = [places[0](p[0]) for p in run["path"]]
+                ys = [places[1](p[1]) for p in run["path"]] if len(values) == 2 else [learned["miou"]["mean"]] * len(xs)
+                axis.plot(xs, ys, "-", color=colour, linewidth=1.5, label=label if k == 0 else None)
+                axis.plot(xs[0], ys[0], "o", color=colour, markerfacecolor="none", markersize=8)
+                axis.plot(xs[-1], ys[-1], "*", color=colour, markersize=13, markeredgecolor="black")
+        if entry["learned"]:
+            axis.legend(fontsize=7, loc="best")
+        axis.set_title(f"{entry['sweep']} at {entry['light']} ({entry['split']}): best {best} "
+                       f"{entry['best']['miou']['mean']:.3f}", fontsize=9)
+    figure.suptitle(f"study {record['study']}: design map (o start, * end of each learned run)", fontsize=10)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return True
+
+
+def map_path(plot_path: str | Path) -> Path:
+    """Where ``--plot OUT.png`` puts the map: OUT_map.png."""
+    plot_path = Path(plot_path)
+    return plot_path.with_name(f"{plot_path.stem}_map{plot_path.suffix or '.png'}")
