@@ -14,7 +14,6 @@ from warpsense.data.datasets import KITTI360, CamVid, Cityscapes
 from warpsense.data.scenes import StreetScenes
 from warpsense.resources import CONFIG_DIR
 from warpsense.study import load_plan, render_text, run_cells, study_record
-from warpsense.study.plan import PlanError
 from warpsense.train import engine
 
 FAST = ["train.epochs=2", "data.scenes_train=8", "data.scenes_val=8", "train.eval_every=2", "study.folds=sequence",
