@@ -138,12 +138,12 @@ def test_status_reads_the_directory_and_the_queue(tmp_path, monkeypatch, capsys)
     assert lines[0] == f"study smoke: 6 cells in {out} (Slurm job 7)"
     rows = {line.split()[0]: line.split(None, 2)[1:] for line in lines[1:7]}
     assert rows[done.id] == ["done", "val mIoU 0.2500"]
-    assert rows[running.id] == ["running", "job 7_1, epoch 2 of 20"]
+    assert rows[running.id] == ["running", f"job 7_1, epoch 2 of {EPOCHS}"]
     assert rows[queued.id] == ["pending", "job 7_2 pending (Resources)"]
-    assert rows[failed.id][0] == "failed" and "job 7_3 ended, stopped at epoch 2 of 20" in rows[failed.id][1]
+    assert rows[failed.id][0] == "failed" and f"job 7_3 ended, stopped at epoch 2 of {EPOCHS}" in rows[failed.id][1]
     assert "CANCELLED" in rows[failed.id][1]
     assert rows[fresh.id] == ["pending", "not submitted"]
-    assert rows[partial.id] == ["pending", "not submitted, checkpoint at epoch 2 of 20"]
+    assert rows[partial.id] == ["pending", f"not submitted, checkpoint at epoch 2 of {EPOCHS}"]
     assert lines[7] == "6 cells: 1 done, 1 running, 3 pending, 1 failed"
     assert_clean_failure(capsys, ["study", "status", str(tmp_path / "nowhere")], ("no such study directory",))
 
