@@ -345,6 +345,17 @@ def read_toml(path: Path, label: str) -> dict:
         raise ConfigError(f"{label}: not UTF-8 text") from None
 
 
+def flatten_keys(data: dict, prefix: str = "") -> dict:
+    """Nested tables as dotted keys: ``{"optics": {"f_number": 2}}`` -> ``{"optics.f_number": 2}``."""
+    flat = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            flat.update(flatten_keys(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
 def parse_override(text: str) -> dict:
     """Turn ``section.key=value`` into ``{section: {key: value}}``; value is read as TOML, else as a string."""
     if "=" not in text or "." not in text.split("=", 1)[0]:

@@ -20,6 +20,7 @@ import numpy as np
 
 from warpsense.study.plan import Plan
 from warpsense.study.runner import run_dir
+from warpsense.study.statistics import interval_text
 from warpsense.train.run_dir import METRICS, read_metrics
 
 LEARNED_KEYS = {"optics.f_number": ("optics.f_number_learnable", "f_number"),
@@ -163,14 +164,6 @@ def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: di
     return maps
 
 
-def _score(interval: dict | None) -> str:
-    if interval is None:
-        return "-"
-    if interval["low"] is None:
-        return f"{interval['mean']:.4f} [n=1]"
-    return f"{interval['mean']:.4f} [{interval['low']:.4f}, {interval['high']:.4f}]"
-
-
 def _point(parameters, values) -> str:
     return ", ".join(f"{key} {value:g}" if isinstance(value, float) else f"{key} {value}"
                      for key, value in zip(parameters, values))
@@ -189,7 +182,7 @@ def map_lines(maps: list[dict], level: str = "95%") -> list[str]:
         lines.append(f"\n[{entry['split']}] map of sweep {entry['sweep']!r} at {entry['light']}: mIoU mean over "
                      f"(fold, seed) [{level} interval] per point of {' x '.join(parameters)}; * the best")
         cells = {tuple(map(repr, p["values"])): ("*" if p["camera"] == entry["best"]["camera"] else "") +
-                 _score(p["miou"]) for p in grid}
+                 interval_text(p["miou"]) for p in grid}
         if len(parameters) == 2:
             rows, columns = entry["values"]
             heads = [f"{entry['labels'][1]}{c:g}" if isinstance(c, float) else f"{entry['labels'][1]}{c}"
@@ -206,11 +199,11 @@ def map_lines(maps: list[dict], level: str = "95%") -> list[str]:
             lines += [f"  {p['camera']:<{width}s}  {_point(parameters, p['values'])}: "
                       f"{cells[tuple(map(repr, p['values']))]}" for p in grid]
         best = entry["best"]
-        lines.append(f"  best: {best['camera']} ({_point(parameters, best['values'])}): {_score(best['miou'])}")
+        lines.append(f"  best: {best['camera']} ({_point(parameters, best['values'])}): {interval_text(best['miou'])}")
         for learned in entry["learned"]:
             inside = {True: "inside", False: "outside", None: "not comparable with"}[learned["inside_best_interval"]]
             lines.append(f"  learned {learned['camera']} (learns {', '.join(learned['learns'])}): "
-                         f"{_score(learned['miou'])}, {learned['difference_to_best']:+.4f} to the best; {inside} the "
+                         f"{interval_text(learned['miou'])}, {learned['difference_to_best']:+.4f} to the best; {inside} the "
                          "best point's interval")
             for run in learned["runs"]:
                 moves = ", ".join(f"{key} {start:.3g} -> {end:.3g}" for key, start, end in

@@ -56,7 +56,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from warpsense.choices import LIGHT_LEVELS
-from warpsense.config import Config, ConfigError, load_config, parse_override, read_toml
+from warpsense.config import Config, ConfigError, flatten_keys, load_config, parse_override, read_toml
 from warpsense.data import DatasetError, build_dataset, sequence_names
 from warpsense.resources import CONFIG_DIR
 
@@ -291,23 +291,12 @@ def value_label(value) -> str:
     return text.replace("+", "").replace("-", "m").replace(".", "p")
 
 
-def _flatten(grid: dict, prefix: str = "") -> dict:
-    """``{"optics": {"f_number": [...]}}`` (a [sweep.grid] sub-table) as ``{"optics.f_number": [...]}``."""
-    flat = {}
-    for key, value in grid.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
-
-
 def _sweep(table: dict, where: str) -> SweepSpec:
     """A checked ``[[sweep]]`` table with its points (the grid's Cartesian product, first key slowest)."""
     import itertools
 
     table = _table(table, SWEEP_KEYS, where, ("name", "grid"))
-    grid, labels = _flatten(table["grid"]), _flatten(table.get("labels", {}))
+    grid, labels = flatten_keys(table["grid"]), flatten_keys(table.get("labels", {}))
     if not grid:
         raise PlanError(f"{where}.grid: give at least one config key and its values")
     for key, values in grid.items():

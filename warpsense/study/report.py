@@ -20,6 +20,7 @@ from warpsense.study.statistics import (
     block_bootstrap_difference,
     distinguishable,
     fold_interval,
+    interval_text,
     paired_difference,
     t_interval,
 )
@@ -238,15 +239,6 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
             "maps": design_maps(study_dir, plan, cells, parts)}
 
 
-def _interval(record: dict | None, signed: bool = False) -> str:
-    if record is None:
-        return "-"
-    sign = "+" if signed else ""
-    if record["low"] is None:
-        return f"{record['mean']:{sign}.4f} [n=1, no interval]"
-    return f"{record['mean']:{sign}.4f} [{record['low']:{sign}.4f}, {record['high']:{sign}.4f}]"
-
-
 def _learned(camera: dict) -> str:
     parts = []
     if "cfa_layout" in camera:
@@ -288,7 +280,7 @@ def _per_sequence_lines(split: str, part: dict, reference: str) -> list[str]:
     if not rows:
         return []
     cameras = list(dict.fromkeys(camera for row in rows for camera in row["cameras"]))
-    cells = [[(f"{_interval(row['cameras'][c]['miou'])}" + ("" if row["cameras"][c]["difference"] is None else
+    cells = [[(f"{interval_text(row['cameras'][c]['miou'])}" + ("" if row["cameras"][c]["difference"] is None else
               f" {row['cameras'][c]['difference']:+.4f}")) if c in row["cameras"] else "-" for c in cameras]
              for row in rows]
     heads = [f"{row['light']}/{row['sequence']}" for row in rows]
@@ -326,7 +318,7 @@ def render_text(record: dict) -> str:
                 "" if group["timed_runs"] == group.get("cells", len(group["seeds"])) else
                 f" ({group['timed_runs']} timed)")
             where = f"folds {','.join(group['folds'])} x " if group.get("folds") else ""
-            lines.append(f"  {group['light']:>8s}  {group['camera']:<{width}s}  {_interval(group['miou'])}  "
+            lines.append(f"  {group['light']:>8s}  {group['camera']:<{width}s}  {interval_text(group['miou'])}  "
                          f"{where}seeds {','.join(map(str, group['seeds']))}{seconds}")
         if part["comparisons"]:
             block = record.get("block_frames")
@@ -337,7 +329,7 @@ def render_text(record: dict) -> str:
             bootstrap = comparison["bootstrap"]
             boot = f"[{bootstrap['low']:+.4f}, {bootstrap['high']:+.4f}]" if bootstrap else "-"
             lines.append(f"  {comparison['light']:>8s}  {comparison['camera']:<{width}s}  "
-                         f"{_interval(comparison['paired'], signed=True)} | {boot}  {comparison['verdict']}"
+                         f"{interval_text(comparison['paired'], signed=True)} | {boot}  {comparison['verdict']}"
                          f"{_sign_count(comparison['paired'], folds)}")
         lines += _per_sequence_lines(split, part, record["reference"])
         lines += _per_class_lines(split, part)

@@ -40,6 +40,16 @@ def paired_difference(values: dict, reference: dict, level: float = LEVEL) -> di
             "higher": sum(d > 0 for d in differences), "lower": sum(d < 0 for d in differences)}
 
 
+def interval_text(record: dict | None, signed: bool = False) -> str:
+    """"mean [low, high]" to 4 decimals ("+" signs with ``signed``; "-" for no record; "[n=1, no interval]")."""
+    if record is None:
+        return "-"
+    sign = "+" if signed else ""
+    if record["low"] is None:
+        return f"{record['mean']:{sign}.4f} [n=1, no interval]"
+    return f"{record['mean']:{sign}.4f} [{record['low']:{sign}.4f}, {record['high']:{sign}.4f}]"
+
+
 def distinguishable(interval: dict) -> bool | None:
     """Whether an interval excludes 0 (None when it is unknown)."""
     if interval["low"] is None:

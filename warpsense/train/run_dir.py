@@ -8,7 +8,7 @@ import os
 import re
 from pathlib import Path
 
-from warpsense.config import Config, ConfigError, config_from_dict
+from warpsense.config import Config, ConfigError, config_from_dict, flatten_keys
 
 LAST = "checkpoint_last.safetensors"
 METRICS = "metrics.jsonl"  # one JSON record per epoch
@@ -49,19 +49,9 @@ def newest_run(output_dir: str | Path, name: str) -> Path:
     return max(runs)[1]
 
 
-def _flatten(data: dict, prefix: str = "") -> dict:
-    flat = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
-
-
 def config_changes(saved: Config, requested: Config) -> list[str]:
     """``section.key: saved -> requested`` for every key that differs, relocatable keys left out."""
-    before, after = _flatten(saved.to_dict()), _flatten(requested.to_dict())
+    before, after = flatten_keys(saved.to_dict()), flatten_keys(requested.to_dict())
     return [f"{key}: {before.get(key)!r} -> {after.get(key)!r}" for key in sorted(set(before) | set(after))
             if key not in RELOCATABLE_KEYS and before.get(key) != after.get(key)]
 
