@@ -307,8 +307,10 @@ class Camera(nn.Module):
     def forward(self, radiance: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance [B, 3, H, W] -> RAW [B, 1, H, W]; ``image_index`` [B] (dataset indices) keys the eval noise."""
         # one reduction and one host read: a NaN or inf anywhere makes the sum non-finite (a sum that overflows
-        # from finite values is counted exactly and passes)
-        if self.check_finite and not _tracing(radiance) and not math.isfinite(float(radiance.sum(dtype=torch.float64))):
+        # from finite values is counted exactly and passes); detached, since reading a graph-carrying tensor as a
+        # number makes torch warn, and gradients with respect to the scene are a normal use
+        if (self.check_finite and not _tracing(radiance)
+                and not math.isfinite(float(radiance.detach().sum(dtype=torch.float64)))):
             bad = int((~torch.isfinite(radiance)).sum())
             if bad:
                 raise ValueError(f"camera: radiance has {bad} non-finite values (NaN or inf) of {radiance.numel()}; "
