@@ -375,18 +375,20 @@ def plot_study(record: dict, path: str | Path, split: str | None = None) -> None
         score_axis.grid(axis="x", alpha=0.3)
         comparisons = [c for c in part["comparisons"] if c["light"] == light]
         if comparisons:
-            deltas = np.array([[np.nan if c["per_class_delta"][k] is None else c["per_class_delta"][k]
-                                for k in classes] for c in comparisons])
-            limit = max(np.nanmax(np.abs(deltas)) if np.isfinite(deltas).any() else 0.01, 0.01)
+            deltas = 100 * np.array([[np.nan if c["per_class_delta"][k] is None else c["per_class_delta"][k]
+                                      for k in classes] for c in comparisons])  # IoU points, as the labels
+            limit = max(np.nanmax(np.abs(deltas)) if np.isfinite(deltas).any() else 1.0, 1.0)
             image = delta_axis.imshow(deltas, cmap="RdBu", vmin=-limit, vmax=limit, aspect="auto")
             for i in range(deltas.shape[0]):
                 for j in range(deltas.shape[1]):
-                    if np.isfinite(deltas[i, j]):
-                        delta_axis.text(j, i, f"{deltas[i, j] * 100:+.1f}", ha="center", va="center", fontsize=7)
+                    if np.isfinite(deltas[i, j]):  # white text on the dark ends of the colour map
+                        colour = "white" if abs(deltas[i, j]) > 0.6 * limit else "black"
+                        delta_axis.text(j, i, f"{deltas[i, j]:+.1f}", ha="center", va="center", fontsize=7,
+                                        color=colour)
             delta_axis.set_yticks(range(len(comparisons)),
                                   [f"{c['camera']} ({c['verdict']})" for c in comparisons], fontsize=8)
             delta_axis.set_xticks(range(len(classes)), classes, rotation=45, ha="right", fontsize=8)
-            figure.colorbar(image, ax=delta_axis, label="IoU difference to the reference")
+            figure.colorbar(image, ax=delta_axis, label="IoU difference to the reference (points x100)")
             delta_axis.set_title(f"{light}: per-class IoU minus {record['reference']} (points x100)", fontsize=10)
         else:
             delta_axis.axis("off")
