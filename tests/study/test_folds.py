@@ -14,6 +14,7 @@ from warpsense.data.datasets import KITTI360, CamVid, Cityscapes
 from warpsense.data.scenes import StreetScenes
 from warpsense.resources import CONFIG_DIR
 from warpsense.study import load_plan, render_text, run_cells, study_record
+from warpsense.study.plan import PlanError
 from warpsense.train import engine
 
 FAST = ["train.epochs=2", "data.scenes_train=8", "data.scenes_val=8", "train.eval_every=2", "study.folds=sequence",
@@ -165,3 +166,21 @@ def test_smoke_study_by_sequence_folds_runs_resumes_and_reports(tmp_path, monkey
     with pytest.raises(SystemExit) as exited:
         main(["study", "report", str(out), "--resamples", "0"])
     assert exited.value.code == 2 and "argument --resamples: must be >= 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("miou", [float("nan"), float("inf"), 1.5, -0.1, "0.5"])
+def test_report_refuses_a_cell_with_scores_that_are_not_finite_in_0_1(tmp_path, miou):
+    from warpsense.study.runner import evaluation_path, record_plan
+
+    plan = load_plan("smoke")
+    out = tmp_path / "study"
+    record_plan(plan, out)
+    cell = plan.cells()[0]
+    path = evaluation_path(out, cell)
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"epoch": 1, "splits": {"val": {"miou": miou, "per_class_iou": {"sky": 0.5}}}}))
+    with pytest.raises(PlanError) as error:
+        study_record(out, resamples=10)
+    message = str(error.value)
+    assert len(message.splitlines()) == 1 and str(path) in message and f"cell {cell.id}" in message
+    assert "val scores must be finite and in [0, 1]" in message
