@@ -1,5 +1,5 @@
 """What a higher exposure gain clips: per class, the share of a split's pixels whose noise-free RAW value reaches the
-white level, at each gain (the physics behind configs/studies/camvid_exposure.toml).
+white level, at each gain (the physics behind docs/runs/plans/camvid_exposure.toml).
 
     python tools/exposure_clipping.py [--preset camvid_codesign] [--data-root ../shared/data/camvid]
         [--split val] [--gains 1,2,3] [--limit N] [--json OUT]
