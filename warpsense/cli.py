@@ -127,7 +127,18 @@ def _study(args) -> int:
 def _lens(args) -> int:
     from warpsense.commands.lens import run_lens
 
-    return run_lens(args.lens, args.json)
+    check_output_file(args.plot, "--plot")
+    return run_lens(args.lens, args.json, plot=args.plot)
+
+
+def _simulate(args) -> int:
+    from warpsense.commands.simulate import run_simulate
+
+    if args.checkpoint and (args.config or args.overrides):
+        raise ValueError("--checkpoint brings its own camera: leave out --config and --set")
+    if not args.checkpoint and not args.config:
+        raise ValueError("give the camera: --config FILE_OR_PRESET (with --set) or --checkpoint CKPT")
+    return run_simulate(args.images, args.out, args.config, args.overrides, args.checkpoint, args.linear, args.seed)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -169,7 +180,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="dataset kind (default: the one the checkpoint was trained on)")
     evaluate.add_argument("--data-root", help="dataset folder (not needed for scenes; default: the checkpoint's "
                           "data.root when --data is left out)")
-    evaluate.add_argument("--split", default="val", help="split name (default: %(default)s)")
+    evaluate.add_argument("--split", default="val",
+                          help="split name; heldout: a sequence-fold checkpoint's held-out sequence (default: "
+                          "%(default)s)")
     evaluate.add_argument("--json", metavar="OUT", help="write metrics JSON (miou, per_class_iou, pixel_accuracy, num_images)")
     evaluate.add_argument("--sweep", action="store_true", help="robustness sweeps: extra blur, noise scale, bit depth")
     evaluate.add_argument("--flip-tta", action="store_true",
@@ -317,7 +330,26 @@ def build_parser() -> argparse.ArgumentParser:
                                "its rendering moves at 15 samples per pixel (the pupil sampling's share).")
     lens.add_argument("lens", help="packaged lens name (configs/lenses/) or a lens JSON file")
     lens.add_argument("--json", action="store_true", help="print the report as JSON")
+    lens.add_argument("--plot", metavar="OUT.png",
+                      help="also draw the PSF grid per colour and the MTF of the on-axis and corner PSFs")
     lens.set_defaults(handler=_lens)
+
+    simulate = commands.add_parser(
+        "simulate", help="your own images through a camera: RAW (.safetensors, DNG) and a preview",
+        description="Take sRGB images (PNG/JPEG; linear TIFFs with --linear) through a configured or checkpointed "
+        "camera in eval mode (fixed noise seed) and write per image <stem>.safetensors (the RAW mosaic, which "
+        "`warpsense predict` reads), <stem>.dng (where the CFA is a 2x2 Bayer layout) and <stem>.preview.png. A bad "
+        "file is reported and the others go on (exit 2 at the end).")
+    simulate.add_argument("images", nargs="+", help="image files")
+    _add_config_options(simulate)
+    simulate.add_argument("--checkpoint", metavar="CKPT", help="use a trained checkpoint's camera instead of --config")
+    simulate.add_argument("--out", required=True, help="output folder")
+    simulate.add_argument("--linear", action="store_true",
+                          help="the images hold linear radiance (16-bit or float TIFF) instead of sRGB")
+    simulate.add_argument("--seed", type=_count(0), default=0, metavar="N",
+                          help="noise seed offset (with the camera's eval seed and the file name; default: "
+                          "%(default)s)")
+    simulate.set_defaults(handler=_simulate)
     return parser
 
 

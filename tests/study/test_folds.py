@@ -184,3 +184,21 @@ def test_report_refuses_a_cell_with_scores_that_are_not_finite_in_0_1(tmp_path, 
     message = str(error.value)
     assert len(message.splitlines()) == 1 and str(path) in message and f"cell {cell.id}" in message
     assert "val scores must be finite and in [0, 1]" in message
+
+
+def test_eval_scores_a_fold_checkpoint_on_its_held_out_sequence(tmp_path, capsys):
+    from warpsense.commands.eval import run_eval
+    from warpsense.train.engine import train
+
+    config = load_config(None, ["data.holdout_sequence=\"train0\"", "data.scenes_train=8", "data.scenes_val=8",
+                                "data.scene_height=32", "data.scene_width=48", "data.crop_height=32",
+                                "data.crop_width=48", "model.width=8", "train.epochs=1", "train.warmup_epochs=0",
+                                "train.plots=false", "run.device=\"cpu\"", f"run.output_dir=\"{tmp_path}\""])
+    run = train(config, progress=False)
+    evaluation = json.loads((run / "evaluation.json").read_text())["splits"]["heldout"]
+    checkpoint = str(run / "checkpoint_last.safetensors")
+    payload = run_eval(checkpoint, None, None, "heldout", device="cpu", progress=False)
+    assert payload["num_images"] == 8 and payload["miou"] == pytest.approx(evaluation["miou"])
+    run_eval(checkpoint, None, None, "val", device="cpu", progress=False)
+    assert "note: the checkpoint trained on the frames of val from val0 (its fold held out train0 only)" in \
+        capsys.readouterr().out

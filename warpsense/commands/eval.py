@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 
@@ -95,7 +96,7 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
              scales: tuple[float, ...] = (1.0,)) -> dict:
     """The `warpsense eval` command as a function; returns the JSON payload. ``latency`` alone (without
     ``sweep``) only times the model: no dataset is read and no mIoU computed."""
-    from warpsense.data import build_dataset
+    from warpsense.data import HELDOUT_SPLIT, DatasetError, build_dataset, build_fold, frame_sequences
 
     torch_device = resolve_device(device)
     model, config, state = load_system(checkpoint, torch_device)
@@ -117,7 +118,21 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
     config.data.max_val_images = limit
     if data == "scenes":
         config.data.scenes_val = limit or config.data.scenes_val
-    dataset = build_dataset(config.data, split, train=False, seed=config.run.seed)
+    fold = config.data.holdout_sequence
+    if split == HELDOUT_SPLIT:  # a sequence-fold checkpoint's own judge: the frames of the sequence it never saw
+        if not fold:
+            raise ValueError(f"--split {HELDOUT_SPLIT}: the checkpoint was not trained on a sequence fold "
+                             "(its data.holdout_sequence is empty); name a split, e.g. --split val")
+        dataset = build_fold(config.data, train=False, seed=config.run.seed)
+    else:
+        dataset = build_dataset(config.data, split, train=False, seed=config.run.seed)
+        seen = set()
+        if fold and data == trained_on:
+            with contextlib.suppress(DatasetError):  # frames without sequence names: nothing to say
+                seen = set(frame_sequences(dataset)) - {fold}
+        if seen and split in (config.data.train_split, config.data.val_split):
+            print(f"note: the checkpoint trained on the frames of {split} from {', '.join(sorted(seen))} (its fold "
+                  f"held out {fold} only); --split {HELDOUT_SPLIT} scores the held-out sequence")
     class_names = check_label_space(checkpoint, model, state, dataset, data)
     if data != trained_on:
         print(f"note: the checkpoint was trained on {trained_on}; scoring it on {data} (the same "
