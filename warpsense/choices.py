@@ -10,8 +10,9 @@ from __future__ import annotations
 DEVICES = ("auto", "cpu", "cuda")
 """Where a command runs: ``auto`` takes CUDA when torch sees a GPU."""
 
-DATASETS = ("scenes", "camvid", "cityscapes", "kitti360")
-"""Dataset kinds (`warpsense.data.DATASETS`); ``scenes`` is the procedural street-scene generator."""
+DATASETS = ("scenes", "camvid", "cityscapes", "kitti360", "folder")
+"""Dataset kinds (`warpsense.data.DATASETS`); ``scenes`` is the procedural street-scene generator; ``folder`` is a
+CamVid-layout folder with the user's class table (``data.classes_file``, `warpsense.data.folder`)."""
 
 ON_DEVICE_MODES = ("auto", "always", "never")
 """Whether the decoded training set is kept on the GPU (`warpsense.data.on_device`)."""

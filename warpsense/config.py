@@ -72,6 +72,7 @@ class RunConfig:
 class DataConfig:
     dataset: str = _field("scenes", choices=DATASETS)
     root: str = ""
+    classes_file: str = ""
     train_split: str = "train"
     val_split: str = "val"
     crop_height: int = _field(96, minimum=1)

@@ -56,13 +56,14 @@ class SimulatedCamera:
 
     @property
     def bits(self) -> int:
-        quantizer = self.camera.quantizer
-        return quantizer.bits if quantizer is not None else DNG_BITS_WITHOUT_QUANTIZER
+        """The ADC's bit depth (`DNG_BITS_WITHOUT_QUANTIZER` without one), from the fused kernel's arguments."""
+        bits = self.camera.sensor_arguments()[0].bits
+        return int(bits) if bits else DNG_BITS_WITHOUT_QUANTIZER
 
     @property
     def white_level(self) -> float:
-        quantizer = self.camera.quantizer
-        return float(quantizer.white_level) if quantizer is not None else 1.0
+        white = self.camera.sensor_arguments()[0].white_level
+        return float(white) if white else 1.0
 
     def dng_note(self) -> str | None:
         """Why this camera's RAW cannot be a DNG (None when it can)."""

@@ -5,10 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 from warpsense.data.datasets import KITTI360, CamVid, Cityscapes, DatasetError, Frames, frame_sequences, sequence_fold
+from warpsense.data.folder import FolderDataset
 from warpsense.data.scenes import StreetScenes
 from warpsense.data.transforms import Augmented, paste_class_ids
 
-DATASETS = {"camvid": CamVid, "cityscapes": Cityscapes, "kitti360": KITTI360, "scenes": StreetScenes}
+DATASETS = {"camvid": CamVid, "cityscapes": Cityscapes, "kitti360": KITTI360, "scenes": StreetScenes,
+            "folder": FolderDataset}
 
 
 HELDOUT_SPLIT = "heldout"
@@ -28,6 +30,8 @@ def _source(data_config, split: str, train: bool, seed: int, limit: int = 0):
     if not data_config.root:
         raise DatasetError(f"data.root is empty: set it to the {name} folder (train: --set data.root=PATH; "
                            f"eval: --data-root PATH)")
+    if name == "folder":  # the user's class table
+        return FolderDataset(data_config.root, split, limit=limit, classes_file=data_config.classes_file)
     return DATASETS[name](data_config.root, split, limit=limit)
 
 
@@ -104,6 +108,6 @@ def load_raw(path):
     return _load_raw(path)
 
 
-__all__ = ["Augmented", "CamVid", "Cityscapes", "DATASETS", "DatasetError", "Frames", "HELDOUT_SPLIT", "KITTI360",
+__all__ = ["Augmented", "CamVid", "Cityscapes", "DATASETS", "DatasetError", "FolderDataset", "Frames", "HELDOUT_SPLIT", "KITTI360",
            "StreetScenes", "build_dataset", "build_fold", "evaluation_splits", "frame_sequences", "labelled_sources",
            "load_raw", "sequence_fold", "sequence_names"]
