@@ -57,18 +57,24 @@ def _comma_separated(text: str, convert, example: str) -> tuple:
 
 
 def _seed_list(text: str) -> tuple[int, ...]:
-    """"0,1,2" -> (0, 1, 2), distinct."""
+    """"0,1,2" -> (0, 1, 2), distinct and >= 0 (the range of run.seed, which each becomes)."""
     seeds = _comma_separated(text, int, "integers such as 0,1,2")
+    if any(seed < 0 for seed in seeds):
+        raise argparse.ArgumentTypeError(f"seeds must be >= 0, got {text!r}")
     if len(set(seeds)) != len(seeds):
         raise argparse.ArgumentTypeError(f"seeds must be distinct, got {text!r}")
     return seeds
 
 
+MAX_TTA_SCALE = 4.0
+"""The largest --scale-tta scale: 4x the capture's side is 16x its pixels, far past any test-time augmentation."""
+
+
 def _scale_list(text: str) -> tuple[float, ...]:
-    """"0.75,1,1.25" -> (0.75, 1.0, 1.25), each > 0."""
+    """"0.75,1,1.25" -> (0.75, 1.0, 1.25), each in (0, `MAX_TTA_SCALE`] (NaN and inf refused)."""
     scales = _comma_separated(text, float, "scales such as 0.75,1,1.25")
-    if any(not scale > 0 for scale in scales):
-        raise argparse.ArgumentTypeError(f"scales must be > 0, got {text!r}")
+    if any(not 0 < scale <= MAX_TTA_SCALE for scale in scales):
+        raise argparse.ArgumentTypeError(f"scales must be > 0 and <= {MAX_TTA_SCALE:g}, got {text!r}")
     return scales
 
 
@@ -85,13 +91,17 @@ def _count(minimum: int):
         return value
 
     convert.__name__ = "integer"  # argparse names the type in its "invalid ... value" message
+    convert.minimum = minimum  # the least valid value, for the bad-input corpus (tests/reliability)
     return convert
 
 
 def _bench(args) -> int:
     from warpsense.commands.bench import run_bench_command
 
-    return run_bench_command(args.device, args.suite, args.quick, args.json, args.plot, args.camvid, args.seeds)
+    if args.seeds is not None and args.suite != "time-to-accuracy":
+        raise ValueError(f"--seeds are the time-to-accuracy suite's training seeds: --suite {args.suite} trains none")
+    return run_bench_command(args.device, args.suite, args.quick, args.json, args.plot, args.camvid,
+                             args.seeds or (0,))
 
 
 def _convert(args) -> int:
@@ -160,7 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--allow-config-change", action="store_true",
                        help="with --resume/--resume-dir: continue with the given --config/--set even where it differs "
                             "from the run's saved config (refused otherwise)")
-    train.add_argument("--extend", type=int, metavar="N",
+    train.add_argument("--extend", type=_count(1), metavar="N",
                        help="with --resume/--resume-dir: train N more epochs after the last checkpoint, finished run or "
                             "not (train.epochs becomes the epochs trained + N, any time budget is dropped; the cosine "
                             "learning rate is laid over the new total, so it rises again and decays to 0 at the new "
@@ -217,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "val mIoU against wall time (time-to-accuracy suite)")
     bench.add_argument("--camvid", metavar="ROOT", help="CamVid folder (with train.txt and val.txt): the accuracy "
                        "suite's real frames (without it that scene is left out); the time-to-accuracy suite's data")
-    bench.add_argument("--seeds", type=_seed_list, default=(0,), metavar="0,1,2",
+    bench.add_argument("--seeds", type=_seed_list, metavar="0,1,2",
                        help="time-to-accuracy: train both methods with each seed and add means with 95%% intervals "
                             "(default: 0)")
     bench.set_defaults(handler=_bench)

@@ -287,6 +287,10 @@ def validate(config: "Config", source: str) -> "Config":
     if config.train.micro_batch and config.train.cuda_graph:
         raise ConfigError(f"{source}: train.micro_batch splits the step for a memory-bound (CPU) run; with "
                           "train.cuda_graph use the whole batch (train.micro_batch = 0)")
+    for low, high in (("f_number_min", "f_number_max"), ("exposure_ms_min", "exposure_ms_max")):
+        if getattr(config.optics, low) > getattr(config.optics, high):
+            raise ConfigError(f"{source}: optics.{low} ({getattr(config.optics, low)}) must be <= optics.{high} "
+                              f"({getattr(config.optics, high)})")
     if config.data.holdout_sequence and config.data.holdout_prefix:
         raise ConfigError(f"{source}: data.holdout_sequence and data.holdout_prefix both hold frames out; set one")
     sequence = config.data.holdout_sequence

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from warpsense.files import check_output_file, write_json
+from warpsense.files import check_output_file, check_output_folder, write_json
 
 
 def parse_gpus(text: str) -> list[str]:
@@ -43,7 +43,13 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     cluster = slurm_options(executor, **(slurm or {}))  # before the plan loads: nothing is read or written
     if cluster is not None and plan_only:
         raise ValueError("--plan-only prints the commands for a scheduler of your own: leave out --executor slurm")
+    check_output_folder(out, "--out")
+    for study_dir in reuse or []:  # checked here too, not only when the cells run
+        if not (Path(study_dir) / "runs").is_dir():
+            raise FileNotFoundError(f"--reuse {study_dir}: no runs/ folder (not a study directory)")
     plan = load_plan(plan_name, overrides)
+    if cell is not None:
+        plan.cell(cell)  # an unknown --cell is refused on every path, --plan-only and --worker included
     if worker:
         return cell_worker(plan, Path(out))
     if plan_only:

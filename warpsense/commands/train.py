@@ -43,6 +43,9 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
     if print_config:
         print(json.dumps(load_config(config_file, overrides).to_dict(), indent=2))
         return 0
+    if resume and resume_dir:
+        raise ValueError(f"--resume continues the newest run of the config, --resume-dir {resume_dir} a run of your "
+                         "choice: give one of them")
     if extend is not None and not (resume or resume_dir):
         raise ValueError("--extend continues a run: give --resume or --resume-dir")
     if extend is not None and extend < 1:

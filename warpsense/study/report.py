@@ -1,7 +1,8 @@
 """The report of a study directory: per camera and light level, mean mIoU and per-class IoU, precision and recall
 with 95% intervals over seeds (clustered by fold with sequence folds); the paired difference to the reference camera
 (over seeds, or (fold, seed) pairs) and a bootstrap interval that resamples blocks of frames within their sequences;
-with folds, a per-sequence table; the learned camera and the wall time of every run. The console text and the JSON are rendered
+with folds, a per-sequence table; the learned camera and the wall time of every run, in total and steady (without
+the one-off kernel compilation of a process's first epoch: `steady_run_seconds`). The console text and the JSON are rendered
 from one record (`study_record`)."""
 
 from __future__ import annotations
@@ -83,6 +84,32 @@ def run_seconds(metrics_path: Path) -> float | None:
     return None if last is None else total + last
 
 
+def steady_run_seconds(metrics_path: Path) -> float | None:
+    """`run_seconds` without the one-off costs of a fresh process: in each process (a record with ``setup_s`` starts
+    one) the first epoch's share of ``wall_s`` (``wall_s`` minus ``setup_s``: training and evaluation, where the Warp
+    kernels of a cold cache compile, 10-25 s on a CPU) is counted at the median of that process's other epochs'
+    shares (their ``wall_s`` differences). Setup (data loading) is kept. A process with one epoch has nothing to
+    compare with and is counted as it ran, so a run of one epoch per process is its `run_seconds`. None without
+    records."""
+    processes: list[list[dict]] = []
+    for record in read_metrics(metrics_path):
+        if "wall_s" not in record:
+            continue
+        if "setup_s" in record or not processes:
+            processes.append([])
+        processes[-1].append(record)
+    if not processes:
+        return None
+    total = 0.0
+    for records in processes:
+        walls = [float(r["wall_s"]) for r in records]
+        total += walls[-1]
+        if len(walls) > 1:
+            first = walls[0] - float(records[0].get("setup_s", 0.0))
+            total += float(np.median(np.diff(walls))) - first
+    return total
+
+
 def _per_class(per_seed: list[list[float | None]], classes: list[str]) -> dict:
     """Per class: the t interval over seeds of each seed's value ``per_seed[seed][k]`` (None left out)."""
     intervals = {}
@@ -98,13 +125,15 @@ def _runs(evaluations: dict, camera: str, light: str, split: str) -> dict:
             if c == camera and x == light and split in evaluation["splits"]}
 
 
-def _group(camera: str, light: str, runs: dict, classes: list[str], run_s: dict) -> dict:
+def _group(camera: str, light: str, runs: dict, classes: list[str], run_s: dict, steady_s: dict) -> dict:
     iou = [[run["per_class_iou"][name] for name in classes] for run in runs.values()]
     precision, recall = zip(*(precision_recall(run["image_counts"]) for run in runs.values()))
     seconds = [s for s in (run_s[(camera, light, *key)] for key in runs) if s is not None]
+    steady = [s for s in (steady_s[(camera, light, *key)] for key in runs) if s is not None]
     return {"camera": camera, "light": light, "seeds": sorted({seed for _, seed in runs}),
             "folds": sorted({fold for fold, _ in runs if fold}), "cells": len(runs),
             "run_s": float(np.mean(seconds)) if seconds else None, "timed_runs": len(seconds),
+            "steady_run_s": float(np.mean(steady)) if steady else None,
             "miou": fold_interval({key: run["miou"] for key, run in runs.items()}),
             "per_class_iou": _per_class(iou, classes),
             "per_class_precision": _per_class(precision, classes),
@@ -164,7 +193,8 @@ def _shared_sequences(evaluations: dict, split: str) -> list[str]:
     return sorted(shared)
 
 
-def _split_record(plan: dict, evaluations: dict, run_s: dict, split: str, resamples: int, block: int) -> dict:
+def _split_record(plan: dict, evaluations: dict, run_s: dict, steady_s: dict, split: str, resamples: int,
+                  block: int) -> dict:
     classes = next(iter(evaluations.values()))["class_names"]
     groups, comparisons, per_sequence = [], [], []
     for light in plan["lights"]:
@@ -173,7 +203,7 @@ def _split_record(plan: dict, evaluations: dict, run_s: dict, split: str, resamp
             runs = _runs(evaluations, camera["name"], light["name"], split)
             if runs:
                 by_camera[camera["name"]] = runs
-                groups.append(_group(camera["name"], light["name"], runs, classes, run_s))
+                groups.append(_group(camera["name"], light["name"], runs, classes, run_s, steady_s))
         if plan.get("folds") == "sequence":
             per_sequence += _per_sequence(light["name"], by_camera, plan["reference"])
         reference = by_camera.get(plan["reference"])
@@ -208,7 +238,7 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
         raise ValueError(f"{'--resamples' if resamples < 1 else '--block-frames'} must be >= 1")
     study_dir = Path(study_dir)
     plan = _read_plan(study_dir)
-    evaluations, run_s, cells, missing = {}, {}, [], []
+    evaluations, run_s, steady_s, cells, missing = {}, {}, {}, [], []
     for cell in Plan.from_dict(plan).cells():
         path = evaluation_path(study_dir, cell)
         if not path.is_file():
@@ -222,9 +252,11 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
         key = (cell.camera, cell.light, cell.fold, cell.seed)
         evaluations[key] = evaluation
         run_s[key] = run_seconds(path.parent / METRICS)
+        steady_s[key] = steady_run_seconds(path.parent / METRICS)
         cells.append({"cell": cell.id, "camera": cell.camera, "light": cell.light, "fold": cell.fold,
                       "seed": cell.seed, "epoch": evaluation["epoch"],
                       "network_parameters": evaluation["network_parameters"], "run_s": run_s[key],
+                      "steady_run_s": steady_s[key],
                       "miou": {split: m["miou"] for split, m in evaluation["splits"].items()},
                       "learned_camera": evaluation["camera"]})
     if not evaluations:
@@ -232,7 +264,7 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
     splits = list(dict.fromkeys(split for e in evaluations.values() for split in e["splits"]))
     throughput_path = study_dir / THROUGHPUT
     throughput = json.loads(throughput_path.read_text()) if throughput_path.is_file() else []
-    parts = {split: _split_record(plan, evaluations, run_s, split, resamples, block) for split in splits}
+    parts = {split: _split_record(plan, evaluations, run_s, steady_s, split, resamples, block) for split in splits}
     return {"study": plan["name"], "directory": str(study_dir), "reference": plan["reference"], "level": LEVEL,
             "folds": plan.get("folds", "none"), "sequences": plan.get("sequences", []), "block_frames": block,
             "plan": plan, "cells": cells, "missing": missing, "throughput": throughput, "splits": parts,
@@ -311,10 +343,14 @@ def render_text(record: dict) -> str:
                          f"({', '.join(part['shared_sequences'])}): this measures more frames of known drives, not new "
                          f"streets; judge by study.folds = \"sequence\"")
         interval = "t interval over the folds' means" if folds else "t interval"
-        lines.append(f"\n[{split}] mIoU, mean over {over} [{level} {interval}]")
+        lines.append(f"\n[{split}] mIoU, mean over {over} [{level} {interval}]; s/run: wall time (setup, training, "
+                     f"evaluation), steady: each process's first epoch (its one-off Warp kernel compilation) counted "
+                     f"at the median of its other epochs")
         width = max(len(g["camera"]) for g in part["groups"])
         for group in part["groups"]:
+            steady = group.get("steady_run_s")
             seconds = "" if group["run_s"] is None else f"  {group['run_s']:.0f} s/run" + (
+                "" if steady is None else f" ({steady:.0f} steady)") + (
                 "" if group["timed_runs"] == group.get("cells", len(group["seeds"])) else
                 f" ({group['timed_runs']} timed)")
             where = f"folds {','.join(group['folds'])} x " if group.get("folds") else ""

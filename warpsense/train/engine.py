@@ -284,6 +284,24 @@ def _write_run_files(run_dir: Path, config, versions: dict, history: list[dict],
         temporary.write_text("".join(json.dumps(r) + "\n" for r in history))
 
 
+def superseded_name(name: str, epochs: int) -> str:
+    """Where a continuation moves a final file of the run's earlier end: "evaluation.json" -> "evaluation.epoch<E>.json"
+    (``epochs``: the epochs that end had trained), as `_write_run_files` keeps the old config.epoch<E>.json."""
+    stem, dot, suffix = name.partition(".")
+    return f"{stem}.epoch{epochs}.{suffix}" if dot else f"{name}.epoch{epochs}"
+
+
+def _supersede_final_files(run_dir: Path, start_epoch: int) -> None:
+    """At the first epoch a continuation completes (`--extend`, or more epochs with --allow-config-change), move the
+    earlier end's `EVALUATION` and plots aside (`superseded_name`), before config.json and the checkpoint change:
+    until the continuation's own end writes them again the run holds no evaluation, so it reads as unfinished (`warpsense
+    study` resumes the cell instead of reporting the old end's scores beside a newer checkpoint) and no plot shows
+    the old end as the current one. A continuation refused or stopped before this epoch completes moves nothing."""
+    for path in [run_dir / EVALUATION, *sorted(run_dir.glob("*.png"))]:
+        if path.is_file() and ".epoch" not in path.name:
+            path.replace(run_dir / superseded_name(path.name, start_epoch))
+
+
 def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: bool, is_resume_point: bool,
                  ema=None) -> None:
     """Append the epoch's record to metrics.jsonl, then write the checkpoints: the best one when the epoch scored
@@ -418,6 +436,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         best_miou = max(best_miou, score)
         if context.is_main:
             if resume and epoch == start_epoch:
+                _supersede_final_files(run_dir, start_epoch)  # first: a kill after it leaves an unfinished run
                 _write_run_files(run_dir, config, versions, history, start_epoch, resume)
             state = {"epoch": epoch, "step": step, "best_miou": best_miou, "num_classes": num_classes,
                      "class_names": list(datasets.train.classes), "record": record, "environment": versions,
