@@ -33,6 +33,7 @@ from warpsense.choices import (
     QUANTIZE_MODES,
     RENDER_PRECISIONS,
     SCALE_FILLS,
+    SCENE_SPLITS,
     SELF_CAPTURING_COMPILE_MODES,
 )
 from warpsense.resources import CONFIG_DIR
@@ -291,6 +292,13 @@ def validate(config: "Config", source: str) -> "Config":
         if getattr(config.optics, low) > getattr(config.optics, high):
             raise ConfigError(f"{source}: optics.{low} ({getattr(config.optics, low)}) must be <= optics.{high} "
                               f"({getattr(config.optics, high)})")
+    for key in ("train_split", "val_split"):
+        if config.data.dataset == "scenes" and getattr(config.data, key) not in SCENE_SPLITS:
+            raise ConfigError(f"{source}: data.{key} = {getattr(config.data, key)!r}: the generated scenes have the "
+                              f"splits {', '.join(SCENE_SPLITS)}")
+    if config.data.classes_file and config.data.dataset != "folder":
+        raise ConfigError(f"{source}: data.classes_file = {config.data.classes_file!r} is read by data.dataset = "
+                          f"\"folder\" only (the dataset is {config.data.dataset!r}, with its own classes)")
     if config.data.holdout_sequence and config.data.holdout_prefix:
         raise ConfigError(f"{source}: data.holdout_sequence and data.holdout_prefix both hold frames out; set one")
     sequence = config.data.holdout_sequence

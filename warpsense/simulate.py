@@ -258,7 +258,7 @@ def simulate_files(inputs: list[str], out_dir: str | Path, sim: SimulatedCamera,
     """Simulate every input into ``out_dir``; a failing file is reported on stderr in one line and the batch goes
     on. Returns the failures [(input, reason)]."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    created = not out_dir.exists()  # made at the first output, and removed again if nothing was written into it
     note = sim.dng_note()
     if note:
         print(f"warpsense simulate: no DNG: {note}; writing the .safetensors RAW and the preview only",
@@ -271,6 +271,7 @@ def simulate_files(inputs: list[str], out_dir: str | Path, sim: SimulatedCamera,
                 raise SimulateError(f"{path}: its outputs {path.stem}.* would overwrite those of {stems[path.stem]}")
             radiance = read_image(path, linear)
             mosaic = simulate_image(sim, radiance, noise_key(path, seed))
+            out_dir.mkdir(parents=True, exist_ok=True)
             written_files = write_outputs(sim, mosaic, path, out_dir)
             if not note and not any(file.suffix == ".dng" for file in written_files):
                 print(f"warpsense simulate: {path}: no DNG: its {mosaic.shape[0]}x{mosaic.shape[1]} mosaic is under "
@@ -281,6 +282,8 @@ def simulate_files(inputs: list[str], out_dir: str | Path, sim: SimulatedCamera,
             reason = str(error) if isinstance(error, SimulateError) else f"{path}: {error}"
             failures.append((item, reason))
             print(f"warpsense simulate: skipped {reason}", file=sys.stderr)
+    if created and not written and out_dir.is_dir() and not any(out_dir.iterdir()):
+        out_dir.rmdir()
     failed = f"; {len(failures)} failed" if failures else ""
     print(f"simulated {written} of {len(inputs)} image(s) into {out_dir}{failed}")
     return failures

@@ -180,14 +180,7 @@ def _cli_cases():
 
 CLI_CASES = list(_cli_cases())
 # defects the corpus found in modules this corpus does not own, open: the case is expected to fail until fixed
-KNOWN_DEFECTS = {
-    ("data.train_split", "unknown_split"): "the built-in scenes take any split name (warpsense/data): it trains",
-    ("data.val_split", "unknown_split"): "the built-in scenes take any split name (warpsense/data): it trains",
-    ("eval --split", "unknown_split"): "the built-in scenes take any split name (warpsense/data): it evaluates",
-    ("simulate images", "missing_file"): "simulate creates its --out folder before it reads an input (exit 2, but an "
-                                         "empty folder is left)",
-    ("data.classes_file", "missing_file"): "read only by the folder dataset (warpsense/data): unused with scenes",
-}
+KNOWN_DEFECTS: dict = {}  # (option or key, case) -> why it is accepted today: strict expected failures
 
 
 @pytest.fixture(scope="module")

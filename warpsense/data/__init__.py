@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from warpsense.choices import SCENE_SPLITS
 from warpsense.data.datasets import KITTI360, CamVid, Cityscapes, DatasetError, Frames, frame_sequences, sequence_fold
 from warpsense.data.folder import FolderDataset
 from warpsense.data.scenes import StreetScenes
@@ -24,6 +25,8 @@ def _source(data_config, split: str, train: bool, seed: int, limit: int = 0):
     if name not in DATASETS:
         raise KeyError(f"unknown dataset {name!r}; valid datasets: {', '.join(DATASETS)}")
     if name == "scenes":
+        if split not in SCENE_SPLITS:
+            raise DatasetError(f"scenes: split {split!r}: the generated scenes have the splits {', '.join(SCENE_SPLITS)}")
         count = data_config.scenes_train if train else data_config.scenes_val
         return StreetScenes(count, data_config.scene_height, data_config.scene_width, seed=seed + (0 if train else 7919),
                             sequence_blocks=data_config.scene_sequences, stream="train" if train else "val")
