@@ -202,3 +202,29 @@ def test_eval_scores_a_fold_checkpoint_on_its_held_out_sequence(tmp_path, capsys
     run_eval(checkpoint, None, None, "val", device="cpu", progress=False)
     assert "note: the checkpoint trained on the frames of val from val0 (its fold held out train0 only)" in \
         capsys.readouterr().out
+
+
+def test_report_help_and_heatmap_speak_in_the_units_they_print(tmp_path, monkeypatch, capsys):
+    """`study report --help` says "95%" (not "95%%"); the per-class heatmap's colour bar is in the IoU points its cells
+    print, and a cell on the colour map's dark end is labelled in white."""
+    import matplotlib.figure
+
+    from warpsense.study.report import plot_study
+
+    with pytest.raises(SystemExit):
+        main(["study", "report", "--help"])
+    help_text = capsys.readouterr().out
+    assert "95%" in help_text and "%%" not in help_text
+    record = {"study": "s", "reference": "a", "level": 0.95, "plan": {"cameras": [{}, {}]}, "cells": [],
+              "splits": {"val": {
+                  "groups": [{"camera": c, "light": "night", "miou": {"mean": 0.5, "low": 0.4, "high": 0.6},
+                              "per_class_iou": {"sky": None, "road": None}} for c in ("a", "b")],
+                  "comparisons": [{"camera": "b", "light": "night", "verdict": "worse",
+                                   "per_class_delta": {"sky": -0.05, "road": 0.001}}]}}}
+    figures = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda self, *a, **k: figures.append(self))
+    plot_study(record, tmp_path / "p.png")
+    texts = {text.get_text(): text.get_color() for axis in figures[0].axes for text in axis.texts}
+    assert texts == {"-5.0": "white", "+0.1": "black"}
+    colour_bar = figures[0].axes[-1]
+    assert "points x100" in colour_bar.get_ylabel() and colour_bar.get_ylim()[1] == pytest.approx(5.0)
