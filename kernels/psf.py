@@ -153,8 +153,8 @@ def psf_kernels(size: int) -> PsfKernels:
     tap columns j (the forward: those of its part). For each it loads the WINDOW = size + ROWS - 1 values of its
     column that the size x ROWS (tap row, output) pairs read, once, then runs every tap row from registers: 0.18 loads per tap and output at size 15
     (the register-tiled kernels before them: 0.3 in the forward, 1 in the image adjoint; 0.57x and 0.60x their
-    time on an H100, docs/benchmarks.md round 23). ``size`` is a compile-time constant, so the tap-row and window
-    loops unroll and the window is indexed by constants: registers, not local memory.
+    time on an H100, docs/benchmarks.md, column-sliding PSF kernels). ``size`` is a compile-time constant, so the
+    tap-row and window loops unroll and the window is indexed by constants: registers, not local memory.
 
     Grids: forward (parts, planes, ceil(H / ROWS), W) over outputs, part p taking tap columns p * taps .. p * taps +
     taps - 1 into out[p] (the caller sums the parts: one part, taps = size, unless a launch is too small to fill the

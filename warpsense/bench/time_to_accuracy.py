@@ -44,7 +44,7 @@ from warpsense.train.run_dir import METRICS, read_metrics
 from warpsense.train.step import TrainingStep
 
 LEVELS = (0.5, 0.6, 0.65, 0.7)
-"""Val mIoU levels the suite times (the CamVid recipe ends near 0.71 at the night point since round 19, the
+"""Val mIoU levels the suite times (the CamVid recipe ends near 0.71 at the night point, the
 plain-torch baseline near 0.66)."""
 
 QUICK = ["data.max_train_images=8", "data.max_val_images=4", "data.batch_size=2", "data.crop_height=64",
@@ -115,8 +115,9 @@ def process_warmup(config, device: torch.device) -> float:
     """One untimed forward + backward of the recipe's system and of the baseline's, at the training batch and crop
     with bf16 autocast and the loss as they train, in this process: what the first method timed would otherwise pay
     for both (Warp's modules loaded from its kernel cache or built, torch's custom-op machinery imported on first
-    call, cuDNN's kernels loaded). Round 15, H100: the recipe, timed first, had an 11.7-16.0 s first epoch and the
-    baseline after it 1.3-1.5 s. Its wall seconds; nothing trains (the parameters' gradients are dropped)."""
+    call, cuDNN's kernels loaded). On an H100 (docs/benchmarks.md, the first epoch): the recipe, timed first, had an
+    11.7-16.0 s first epoch and the baseline after it 1.3-1.5 s. Its wall seconds; nothing trains (the parameters'
+    gradients are dropped)."""
     started = time.perf_counter()
     classes = len(build_dataset(config.data, config.data.val_split, train=False, seed=config.run.seed).classes)
     shape = (config.data.batch_size, 3, config.data.crop_height, config.data.crop_width)

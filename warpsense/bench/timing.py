@@ -58,10 +58,10 @@ def time_interleaved(functions: dict, device, repeats: int = 300, warmup: int = 
     """Wall time per call (ms) of each of ``functions`` (name -> function of no arguments), timed in rounds that
     call each once in turn, the device synchronised around each call: a host-bound call (batch-1 eager inference)
     drifts with the machine's load, and interleaving gives every function the same drift, so their medians compare
-    where timing each apart did not (round 24: the eager baseline's IQR was 4.1 ms of a 7.2 ms median). Returns
-    name -> `time_function`'s summary; with ``reference`` (one of the names), every other summary also has
-    "vs_reference_ms": the median of its per-round differences to the reference's call of the same round, and
-    "vs_reference_ci95_ms", that median's interval (`median_interval`)."""
+    where timing each apart did not (docs/benchmarks.md, batch-1 latency: the eager baseline's IQR was 4.1 ms of a
+    7.2 ms median). Returns name -> `time_function`'s summary; with ``reference`` (one of the names), every other
+    summary also has "vs_reference_ms": the median of its per-round differences to the reference's call of the same
+    round, and "vs_reference_ci95_ms", that median's interval (`median_interval`)."""
     for _ in range(warmup):
         for function in functions.values():
             function()

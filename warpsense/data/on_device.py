@@ -68,8 +68,8 @@ class DeviceBatches:
     generator seeded by (seed, epoch), so resumed runs repeat it. With ``world_size`` > 1 every rank draws the
     randomness of the global batch (``batch_size`` x ``world_size`` images: their scales, crops, flips and pasted
     donors) and takes its share, every ``world_size``-th image from its ``rank``: the ranks' batches together are
-    the batch one process draws. (Until round 22 each rank drew one batch's randomness from the same generator, so
-    rank r's k-th image had rank 0's crop and donor: a global batch of 16 carried 8 donors, each twice.)
+    the batch one process draws. (Before issue 32's fix each rank drew one batch's randomness from the same generator,
+    so rank r's k-th image had rank 0's crop and donor: a global batch of 16 carried 8 donors, each twice.)
     """
 
     def __init__(self, dataset, device, batch_size: int, crop: tuple[int, int], scale_range=(1.0, 1.0),

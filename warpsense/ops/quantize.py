@@ -68,7 +68,7 @@ def quantize_ste(raw: torch.Tensor, bits: int, white_level: float = 1.0, mode: s
         raw: [B, ...] signal; each batch item is an image (a 0-d tensor is one pixel).
         bits: bit depth, 1..24. Codes are computed in float64 inside the kernel for every input type, so they equal
             the exact codes of the input values (float32 arithmetic flips a code by one level
-            for ~1e-3 of pixels at 16 bits, 50% at 24; docs/benchmarks.md round 7).
+            for ~1e-3 of pixels at 16 bits, 50% at 24; docs/benchmarks.md, error against run time).
         white_level: full-well level w (> 0) in mode "full_well"; fallback for black frames in mode "max".
         mode: "full_well" (fixed w, physical) or "max" (w = per-image max, eq. 6 of the paper; treated as a constant
             in backward).

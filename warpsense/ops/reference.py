@@ -174,7 +174,7 @@ def lovasz_softmax_reference(probabilities: torch.Tensor, labels: torch.Tensor, 
     """`warpsense.ops.lovasz_softmax` in plain torch: [B, K, H, W] class probabilities and [B, H, W] labels -> the
     Lovasz-softmax loss (Berman, Rannen Triki, Blaschko, CVPR 2018) averaged over the classes present in the labels.
     Each class's row is sorted (absent classes masked out, so no host round trip); ignored pixels get error 0 and
-    foreground 0, which adds nothing to the loss. 0 when no pixel is labelled."""
+    are not foreground, which adds nothing to the loss. 0 when no pixel is labelled."""
     num_classes = probabilities.shape[1]
     probabilities = probabilities.transpose(0, 1).reshape(num_classes, -1)
     labels = labels.reshape(-1)
