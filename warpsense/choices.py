@@ -11,9 +11,11 @@ DEVICES = ("auto", "cpu", "cuda")
 """Where a command runs: ``auto`` takes CUDA when torch sees a GPU."""
 
 DATASETS = ("scenes", "camvid", "cityscapes", "kitti360", "folder")
-SCENE_SPLITS = ("train", "val")  # the generated scenes' splits, each its own stream of the generator
 """Dataset kinds (`warpsense.data.DATASETS`); ``scenes`` is the procedural street-scene generator; ``folder`` is a
 CamVid-layout folder with the user's class table (``data.classes_file``, `warpsense.data.folder`)."""
+
+SCENE_SPLITS = ("train", "val")
+"""The generated scenes' splits, each its own stream of the generator."""
 
 ON_DEVICE_MODES = ("auto", "always", "never")
 """Whether the decoded training set is kept on the GPU (`warpsense.data.on_device`)."""

@@ -85,10 +85,8 @@ def build_fold(data_config, train: bool, seed: int = 0):
     rest, held = sequence_fold(labelled_sources(data_config, seed), data_config.holdout_sequence)
     if not train:
         held.frames = held.frames[:data_config.max_val_images or None]
-        held.sequences = held.sequences[:len(held.frames)]
         return held
     rest.frames = rest.frames[:data_config.max_train_images or None]
-    rest.sequences = rest.sequences[:len(rest.frames)]
     return _augmented(data_config, rest, seed)
 
 

@@ -33,8 +33,12 @@ class Frames(Dataset):
     def __init__(self, sources: list, frames: list[tuple[int, int]]):
         self.sources, self.frames = list(sources), list(frames)
         self.classes = sources[0].classes
-        names = [frame_sequences(source) for source in sources]
-        self.sequences = [names[source][index] for source, index in self.frames]
+        self._names = [frame_sequences(source) for source in sources]
+
+    @property
+    def sequences(self) -> list[str]:
+        """The sequence of each chosen frame (``frames`` may be cut after construction)."""
+        return [self._names[source][index] for source, index in self.frames]
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -92,6 +96,19 @@ def read_pair_list(listing: Path, resolve) -> list[tuple[Path, Path]]:
     return pairs
 
 
+def read_split_lists(root: Path, split: str, resolve, kind: str) -> list[tuple[Path, Path]]:
+    """The pairs of ``<root>/<part>.txt`` for each part of ``split`` ("train+val": both lists, in order: a final
+    model's training set); DatasetError naming a missing list (``kind``: the dataset, for the message)."""
+    pairs = []
+    for part in split.split("+"):
+        listing = root / f"{part}.txt"
+        if not listing.is_file():
+            raise DatasetError(f"{listing}: {kind} split list not found (expected <root>/{part}.txt with "
+                               "'image label' lines)")
+        pairs += read_pair_list(listing, resolve)
+    return pairs
+
+
 class PairDataset(Dataset):
     """(image, label) pairs from explicit paths, with a label lookup table."""
 
@@ -128,13 +145,17 @@ class PairDataset(Dataset):
         rest.pairs, held.pairs = outside, inside
         return rest, held
 
+    def encode(self, label: np.ndarray, label_path: Path) -> np.ndarray:
+        """A label image as read -> class indices int64 [H, W] (its first channel through ``label_table``)."""
+        if label.ndim == 3:
+            label = label[..., 0]
+        return self.label_table[label].astype(np.int64)
+
     def __getitem__(self, index: int):
         image_path, label_path = self.pairs[index]
         image = torch.from_numpy(_read_rgb(image_path)).permute(2, 0, 1).contiguous()
-        label = np.array(Image.open(label_path))
-        if label.ndim == 3:
-            label = label[..., 0]
-        label = torch.from_numpy(self.label_table[label].astype(np.int64))
+        with Image.open(label_path) as opened:
+            label = torch.from_numpy(self.encode(np.array(opened), label_path))
         if label.shape != image.shape[1:]:
             raise DatasetError(f"{label_path}: label size {tuple(label.shape)} != image size {tuple(image.shape[1:])}")
         return image, label
@@ -149,12 +170,7 @@ class CamVid(PairDataset):
 
     def __init__(self, root: str | Path, split: str = "train", limit: int = 0):
         root = Path(root)
-        pairs = []
-        for part in split.split("+"):  # "train+val": both lists, in order (a final model's training set)
-            listing = root / f"{part}.txt"
-            if not listing.is_file():
-                raise DatasetError(f"{listing}: CamVid split list not found (expected <root>/{part}.txt)")
-            pairs += read_pair_list(listing, lambda p: root / p.split("/CamVid/")[-1].lstrip("/"))
+        pairs = read_split_lists(root, split, lambda p: root / p.split("/CamVid/")[-1].lstrip("/"), "CamVid")
         table = np.arange(256, dtype=np.uint8)
         table[11:] = IGNORE_INDEX
         super().__init__(pairs, table, limit)

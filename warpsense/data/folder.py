@@ -29,11 +29,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import tomllib
-import torch
-from PIL import Image
 
-from warpsense.data.datasets import CamVid, DatasetError, PairDataset, _read_rgb, read_pair_list
+from warpsense.config import tomllib
+from warpsense.data.datasets import CamVid, DatasetError, PairDataset, read_split_lists
 from warpsense.data.labels import IGNORE_INDEX
 
 MAX_LABEL_ID = 65535  # 16-bit label images
@@ -134,13 +132,7 @@ class FolderDataset(PairDataset):
         self.table = read_class_table(classes_file)
         self.classes = self.table.names
         root = Path(root)
-        pairs = []
-        for part in split.split("+"):
-            listing = root / f"{part}.txt"
-            if not listing.is_file():
-                raise DatasetError(f"{listing}: split list not found (expected <root>/{part}.txt with 'image label' "
-                                   "lines)")
-            pairs += read_pair_list(listing, lambda p: root / p)
+        pairs = read_split_lists(root, split, lambda p: root / p, "folder")
         super().__init__(pairs, self.table.id_lookup(), limit)
         colours = np.array([_packed(np.array(c)) for c in self.table.colors])
         self._colour_order = np.argsort(colours)
@@ -174,13 +166,3 @@ class FolderDataset(PairDataset):
         if (indices < 0).any():
             raise self._bad(label_path, np.unique(label[indices < 0]), "value(s)")
         return indices
-
-    def __getitem__(self, index: int):
-        image_path, label_path = self.pairs[index]
-        image = torch.from_numpy(_read_rgb(image_path)).permute(2, 0, 1).contiguous()
-        with Image.open(label_path) as opened:
-            label = np.array(opened)  # a palette ("P") image: its indices, read as ids
-        label = torch.from_numpy(self.encode(label, label_path))
-        if label.shape != image.shape[1:]:
-            raise DatasetError(f"{label_path}: label size {tuple(label.shape)} != image size {tuple(image.shape[1:])}")
-        return image, label
