@@ -29,24 +29,21 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     processes (`warpsense.study.runner.cell_worker`, cell ids on stdin). ``executor`` "slurm": submit the cells to
     Slurm (`warpsense.study.slurm.submit_study`) with ``slurm``, the keyword arguments of
     `warpsense.study.slurm.slurm_options` (None: not given)."""
-    from warpsense.study.mps import MPS_MODES
+    from warpsense.study.mps import check_mode as check_mps_mode
     from warpsense.study.plan import load_plan
-    from warpsense.study.runner import cell_worker, plan_commands, run_cells
+    from warpsense.study.runner import cell_worker, check_reuse_dirs, plan_commands, run_cells
     from warpsense.study.slurm import slurm_options, submit_study
 
     # every option is checked here, whichever path follows (worker, plan-only, one cell, pool, Slurm)
     if per_gpu < 1:
         raise ValueError(f"--per-gpu must be >= 1, got {per_gpu}")
-    if mps not in MPS_MODES:
-        raise ValueError(f"--mps must be one of {', '.join(MPS_MODES)}, got {mps!r}")
+    check_mps_mode(mps)
     devices = parse_gpus(gpus)
     cluster = slurm_options(executor, **(slurm or {}))  # before the plan loads: nothing is read or written
     if cluster is not None and plan_only:
         raise ValueError("--plan-only prints the commands for a scheduler of your own: leave out --executor slurm")
     check_output_folder(out, "--out")
-    for study_dir in reuse or []:  # checked here too, not only when the cells run
-        if not (Path(study_dir) / "runs").is_dir():
-            raise FileNotFoundError(f"--reuse {study_dir}: no runs/ folder (not a study directory)")
+    check_reuse_dirs(reuse or [])  # here, not only when the cells run: --plan-only and --cell too
     plan = load_plan(plan_name, overrides)
     if cell is not None:
         plan.cell(cell)  # an unknown --cell is refused on every path, --plan-only and --worker included

@@ -29,11 +29,16 @@ class MPSError(RuntimeError):
     """The MPS daemon was asked for and could not start; the message says why."""
 
 
+def check_mode(mode: str) -> None:
+    """ValueError naming ``--mps`` for a mode not in `MPS_MODES`."""
+    if mode not in MPS_MODES:
+        raise ValueError(f"--mps must be one of {', '.join(MPS_MODES)}, got {mode!r}")
+
+
 def wanted(mode: str, per_gpu: int) -> bool:
     """Whether the pool runs under MPS: ``mode`` "on", or "auto" with ``per_gpu`` > 1 and the control program on the
     PATH. Raises MPSError for "on" without the control program, ValueError for an unknown mode."""
-    if mode not in MPS_MODES:
-        raise ValueError(f"--mps must be one of {', '.join(MPS_MODES)}, got {mode!r}")
+    check_mode(mode)
     if mode == "off":
         return False
     found = shutil.which(CONTROL) is not None

@@ -170,6 +170,13 @@ def _training_key(config: dict) -> str:
     return json.dumps(config, sort_keys=True)
 
 
+def check_reuse_dirs(study_dirs) -> None:
+    """Each of ``--reuse``'s directories is a study directory (holds runs/), else FileNotFoundError naming it."""
+    for study_dir in study_dirs:
+        if not (Path(study_dir) / "runs").is_dir():
+            raise FileNotFoundError(f"--reuse {study_dir}: no runs/ folder (not a study directory)")
+
+
 def finished_runs(study_dirs: list[Path]) -> dict[str, Path]:
     """The finished run directories of other studies (``<dir>/runs/*`` with an evaluation), by `_training_key`; the
     first directory given wins where two hold the same training. A run's saved config is read as this version reads
@@ -179,11 +186,9 @@ def finished_runs(study_dirs: list[Path]) -> dict[str, Path]:
     from warpsense.train.engine import EVALUATION
 
     found: dict[str, Path] = {}
+    check_reuse_dirs(study_dirs)
     for study_dir in study_dirs:
-        runs = Path(study_dir) / "runs"
-        if not runs.is_dir():
-            raise FileNotFoundError(f"--reuse {study_dir}: no runs/ folder (not a study directory)")
-        for run in sorted(runs.iterdir()):
+        for run in sorted((Path(study_dir) / "runs").iterdir()):
             saved = run / "config.json"
             if not ((run / EVALUATION).is_file() and saved.is_file()):
                 continue
@@ -230,7 +235,8 @@ def train_cell(plan: Plan, out: Path, cell: Cell, progress: bool = False) -> dic
     return read_evaluation(out, cell)
 
 
-def _score(record: dict) -> str:
+def score_line(record: dict) -> str:
+    """A cell's evaluation in words: "val mIoU 0.7123, test mIoU ..." (its splits in order)."""
     return ", ".join(f"{split} mIoU {metrics['miou']:.4f}" for split, metrics in record["splits"].items())
 
 
@@ -307,7 +313,7 @@ def _in_process(plan, out, pending, numbering, total, progress) -> list[Cell] | 
             failed.append(cell)
             print(f"{prefix}: FAILED: {type(error).__name__}: {first_line(error)}", file=sys.stderr, flush=True)
             continue
-        print(f"{prefix}: done in {time.perf_counter() - started:.0f} s, {_score(record)}", flush=True)
+        print(f"{prefix}: done in {time.perf_counter() - started:.0f} s, {score_line(record)}", flush=True)
     return failed
 
 
@@ -430,7 +436,7 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None)
                 break
             if answer == f"done {cell.id}" and cell_state(out, cell) == "done":
                 record = read_evaluation(out, cell)
-                print(f"{prefix}: done in {time.perf_counter() - started:.0f} s on GPU {gpu}, {_score(record)}",
+                print(f"{prefix}: done in {time.perf_counter() - started:.0f} s on GPU {gpu}, {score_line(record)}",
                       flush=True)
                 continue
             if not answer:  # the worker died: its exit status, and a fresh worker for the next cell

@@ -35,6 +35,7 @@ from pathlib import Path
 from warpsense.files import write_json
 from warpsense.study import runner
 from warpsense.study.plan import Cell, Plan, PlanError
+from warpsense.train.run_dir import RunLock
 
 try:
     from submitit.helpers import Checkpointable
@@ -313,21 +314,6 @@ class CellStatus:
     detail: str
 
 
-def _lock_holder(out: Path, cell: Cell) -> int | None:
-    """The pid of a live process of this machine training the cell (its run directory's lock), if any."""
-    from warpsense.train.run_dir import LOCK
-
-    with contextlib.suppress(OSError, ValueError):
-        pid = int((runner.run_dir(out, cell) / LOCK).read_text().strip())
-        os.kill(pid, 0)
-        return pid
-    return None
-
-
-def _score(record: dict) -> str:
-    return ", ".join(f"{split} mIoU {metrics['miou']:.4f}" for split, metrics in record["splits"].items())
-
-
 def cell_status(out: Path, cell: Cell, job_id: str | None, queue: dict[str, tuple[str, str]] | None) -> CellStatus:
     """One cell's `CellStatus`.
 
@@ -346,7 +332,7 @@ def cell_status(out: Path, cell: Cell, job_id: str | None, queue: dict[str, tupl
     progress = _epochs(out, cell)
     if state == "done":
         try:
-            return CellStatus(cell, "done", _score(runner.read_evaluation(out, cell)))
+            return CellStatus(cell, "done", runner.score_line(runner.read_evaluation(out, cell)))
         except (OSError, ValueError, KeyError):
             return CellStatus(cell, "done", "evaluated")
     if job_id is not None and queue is not None and job_id in queue and queue[job_id][0] in ACTIVE:
@@ -361,7 +347,7 @@ def cell_status(out: Path, cell: Cell, job_id: str | None, queue: dict[str, tupl
         return CellStatus(cell, "failed", f"job {job_id} ended, {where}: {failure(out, job_id)}")
     if job_id is not None:
         return CellStatus(cell, "pending", f"submitted as job {job_id} (the scheduler does not answer)")
-    pid = _lock_holder(out, cell)  # never submitted: perhaps training here (the local executor)
+    pid = RunLock(runner.run_dir(out, cell)).holder()  # never submitted: perhaps training here (the local executor)
     if pid is not None:
         return CellStatus(cell, "running", f"process {pid} on this machine" + (f", {progress}" if progress else ""))
     return CellStatus(cell, "pending", "not submitted" + (f", checkpoint at {progress}" if progress else ""))

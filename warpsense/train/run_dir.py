@@ -149,6 +149,11 @@ class RunLock:
     def __exit__(self, *exc) -> None:
         self.release()
 
+    def holder(self) -> int | None:
+        """The pid of the live process of this machine that holds the lock, if any (a stale lock's is None)."""
+        owner = self._owner()
+        return owner if owner is not None and _alive(owner) else None
+
     def _owner(self) -> int | None:
         try:
             return int(self.path.read_text().strip())
