@@ -51,6 +51,7 @@ naming the plan file and key, found before anything is written.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -209,6 +210,12 @@ class Plan:
 STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str, "folds": str, "sequences": list}
 
 
+CAMERA_KEYS = {"name": str, "preset": str, "set": list}
+SWEEP_KEYS = {"name": str, "preset": str, "set": list, "grid": dict, "labels": dict}
+LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons": (int, float), "bits": int,
+              "cameras": list, "scene": str, "analog_gain": (int, float), "set": list}
+
+
 def _is_study_override(text: str) -> bool:
     return text.split("=", 1)[0].strip().startswith("study.")
 
@@ -228,10 +235,6 @@ def _study_overrides(study: dict, overrides, source: str) -> dict:
             except ConfigError as error:
                 raise PlanError(f"{source}: {error}") from None
     return study
-CAMERA_KEYS = {"name": str, "preset": str, "set": list}
-SWEEP_KEYS = {"name": str, "preset": str, "set": list, "grid": dict, "labels": dict}
-LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons": (int, float), "bits": int,
-              "cameras": list, "scene": str, "analog_gain": (int, float), "set": list}
 
 
 def study_names() -> list[str]:
@@ -264,11 +267,16 @@ def _float(value) -> float | None:
     return None if value is None else float(value)
 
 
+def _plain(text: str) -> bool:
+    """Whether ``text`` can be part of a cell id and a run directory's name: no '/', no '.', no spaces at the ends."""
+    return "/" not in text and "." not in text and text == text.strip()
+
+
 def _names(items: list, where: str, other: str = "") -> None:
     seen = set()
     for item in items:
         name = item["name"]
-        if not name or "/" in name or "." in name or name != name.strip():
+        if not name or not _plain(name):
             raise PlanError(f"{where}.name: {name!r} must be a plain name (no '/', '.' or spaces at the ends)")
         if name in seen:
             raise PlanError(f"{where}.name: duplicate name {name!r}" + (f" (also {other})" if other else ""))
@@ -293,8 +301,6 @@ def value_label(value) -> str:
 
 def _sweep(table: dict, where: str) -> SweepSpec:
     """A checked ``[[sweep]]`` table with its points (the grid's Cartesian product, first key slowest)."""
-    import itertools
-
     table = _table(table, SWEEP_KEYS, where, ("name", "grid"))
     grid, labels = flatten_keys(table["grid"]), flatten_keys(table.get("labels", {}))
     if not grid:
@@ -308,7 +314,7 @@ def _sweep(table: dict, where: str) -> SweepSpec:
     for key, label in labels.items():
         if key not in grid:
             raise PlanError(f"{where}.labels.{key}: not a key of the grid; keys: {', '.join(grid)}")
-        if not isinstance(label, str) or "/" in label or "." in label or label != label.strip():
+        if not isinstance(label, str) or not _plain(label):
             raise PlanError(f"{where}.labels.{key}: expected a plain string (no '/', '.' or spaces), got {label!r}")
     names = tuple(labels.get(key, key.rsplit(".", 1)[-1]) for key in grid)
     points, seen = [], {}
@@ -464,6 +470,6 @@ def _fold_sequences(plan: Plan, wanted: list) -> tuple[str, ...]:
                             f"({config.data.train_split}, {config.data.val_split}); sequences: {', '.join(names)}")
     chosen = tuple(wanted) or tuple(names)
     for name in chosen:
-        if not name or "/" in name or "." in name or name != name.strip():
+        if not name or not _plain(name):
             raise PlanError(f"{where}: sequence {name!r} cannot name a cell (no '/', '.' or spaces at the ends)")
     return chosen

@@ -72,32 +72,23 @@ def precision_recall(image_counts) -> tuple[list[float | None], list[float | Non
     return precision, recall
 
 
-def run_seconds(metrics_path: Path) -> float | None:
-    """A run's wall seconds from its ``metrics.jsonl``: each process's ``wall_s`` at its last epoch (setup,
-    training and evaluation), summed over the processes of a resumed run (a record with ``setup_s`` starts one); None
-    without records. The work an interrupted process did after its last epoch is not counted."""
-    total, last = 0.0, None
-    for record in read_metrics(metrics_path):
-        if "setup_s" in record and last is not None:
-            total += last
-        last = record.get("wall_s", last)
-    return None if last is None else total + last
-
-
-def steady_run_seconds(metrics_path: Path) -> float | None:
-    """`run_seconds` without the one-off costs of a fresh process: in each process (a record with ``setup_s`` starts
-    one) the first epoch's share of ``wall_s`` (``wall_s`` minus ``setup_s``: training and evaluation, where the Warp
-    kernels of a cold cache compile, 10-25 s on a CPU) is counted at the median of that process's other epochs'
-    shares (their ``wall_s`` differences). Setup (data loading) is kept. A process with one epoch has nothing to
-    compare with and is counted as it ran, so a run of one epoch per process is its `run_seconds`. None without
-    records."""
-    processes: list[list[dict]] = []
-    for record in read_metrics(metrics_path):
-        if "wall_s" not in record:
-            continue
-        if "setup_s" in record or not processes:
+def _processes(records: list[dict]) -> list[list[dict]]:
+    """A run's metrics records by process (a record with ``setup_s`` starts one), only those with ``wall_s``;
+    processes without any left out."""
+    processes: list[list[dict]] = [[]]
+    for record in records:
+        if "setup_s" in record and processes[-1]:
             processes.append([])
-        processes[-1].append(record)
+        if "wall_s" in record:
+            processes[-1].append(record)
+    return [records for records in processes if records]
+
+
+def _total_seconds(processes: list[list[dict]]) -> float | None:
+    return sum(float(records[-1]["wall_s"]) for records in processes) if processes else None
+
+
+def _steady_seconds(processes: list[list[dict]]) -> float | None:
     if not processes:
         return None
     total = 0.0
@@ -108,6 +99,23 @@ def steady_run_seconds(metrics_path: Path) -> float | None:
             first = walls[0] - float(records[0].get("setup_s", 0.0))
             total += float(np.median(np.diff(walls))) - first
     return total
+
+
+def run_seconds(metrics_path: Path) -> float | None:
+    """A run's wall seconds from its ``metrics.jsonl``: each process's ``wall_s`` at its last epoch (setup,
+    training and evaluation), summed over the processes of a resumed run (a record with ``setup_s`` starts one); None
+    without records. The work an interrupted process did after its last epoch is not counted."""
+    return _total_seconds(_processes(read_metrics(metrics_path)))
+
+
+def steady_run_seconds(metrics_path: Path) -> float | None:
+    """`run_seconds` without the one-off costs of a fresh process: in each process (a record with ``setup_s`` starts
+    one) the first epoch's share of ``wall_s`` (``wall_s`` minus ``setup_s``: training and evaluation, where the Warp
+    kernels of a cold cache compile, 10-25 s on a CPU) is counted at the median of that process's other epochs'
+    shares (their ``wall_s`` differences). Setup (data loading) is kept. A process with one epoch has nothing to
+    compare with and is counted as it ran, so a run of one epoch per process is its `run_seconds`. None without
+    records."""
+    return _steady_seconds(_processes(read_metrics(metrics_path)))
 
 
 def _per_class(per_seed: list[list[float | None]], classes: list[str]) -> dict:
@@ -251,8 +259,8 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
         _check_scores(evaluation, cell.id, path)
         key = (cell.camera, cell.light, cell.fold, cell.seed)
         evaluations[key] = evaluation
-        run_s[key] = run_seconds(path.parent / METRICS)
-        steady_s[key] = steady_run_seconds(path.parent / METRICS)
+        processes = _processes(read_metrics(path.parent / METRICS))  # the log read once for both times
+        run_s[key], steady_s[key] = _total_seconds(processes), _steady_seconds(processes)
         cells.append({"cell": cell.id, "camera": cell.camera, "light": cell.light, "fold": cell.fold,
                       "seed": cell.seed, "epoch": evaluation["epoch"],
                       "network_parameters": evaluation["network_parameters"], "run_s": run_s[key],
