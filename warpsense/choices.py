@@ -84,3 +84,7 @@ LIGHT_LEVELS = {"night": 70.0, "dusk": 700.0, "day": 7000.0}
 linear reflectance) gives a clear pixel of the reference pixel (3 um pitch, quantum efficiency 0.6) at f/2 in 10 ms.
 "night" is calibrated so that a CamVid frame (mean linear radiance 0.26) gives its green pixels the electrons of the
 normalised default camera (33 e- at the mean: 0.5 of a 66.7 e- well); dusk and day are 10x and 100x brighter."""
+
+MPS_MODES = ("auto", "on", "off")
+"""``study run --mps``: auto (with more than one cell per GPU, where the control program is on the PATH), on
+(required), off (`warpsense.study.mps`)."""

@@ -8,7 +8,7 @@ import sys
 
 from warpsense import __version__
 from warpsense.bench import BENCH_SUITES, parse_size
-from warpsense.choices import DATASETS, DEVICES
+from warpsense.choices import DATASETS, DEVICES, MPS_MODES
 from warpsense.config import preset_names
 from warpsense.files import check_output_file
 
@@ -277,7 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 "(default: %(default)s)")
     study_run.add_argument("--per-gpu", type=_count(1), default=1, metavar="N",
                            help="cells at once on each GPU (default: %(default)s)")
-    study_run.add_argument("--mps", choices=("auto", "on", "off"), default="auto",
+    study_run.add_argument("--mps", choices=MPS_MODES, default="auto",
                            help="run the pool's workers under a CUDA MPS daemon of the study's own, so that cells "
                            "sharing a GPU run concurrently instead of time-sliced: auto (with --per-gpu > 1 where "
                            "nvidia-cuda-mps-control is on the PATH), on, off (default: %(default)s)")

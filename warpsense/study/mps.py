@@ -20,9 +20,9 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from warpsense.choices import MPS_MODES
+
 CONTROL = "nvidia-cuda-mps-control"
-MPS_MODES = ("auto", "on", "off")
-"""``--mps``: auto (with more than one cell per GPU, where the control program is on the PATH), on (required), off."""
 
 
 class MPSError(RuntimeError):
