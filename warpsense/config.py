@@ -97,6 +97,10 @@ class DataConfig:
     scene_height: int = _field(96, minimum=8, maximum=8192)
     scene_width: int = _field(128, minimum=8, maximum=8192)
     scene_sequences: int = _field(1, minimum=1, maximum=1024)
+    jitter_stops: float = _field(0.0, minimum=0, maximum=16)
+    jitter_gamma: float = _field(0.0, minimum=0, maximum=10)
+    jitter_white_balance: float = _field(0.0, minimum=0, maximum=2)
+    jitter_vignetting: float = _field(0.0, minimum=0, maximum=1)
     unprocess: bool = False
 
 
@@ -164,6 +168,8 @@ class NoiseConfig:
     full_well_electrons: float = _field(0.0, minimum=0, maximum=10000000.0)
     read_electrons: float = _field(0.0, minimum=0, maximum=10000.0)
     learnable: bool = False
+    train_scale_min: float = _field(1.0, minimum=0, maximum=100, exclusive=True)
+    train_scale_max: float = _field(1.0, minimum=0, maximum=100, exclusive=True)
     eval_seed: int = 1234
 
 

@@ -18,6 +18,7 @@ from tqdm import tqdm
 from warpsense.camera.camera import set_finite_check
 from warpsense.data import HELDOUT_SPLIT, DatasetError, build_dataset, build_fold, evaluation_splits, frame_sequences
 from warpsense.data.on_device import DecodedDataset, DeviceBatches, dataset_megabytes
+from warpsense.data.photometric import RadianceJitter
 from warpsense.data.transforms import EpochSampler
 from warpsense.files import atomic_write, environment, write_json
 from warpsense.models import count_parameters
@@ -392,7 +393,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
                                                        zip(datasets.train.classes, class_weights.tolist())))
     training_step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), schedule.epochs * steps_per_epoch,
                                  amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph,
-                                 config.train.micro_batch, teacher, class_weights, ema, data_parallel=context.enabled)
+                                 config.train.micro_batch, teacher, class_weights, ema, data_parallel=context.enabled,
+                                 radiance_jitter=RadianceJitter.from_config(config.data))
     wrapped, wrapped_phase = model, None
     epoch = start_epoch
     # where a run's time goes before its first step (the first epoch's own time includes the compile / graph capture)

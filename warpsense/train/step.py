@@ -11,6 +11,7 @@ import time
 import torch
 
 from warpsense.choices import COMPILE_MODES, SELF_CAPTURING_COMPILE_MODES
+from warpsense.data.color import srgb_to_linear
 from warpsense.errors import first_line
 from warpsense.train.losses import distillation_loss, segmentation_loss
 
@@ -57,12 +58,15 @@ class TrainingStep:
             is captured inside the step: the wrapper must be built within `capture_stream` (the side stream that
             warms up and captures), `DDP_EAGER_STEPS_BEFORE_CAPTURE` eager steps run first, and the capture is
             thread-local so that the process group's watchdog thread may query its events meanwhile.
+        radiance_jitter: a `warpsense.data.photometric.RadianceJitter` applied to the batch's linear radiance before
+            the camera (and the teacher: both read the same jittered scene), inside the step.
     """
 
     def __init__(self, loss_config, optimizer: torch.optim.Optimizer, camera_params: list, total_steps: int,
                  amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False,
                  micro_batch: int = 0, teacher: torch.nn.Module | None = None,
-                 class_weights: torch.Tensor | None = None, ema=None, data_parallel: bool = False):
+                 class_weights: torch.Tensor | None = None, ema=None, data_parallel: bool = False,
+                 radiance_jitter: torch.nn.Module | None = None):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
         if cuda_graph and compile_mode in SELF_CAPTURING_COMPILE_MODES:
@@ -78,6 +82,7 @@ class TrainingStep:
         self.teacher = teacher if loss_config.distill_weight > 0 else None
         self.class_weights = class_weights
         self.ema = ema
+        self.radiance_jitter = radiance_jitter
         self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
         self.compiled = compile_mode != "off"
         self.forward_loss = self._forward_loss if not self.compiled else \
@@ -103,6 +108,8 @@ class TrainingStep:
                 group["capturable"] = True
 
     def _forward_loss(self, model, images, labels):
+        if self.radiance_jitter is not None:  # float radiance passes the model's sRGB decoding as it is
+            images = self.radiance_jitter(srgb_to_linear(images) if images.dtype == torch.uint8 else images)
         logits, sensed = model(images, self.amp)
         loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config, self.class_weights)
         if self.teacher is not None:
