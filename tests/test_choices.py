@@ -26,9 +26,8 @@ def test_config_choices_are_the_shared_tuples():
         "optics.method": choices.PSF_METHODS, "optics.render_precision": choices.RENDER_PRECISIONS, "cfa.pattern": tuple(choices.CFA_LAYOUTS),
         "cfa.mode": choices.CFA_MODES, "quantize.mode": choices.QUANTIZE_MODES, "train.compile": choices.COMPILE_MODES,
         "model.name": choices.MODEL_NAMES, "model.context": choices.MODEL_CONTEXTS, "model.input": choices.MODEL_INPUTS,
-        "model.input_transform": choices.MODEL_INPUT_TRANSFORMS, "data.scale_fill": choices.SCALE_FILLS,
-        "loss.distill_mode": choices.DISTILL_MODES, "photons.light": tuple(choices.LIGHT_LEVELS),
-        "model.decoder_join": choices.DECODER_JOINS,
+        "data.scale_fill": choices.SCALE_FILLS, "loss.distill_mode": choices.DISTILL_MODES,
+        "photons.light": tuple(choices.LIGHT_LEVELS),
     }
 
 
@@ -40,12 +39,6 @@ def test_registries_implement_exactly_the_named_choices():
     from warpsense.models.dsunet import CONTEXTS
 
     assert set(CONTEXTS) == set(choices.MODEL_CONTEXTS)
-    from warpsense.models.dsunet import JOINS
-
-    assert set(JOINS) == set(choices.DECODER_JOINS)
-    from warpsense.models.dsunet import INPUT_TRANSFORMS
-
-    assert set(INPUT_TRANSFORMS) == set(choices.MODEL_INPUT_TRANSFORMS)
     from warpsense.train.losses import DISTILLATION
 
     assert set(DISTILLATION) == set(choices.DISTILL_MODES)

@@ -54,13 +54,6 @@ def test_eval_argument_mistakes_are_one_line_errors_before_any_work(capsys, argu
     assert message in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("scales,message", [("0.75,0", "scales must be > 0"), ("big", "expected comma-separated scales")])
-def test_eval_bad_scale_tta_is_a_usage_error(capsys, scales, message):
-    with pytest.raises(SystemExit) as exit_info:
-        main(["eval", "--checkpoint", "missing.safetensors", "--scale-tta", scales])
-    assert exit_info.value.code == 2 and message in capsys.readouterr().err
-
-
 def test_subpackages_load_on_attribute_access_and_no_driver_warning_on_cpu():
     code = "import warpsense; print(warpsense.ops.cfa_mosaic.__name__)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
@@ -108,9 +101,9 @@ def test_help_shows_every_default(command):
                 assert "default" in action.help, (command, action.dest)
 
 
-def test_eval_scale_tta_is_recorded_and_scored(shared_data, tmp_path, capsys):
-    """`warpsense eval --scale-tta` on the committed checkpoint: the scales go into the JSON, and its mIoU is the
-    model's multi-scale prediction's (SensingModel.probabilities with those scales)."""
+def test_eval_flip_tta_is_recorded_and_scored(shared_data, tmp_path, capsys):
+    """`warpsense eval --flip-tta` on the committed checkpoint: the JSON says so, and its mIoU is the model's
+    prediction averaged with the mirrored capture's (SensingModel.probabilities with flip)."""
     import torch
 
     from warpsense.data import build_dataset
@@ -120,16 +113,15 @@ def test_eval_scale_tta_is_recorded_and_scored(shared_data, tmp_path, capsys):
     out = tmp_path / "eval.json"
     checkpoint = "checkpoints/camvid_codesign.safetensors"
     assert main(["eval", "--checkpoint", checkpoint, "--data-root", str(shared_data / "camvid"), "--limit", "1",
-                 "--device", "cpu", "--scale-tta", "0.75,1", "--json", str(out), "--no-progress"]) == 0
+                 "--device", "cpu", "--flip-tta", "--json", str(out), "--no-progress"]) == 0
     payload = json.loads(out.read_text())
-    assert payload["scale_tta"] == [0.75, 1.0] and payload["num_images"] == 1
+    assert payload["flip_tta"] is True and payload["num_images"] == 1
     model, config, _ = load_system(checkpoint, "cpu")
     config.data.root, config.data.max_val_images = str(shared_data / "camvid"), 1
     image, label = build_dataset(config.data, "val", train=False, seed=config.run.seed)[0][:2]
     model.eval()
     matrix = ConfusionMatrix(model.network.head.out_channels, "cpu")
-    matrix.update(model.probabilities(image[None], image_index=torch.tensor([0]), scales=(0.75, 1.0)).argmax(1),
-                  label[None])
+    matrix.update(model.probabilities(image[None], image_index=torch.tensor([0]), flip=True).argmax(1), label[None])
     assert payload["miou"] == pytest.approx(matrix.compute()["miou"], abs=1e-12)
 
 

@@ -1,10 +1,22 @@
+import copy
 import dataclasses
 import json
 import sys
 
 import pytest
 
-from warpsense.config import CONFIG_DIR, Config, ConfigError, load_config, parse_override, preset_names
+from warpsense.config import (
+    CONFIG_DIR,
+    EVERY_VALUE,
+    RETIRED,
+    RETIRED_VALUES,
+    Config,
+    ConfigError,
+    config_from_dict,
+    load_config,
+    parse_override,
+    preset_names,
+)
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -69,8 +81,6 @@ def test_int_accepted_for_float_and_save_round_trip(tmp_path):
     config.save(tmp_path / "config.json")
     saved = json.loads((tmp_path / "config.json").read_text())
     assert saved["run"]["name"] == "x y"
-    from warpsense.config import config_from_dict
-
     assert dataclasses.asdict(config_from_dict(saved)) == dataclasses.asdict(config)
 
 
@@ -102,3 +112,49 @@ def test_cuda_graph_refuses_self_capturing_compile_modes():
     with pytest.raises(ConfigError, match="train.cuda_graph.*reduce-overhead"):
         load_config(None, ["train.cuda_graph=true", "train.compile=reduce-overhead"])
     assert load_config(None, ["train.cuda_graph=true", "train.compile=default"]).train.cuda_graph
+
+
+RETIRED_VALUE = ("model.name", "packunet")
+
+
+@pytest.mark.parametrize("key", [*RETIRED, "=".join(RETIRED_VALUE)])
+def test_a_retired_key_or_value_is_refused_in_one_line_naming_it_and_where_to_read_why(key, tmp_path):
+    """Every retired key (any value, even that of the behaviour that stayed: a config asking for it is out of date)
+    and retired value is refused from --set and from a TOML file, by a one-line error naming it, saying it was
+    retired and pointing at docs/history.md."""
+    key, _, value = key.partition("=")
+    retired = RETIRED.get(key) or RETIRED_VALUES[key, value]
+    named = f"{key} = {value!r}" if value else key
+    text = f'{key}="{value}"' if value else f"{key}=1"
+    why = f"{named} was retired ({retired.what}; {retired.verdict}: docs/history.md)"
+    with pytest.raises(ConfigError) as refused:
+        load_config(None, [text])
+    assert str(refused.value) == f"{why}; drop --set {text}"
+    section, name = key.split(".")
+    path = tmp_path / "old.toml"
+    path.write_text(f"[{section}]\n{name} = {text.split('=', 1)[1]}\n")
+    with pytest.raises(ConfigError) as refused:
+        load_config(path)
+    assert str(refused.value) == f"{why}; remove it from {path}"
+
+
+def test_a_saved_config_drops_retired_keys_that_ask_for_the_behaviour_that_stayed():
+    """A run or checkpoint saved before a key was retired holds it: at the value of the behaviour that stayed (any
+    value for model.anscombe_offset, which acted only with the Anscombe transform) it is read as today's config; at
+    another value, or with a retired value, it is refused in one line naming the key, its value and the source."""
+    saved = Config().to_dict()
+    for key, retired in RETIRED.items():
+        section, name = key.split(".")
+        saved[section][name] = 0.02 if retired.remaining is EVERY_VALUE else retired.remaining
+    assert config_from_dict(saved) == Config()
+    for key, value in [("loss.lovasz_stride", 2), ("loss.class_balance", 0.5), ("data.unprocess", True),
+                       ("model.decoder_join", "project"), ("model.input_transform", "anscombe"), RETIRED_VALUE]:
+        section, name = key.split(".")
+        asking = copy.deepcopy(saved)
+        asking[section][name] = value
+        with pytest.raises(ConfigError) as refused:
+            config_from_dict(asking, "runs/old/config.json")
+        message = str(refused.value)
+        assert message.startswith(f"{key} = {value!r} was retired (") and "\n" not in message
+        assert message.endswith("docs/history.md); runs/old/config.json asks for it: read that run with the "
+                                "warpsense version that made it")

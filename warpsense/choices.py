@@ -60,24 +60,15 @@ MODEL_INPUTS = ("sensor", "srgb")
 """What the network reads: the camera's output (RAW, or RGB through the fixed ISP) or the clean sRGB frame itself
 (an RGB teacher for distillation, `warpsense.system.model.SensingModel`)."""
 
-MODEL_NAMES = ("dsunet", "packunet")
+MODEL_NAMES = ("dsunet",)
 """Segmentation networks (`warpsense.models.MODELS`)."""
 
 DISTILL_MODES = ("pixel", "channel")
 """How a student's logits match its teacher's (`warpsense.train.losses.DISTILLATION`): per pixel over the classes
 (Hinton et al. 2015), or per class over the image's pixels (channel-wise, Shu et al., ICCV 2021)."""
 
-MODEL_INPUT_TRANSFORMS = ("linear", "anscombe")
-"""What the network does to its input first (`warpsense.models.dsunet.INPUT_TRANSFORMS`): nothing, or the generalised
-Anscombe transform, which makes Poisson-Gaussian noise about equally strong at every signal level."""
-
 MODEL_CONTEXTS = ("none", "pyramid")
 """Context modules at the networks' 1/16 bottleneck (`warpsense.models.dsunet.CONTEXTS`)."""
-
-DECODER_JOINS = ("concat", "project")
-"""How a DSUNet decoder stage joins the deeper features to its encoder skip (`warpsense.models.dsunet.JOINS`): the
-upsampled features concatenated as they are, or first projected by a 1x1 convolution (at the deeper, 4x smaller
-resolution) to the skip's channels, which halves the channels the finer stages carry."""
 
 LIGHT_LEVELS = {"night": 70.0, "dusk": 700.0, "day": 7000.0}
 """Named scene light levels of the photon budget (`warpsense.camera.photons`): the electrons a mid-grey patch (18%

@@ -44,7 +44,7 @@ def _eval(args) -> int:
     height, width = parse_size(args.latency_size, "--latency-size", "192x640")
     run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
              (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot, args.flip_tta,
-             progress=_progress(args), scales=args.scale_tta)
+             progress=_progress(args))
     return 0
 
 
@@ -64,18 +64,6 @@ def _seed_list(text: str) -> tuple[int, ...]:
     if len(set(seeds)) != len(seeds):
         raise argparse.ArgumentTypeError(f"seeds must be distinct, got {text!r}")
     return seeds
-
-
-MAX_TTA_SCALE = 4.0
-"""The largest --scale-tta scale: 4x the capture's side is 16x its pixels, far past any test-time augmentation."""
-
-
-def _scale_list(text: str) -> tuple[float, ...]:
-    """"0.75,1,1.25" -> (0.75, 1.0, 1.25), each in (0, `MAX_TTA_SCALE`] (NaN and inf refused)."""
-    scales = _comma_separated(text, float, "scales such as 0.75,1,1.25")
-    if any(not 0 < scale <= MAX_TTA_SCALE for scale in scales):
-        raise argparse.ArgumentTypeError(f"scales must be > 0 and <= {MAX_TTA_SCALE:g}, got {text!r}")
-    return scales
 
 
 def _count(minimum: int):
@@ -197,9 +185,6 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--sweep", action="store_true", help="robustness sweeps: extra blur, noise scale, bit depth")
     evaluate.add_argument("--flip-tta", action="store_true",
                           help="average with the prediction on the mirrored capture (keeps the CFA phase)")
-    evaluate.add_argument("--scale-tta", type=_scale_list, default=(1.0,), metavar="0.75,1,1.25",
-                          help="average the predictions on the capture resized by each scale (keeps the CFA phase; "
-                               "default: 1, no resizing)")
     evaluate.add_argument("--plot", metavar="OUT.png", help="with --sweep: plot the sweeps")
     evaluate.add_argument("--latency", action="store_true", help="time sensor simulation + network (the camera cached: Camera.cached) and network alone (alone: no dataset, no mIoU; with --sweep: both)")
     evaluate.add_argument("--latency-size", default="192x640", metavar="HxW", help="input size for --latency (default: %(default)s)")

@@ -20,12 +20,10 @@ from warpsense.choices import (
     CFA_MODES,
     COMPILE_MODES,
     DATASETS,
-    DECODER_JOINS,
     DEVICES,
     DISTILL_MODES,
     LIGHT_LEVELS,
     MODEL_CONTEXTS,
-    MODEL_INPUT_TRANSFORMS,
     MODEL_INPUTS,
     MODEL_NAMES,
     ON_DEVICE_MODES,
@@ -101,7 +99,6 @@ class DataConfig:
     jitter_gamma: float = _field(0.0, minimum=0, maximum=10)
     jitter_white_balance: float = _field(0.0, minimum=0, maximum=2)
     jitter_vignetting: float = _field(0.0, minimum=0, maximum=1)
-    unprocess: bool = False
 
 
 @dataclass
@@ -195,12 +192,9 @@ class ModelConfig:
     squeeze: bool = True
     full_width: int = _field(0, minimum=0, maximum=512)
     full_depth: int = _field(1, minimum=1, maximum=8)
-    decoder_join: str = _field("concat", choices=DECODER_JOINS)
     num_classes: int = _field(0, minimum=0, maximum=1024)
     channels_last: bool = True
     input: str = _field("sensor", choices=MODEL_INPUTS)
-    input_transform: str = _field("linear", choices=MODEL_INPUT_TRANSFORMS)
-    anscombe_offset: float = _field(0.0059, minimum=0, exclusive=True)
 
 
 @dataclass
@@ -208,9 +202,7 @@ class LossConfig:
     ohem_weight: float = _field(0.6, minimum=0)
     ohem_fraction: float = _field(0.25, minimum=0, maximum=1, exclusive=True)
     lovasz_weight: float = _field(0.4, minimum=0)
-    lovasz_stride: int = _field(1, minimum=1)
     smooth_weight: float = _field(0.01, minimum=0)
-    class_balance: float = _field(0.0, minimum=0, maximum=2)
     teacher: str = ""
     distill_weight: float = _field(0.0, minimum=0)
     distill_temperature: float = _field(1.0, minimum=0, exclusive=True)
@@ -330,7 +322,59 @@ def _check_type(value: Any, expected: type, where: str) -> Any:
     return value
 
 
-def _apply(config: Config, overrides: dict, source: str) -> None:
+EVERY_VALUE = object()
+"""`Retired.remaining` of a key that did nothing without another retired key: any value of it is harmless."""
+
+
+@dataclass(frozen=True)
+class Retired:
+    """A config key (or one value of a key) removed because it was not adopted; docs/history.md says why (the
+    measurements).
+
+    Attributes:
+        what: what it did, for the error message.
+        remaining: the value that asks for the behaviour that stayed (`EVERY_VALUE`: any): a saved run's or
+            checkpoint's config holding it is read as if the key were absent, since it trained as today's code does.
+        verdict: why it went, in a few words.
+    """
+
+    what: str
+    remaining: Any = None
+    verdict: str = "measured, not adopted"
+
+
+RETIRED = {
+    "data.unprocess": Retired("Brooks et al. unprocessing of the sRGB radiance", False,
+                              "never enabled by a preset or study, never measured"),
+    "model.decoder_join": Retired("decoder joins projected by a 1x1 convolution", "concat"),
+    "model.input_transform": Retired("the generalised Anscombe transform of the network's input", "linear"),
+    "model.anscombe_offset": Retired("the offset of the Anscombe input transform", EVERY_VALUE),
+    "loss.lovasz_stride": Retired("the Lovasz term on every Nth pixel", 1),
+    "loss.class_balance": Retired("class-frequency weights on the OHEM pixels", 0.0),
+}
+"""Retired keys ("section.key"): any config naming one is refused with a one-line error saying so, except a saved
+run's config holding its `Retired.remaining` value (dropped)."""
+
+RETIRED_VALUES = {
+    ("model.name", "packunet"): Retired("PackUNet, the network with the 2 x 2 CFA tile packed into channels"),
+}
+"""Retired values of keys that stay ("section.key", value): refused wherever they appear."""
+
+
+def _retired_error(name: str, retired: Retired, source: str, saved: bool) -> ConfigError:
+    """The one-line error for the retired key or value ``name`` met in ``source``."""
+    if saved:
+        remedy = f"{source} asks for it: read that run with the warpsense version that made it"
+    elif source.startswith("--set "):
+        remedy = f"drop {source}"
+    else:
+        remedy = f"remove it from {source}"
+    return ConfigError(f"{name} was retired ({retired.what}; {retired.verdict}: docs/history.md); {remedy}")
+
+
+def _apply(config: Config, overrides: dict, source: str, saved: bool = False) -> None:
+    """Set each ``{section: {key: value}}`` of ``overrides`` on ``config``, checked; ``saved``: the overrides are a
+    saved run's config (`config_from_dict`), whose `RETIRED` keys at their remaining value are dropped."""
     sections = {f.name: f for f in dataclasses.fields(Config)}
     for section_name, values in overrides.items():
         if section_name not in sections:
@@ -340,7 +384,15 @@ def _apply(config: Config, overrides: dict, source: str) -> None:
         section = getattr(config, section_name)
         fields = {f.name: f for f in dataclasses.fields(section)}
         for key, value in values.items():
-            where = f"{source}: {section_name}.{key}"
+            dotted = f"{section_name}.{key}"
+            where = f"{source}: {dotted}"
+            retired = RETIRED.get(dotted)
+            if retired is not None:
+                if saved and retired.remaining in (EVERY_VALUE, value):
+                    continue
+                raise _retired_error(f"{dotted} = {value!r}" if saved else dotted, retired, source, saved)
+            if isinstance(value, str) and (dotted, value) in RETIRED_VALUES:
+                raise _retired_error(f"{dotted} = {value!r}", RETIRED_VALUES[dotted, value], source, saved)
             if key not in fields:
                 raise ConfigError(f"{where}: unknown key; valid keys of [{section_name}]: {', '.join(fields)}")
             spec = fields[key]
@@ -441,7 +493,9 @@ def with_overrides(config: Config, overrides: list[str] | tuple[str, ...]) -> Co
 
 
 def config_from_dict(data: dict, source: str = "config") -> Config:
-    """Rebuild a Config from `Config.to_dict()` output (e.g. the JSON saved beside a checkpoint)."""
+    """Rebuild a Config from `Config.to_dict()` output (e.g. the JSON saved beside a checkpoint). A key added since
+    takes its default; a `RETIRED` key at the value of the behaviour that stayed is dropped (the run trained as
+    today's code does), at any other value it is a `ConfigError`."""
     resolved = Config()
-    _apply(resolved, data, source)
+    _apply(resolved, data, source, saved=True)
     return validate(resolved, source)

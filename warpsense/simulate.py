@@ -45,7 +45,6 @@ class SimulatedCamera:
     """A camera ready to simulate: the module in eval mode and what the outputs need to describe it."""
 
     camera: torch.nn.Module
-    unprocess: bool
     source: str
 
     @property
@@ -91,10 +90,10 @@ def load_camera(config: str | None = None, overrides: list[str] | tuple[str, ...
         if overrides:
             raise ValueError("--set changes a config: with --checkpoint the camera is the checkpoint's")
         model, _, _ = load_system(checkpoint, torch.device("cpu"))
-        return SimulatedCamera(model.camera.eval(), model.unprocess_input, str(checkpoint))
+        return SimulatedCamera(model.camera.eval(), str(checkpoint))
     resolved = load_config(config, overrides)
     check_config(resolved, f"config {config}")
-    return SimulatedCamera(Camera.from_config(resolved).eval(), resolved.data.unprocess, str(config))
+    return SimulatedCamera(Camera.from_config(resolved).eval(), str(config))
 
 
 def read_image(path: str | Path, linear: bool = False) -> torch.Tensor:
@@ -168,13 +167,9 @@ def simulate_image(sim: SimulatedCamera, radiance: torch.Tensor, key: int = 0) -
     """The normalised RAW mosaic [H', W'] float32 (units of the white level; ADC units before a photon budget's
     digital gain, as a real capture's file holds them) of radiance [1, 3, H, W]; the image is cropped to a multiple
     of the CFA tile (top-left kept) so that the mosaic's layout is the camera's."""
-    from warpsense.data.color import unprocess
-
     tile = sim.camera.tile
     height, width = radiance.shape[-2] // tile * tile, radiance.shape[-1] // tile * tile
     radiance = radiance[..., :height, :width]
-    if sim.unprocess:
-        radiance = unprocess(radiance)
     raw = sim.camera(radiance.float(), torch.tensor([key]))
     digital_gain = sim.camera.learned().digital_gain
     if digital_gain is not None:

@@ -1,23 +1,17 @@
 """DSUNet: shapes, the channels-last layout against the contiguous one, the bf16 decoder path, the bottleneck
 context module (pyramid pooling), the networks without squeeze-and-excitation, the full-resolution path's width and
-depth, the decoder's projected joins, the Anscombe input, and the network a config builds."""
+depth, and the network a config builds."""
 
 import copy
+import dataclasses
+import inspect
 
 import pytest
 import torch
 
-from warpsense.config import load_config
+from warpsense.config import ModelConfig, load_config
 from warpsense.models import DSUNet, build_model, count_parameters, network_from_config
-from warpsense.models.dsunet import (
-    Anscombe,
-    PyramidPooling,
-    SeparableBlock,
-    SqueezeExcitation,
-    build_context,
-    build_input_transform,
-    build_join,
-)
+from warpsense.models.dsunet import PyramidPooling, SeparableBlock, SqueezeExcitation, build_context
 
 
 @pytest.mark.parametrize("context", ["none", "pyramid"])
@@ -41,67 +35,17 @@ def test_cardinality_full_resolution_path(full_width, full_depth):
 def test_exception_full_resolution_path():
     with pytest.raises(ValueError, match="full_depth >= 1, got 0 and 0"):
         DSUNet(width=8, full_depth=0)
-    with pytest.raises(ValueError, match="packunet has its own full-resolution path"):
-        build_model("packunet", in_channels=1, num_classes=5, width=8, full_width=16)
 
 
 @pytest.mark.parametrize("full_width", [0, 12])
-def test_cardinality_projected_joins(full_width):
-    """Each decoder stage runs on twice its skip's channels: (6w, 4w, 2w, f) skips at w = 8, f = full_width or w."""
-    network = DSUNet(in_channels=1, num_classes=5, width=8, full_width=full_width, decoder_join="project")
+def test_cardinality_decoder_stages_take_the_upsampled_features_and_the_skip(full_width):
+    """Each decoder stage runs on the deeper features' channels plus its skip's: (8w + 6w, 6w + 4w, 4w + 2w, 2w + f)
+    at w = 8, f = full_width or w."""
+    network = DSUNet(in_channels=1, num_classes=5, width=8, full_width=full_width)
     assert network(torch.rand(2, 1, 37, 45)).shape == (2, 5, 37, 45)
     f = full_width or 8
-    for level, (deep, skip) in {"4": (64, 48), "3": (48, 32), "2": (32, 16), "1": (16, f)}.items():
-        join = getattr(network, f"join{level}")
-        assert (join.in_channels, join.out_channels, join.kernel_size, join.bias) == (deep, skip, (1, 1), None)
-        assert getattr(network, f"dec{level}")[0].depthwise.in_channels == 2 * skip
-
-
-def test_exception_decoder_join():
-    with pytest.raises(KeyError, match="unknown decoder join 'add'; valid: concat, project"):
-        build_join("add", 16, 8)
-    with pytest.raises(KeyError, match="unknown decoder join"):
-        DSUNet(width=8, decoder_join="add")
-    with pytest.raises(ValueError, match="decoder_join must be 'concat', got 'project'"):
-        build_model("packunet", in_channels=1, num_classes=5, width=8, decoder_join="project")
-
-
-def test_feature_projected_joins_project_before_upsampling_as_after_it():
-    """The projection runs at the deeper resolution because it commutes with the bilinear upsampling (both are linear
-    and act on different axes): the logits equal a plain-torch decoder that upsamples first (F.interpolate) and
-    projects at the finer resolution (F.conv2d), float64."""
-    torch.manual_seed(0)
-    network = DSUNet(in_channels=1, num_classes=4, width=8, decoder_join="project", context="pyramid",
-                     channels_last=False).double().eval()
-    for level in "4321":
-        torch.nn.init.normal_(getattr(network, f"join{level}").weight)
-    image = torch.rand(2, 1, 32, 48, dtype=torch.float64)
-
-    def join_after(x, skip, projection):
-        up = torch.nn.functional.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
-        return torch.cat([torch.nn.functional.conv2d(up, projection.weight), skip], dim=1)
-
-    with torch.no_grad():
-        s1, s2 = network.encode_high(image)
-        s3 = network.enc3(s2)
-        s4 = network.enc4(s3)
-        d = network.context(network.enc5(s4))
-        for level, skip in zip("4321", (s4, s3, s2, s1)):
-            d = getattr(network, f"dec{level}")(join_after(d, skip, getattr(network, f"join{level}")))
-        reference = network.head(d)
-        torch.testing.assert_close(network(image), reference, rtol=1e-12, atol=1e-12)
-
-
-def test_feature_concat_joins_build_the_network_as_before():
-    """The "concat" joins are parameter-free: the same parameters in the same order, drawn in the same order (a seed
-    builds the same network whatever the joins' registration), as a network built without naming the join."""
-    torch.manual_seed(3)
-    named = DSUNet(in_channels=1, num_classes=4, width=8, decoder_join="concat")
-    torch.manual_seed(3)
-    default = DSUNet(in_channels=1, num_classes=4, width=8)
-    assert [n for n, _ in named.named_parameters()] == [n for n, _ in default.named_parameters()]
-    assert all(torch.equal(a, b) for a, b in zip(named.parameters(), default.parameters()))
-    assert not any(n.startswith("join") for n, _ in named.named_parameters())
+    for level, channels in {"4": 64 + 48, "3": 48 + 32, "2": 32 + 16, "1": 16 + f}.items():
+        assert getattr(network, f"dec{level}")[0].depthwise.in_channels == channels
 
 
 def test_feature_full_width_equal_to_width_is_the_default_network():
@@ -141,13 +85,12 @@ def test_exception_unknown_context():
         build_context("aspp", 16)
 
 
-@pytest.mark.parametrize("name", ["dsunet", "packunet"])
-def test_feature_context_starts_as_the_network_without_it(name):
+def test_feature_context_starts_as_the_network_without_it():
     """The pyramid's last BN scale starts at 0: with the other weights shared, the network with the module gives the
     network without it, in training and in evaluation; and the module's parameters do receive gradients."""
     torch.manual_seed(0)
-    plain = build_model(name, in_channels=1, num_classes=4, width=8).double()
-    pooled = build_model(name, in_channels=1, num_classes=4, width=8, context="pyramid").double()
+    plain = DSUNet(in_channels=1, num_classes=4, width=8).double()
+    pooled = DSUNet(in_channels=1, num_classes=4, width=8, context="pyramid").double()
     missing, unexpected = pooled.load_state_dict(plain.state_dict(), strict=False)
     assert not unexpected and missing and all(key.startswith("context.") for key in missing)
     image = torch.rand(2, 1, 40, 56, dtype=torch.float64)
@@ -193,13 +136,12 @@ def test_exception_unknown_model():
         build_model("unet9000")
 
 
-@pytest.mark.parametrize("name", ["dsunet", "packunet"])
-def test_feature_channels_last_matches_contiguous(name):
-    """Same weights, same input, float64: NHWC gives the NCHW logits and parameter gradients up to rounding (both
-    registered networks, with the context module, its BN scale moved off 0)."""
+def test_feature_channels_last_matches_contiguous():
+    """Same weights, same input, float64: NHWC gives the NCHW logits and parameter gradients up to rounding (with the
+    context module, its BN scale moved off 0)."""
     torch.manual_seed(0)
-    contiguous, channels_last = (build_model(name, in_channels=1, num_classes=4, width=8, channels_last=layout,
-                                             context="pyramid").double() for layout in (False, True))
+    contiguous, channels_last = (DSUNet(in_channels=1, num_classes=4, width=8, channels_last=layout,
+                                        context="pyramid").double() for layout in (False, True))
     torch.nn.init.normal_(contiguous.context.norm.weight)
     channels_last.load_state_dict(contiguous.state_dict())
     assert next(channels_last.parameters()).is_contiguous(memory_format=torch.channels_last)
@@ -237,13 +179,12 @@ def logits_and_gradients(network, image, target):
     return logits.detach(), [p.grad.clone() for p in network.parameters()]
 
 
-@pytest.mark.parametrize("name", ["dsunet", "packunet"])
-def test_feature_deterministic_mode_takes_the_deterministic_resampling(name, monkeypatch):
-    """Under torch's deterministic algorithms (run.deterministic) the networks resize and pool through
+def test_feature_deterministic_mode_takes_the_deterministic_resampling(monkeypatch):
+    """Under torch's deterministic algorithms (run.deterministic) the network resizes and pools through
     warpsense.models.resample, not through torch's ops whose CUDA backward adds atomically, with the same logits
     and gradients (float64)."""
     torch.manual_seed(3)
-    network = build_model(name, in_channels=1, num_classes=4, width=8, context="pyramid").double()
+    network = DSUNet(in_channels=1, num_classes=4, width=8, context="pyramid").double()
     torch.nn.init.normal_(network.context.norm.weight)
     image = torch.rand(2, 1, 40, 56, dtype=torch.float64)
     target = torch.randn(2, 4, 40, 56, dtype=torch.float64)
@@ -265,8 +206,7 @@ def test_feature_deterministic_mode_takes_the_deterministic_resampling(name, mon
         torch.testing.assert_close(grad, reference, rtol=1e-9, atol=1e-11)
 
 
-@pytest.mark.parametrize("name", ["dsunet", "packunet"])
-def test_feature_fused_ops_are_the_torch_ones(name, monkeypatch):
+def test_feature_fused_ops_are_the_torch_ones(monkeypatch):
     """A channels-last network on a fused device joins its four decoder levels with `upsample_concat`, runs every
     batch norm followed by a ReLU (all but the context module's) as `batch_norm_relu` and every squeeze-and-
     excitation gate (with its block's residual) as `channel_gate`: the same logits, gradients and running
@@ -274,8 +214,7 @@ def test_feature_fused_ops_are_the_torch_ones(name, monkeypatch):
     from warpsense.models import dsunet
 
     torch.manual_seed(4)
-    network = build_model(name, in_channels=1, num_classes=4, width=8, context="pyramid",
-                          channels_last=True).double()
+    network = DSUNet(in_channels=1, num_classes=4, width=8, context="pyramid", channels_last=True).double()
     fused_network = copy.deepcopy(network)
     image = torch.rand(2, 1, 40, 56, dtype=torch.float64)
     target = torch.randn(2, 4, 40, 56, dtype=torch.float64)
@@ -316,13 +255,12 @@ def test_feature_fused_ops_are_the_torch_ones(name, monkeypatch):
     assert len(joins) == 4
 
 
-@pytest.mark.parametrize("name", ["dsunet", "packunet"])
-def test_feature_without_squeeze_is_the_network_with_its_se_gates_removed(name):
+def test_feature_without_squeeze_is_the_network_with_its_se_gates_removed():
     """``squeeze=False`` builds the same network minus every squeeze-and-excitation: with the shared weights copied
     and each SE of the full network replaced by the identity, the two give the same logits."""
     torch.manual_seed(0)
-    full = build_model(name, in_channels=1, num_classes=4, width=8).double().eval()
-    lean = build_model(name, in_channels=1, num_classes=4, width=8, squeeze=False).double().eval()
+    full = DSUNet(in_channels=1, num_classes=4, width=8).double().eval()
+    lean = DSUNet(in_channels=1, num_classes=4, width=8, squeeze=False).double().eval()
     assert not any(isinstance(m, SqueezeExcitation) for m in lean.modules())
     missing, unexpected = lean.load_state_dict(full.state_dict(), strict=False)
     assert not missing and unexpected and all(".squeeze." in key for key in unexpected)
@@ -336,51 +274,36 @@ def test_feature_without_squeeze_is_the_network_with_its_se_gates_removed(name):
 
 
 def test_module_network_from_config_takes_every_model_key():
+    """Every [model] key but the network's name and what it reads (model.input: the system's) reaches DSUNet."""
     config = load_config(None, ["model.width=8", "model.context=pyramid", "model.squeeze=false",
-                                "model.channels_last=false", "model.num_classes=5", "model.input_transform=anscombe",
-                                "model.anscombe_offset=0.02", "model.full_width=12", "model.full_depth=2",
-                                "model.decoder_join=project"])
+                                "model.channels_last=false", "model.num_classes=5", "model.full_width=12",
+                                "model.full_depth=2"])
     network = network_from_config(config.model, in_channels=1, num_classes=11, tile=2)
     expected = DSUNet(in_channels=1, num_classes=5, width=8, context="pyramid", squeeze=False, full_width=12,
-                      full_depth=2, decoder_join="project")
+                      full_depth=2)
     assert [name for name, _ in network.named_parameters()] == [name for name, _ in expected.named_parameters()]
     assert network.memory_format == torch.contiguous_format and network.head.out_channels == 5
-    assert isinstance(network.input_transform, Anscombe) and network.input_transform.offset == 0.02
+    keys = {spec.name for spec in dataclasses.fields(ModelConfig)}
+    assert keys - set(inspect.signature(DSUNet).parameters) == {"name", "input"}
 
 
-def test_feature_anscombe_makes_poisson_gaussian_noise_one_strength():
-    """Physics: a normalised signal x with Poisson-Gaussian noise of variance a x + s^2 (the night point: a = 0.015,
-    s = 0.002). Linear, the noise's standard deviation grows ~6x from x = 0.03 (2 electrons) to 1 (67); after
-    sqrt(x + 3/8 a + s^2 / a) it is sqrt(a) / 2 at every level to within 10% (the transform's known answer, which
-    holds from a few electrons up: at 0.7 electrons it is 28% short)."""
-    a, s = 0.015, 0.002
-    transform = Anscombe(3 / 8 * a + s**2 / a)
-    generator = torch.Generator().manual_seed(0)
-    levels = torch.tensor([0.03, 0.1, 0.3, 1.0], dtype=torch.float64)
-    electrons = torch.poisson(levels.repeat(200_000, 1) / a, generator=generator)
-    noisy = electrons * a + s * torch.randn(electrons.shape, generator=generator, dtype=torch.float64)
-    linear_std = noisy.std(dim=0)
-    stable_std = transform(noisy).std(dim=0)
-    assert linear_std[-1] / linear_std[0] > 5
-    torch.testing.assert_close(stable_std, torch.full_like(stable_std, a**0.5 / 2), rtol=0.1, atol=0)
+def test_module_network_from_config_passes_a_network_only_its_own_keys(monkeypatch):
+    """A registered network receives the [model] keys its constructor names, no others: it need not accept (and
+    refuse) the knobs of another network."""
+    from warpsense import models
 
+    with pytest.raises(KeyError, match=r"unknown model 'gone'; valid models: dsunet\b"):
+        network_from_config(ModelConfig(name="gone"), in_channels=1, num_classes=11, tile=2)
+    received = {}
 
-@pytest.mark.parametrize("name", ["dsunet", "packunet"])
-def test_feature_anscombe_input_is_the_linear_network_on_the_transformed_input(name):
-    """Same tensors (the transform has none), same logits as the linear network fed sqrt(max(x, 0) + offset)."""
-    torch.manual_seed(0)
-    linear = build_model(name, in_channels=1, num_classes=4, width=8).double().eval()
-    stable = build_model(name, in_channels=1, num_classes=4, width=8, input_transform="anscombe",
-                         anscombe_offset=0.01).double().eval()
-    assert set(stable.state_dict()) == set(linear.state_dict())
-    stable.load_state_dict(linear.state_dict())
-    image = torch.rand(2, 1, 32, 48, dtype=torch.float64) - 0.05  # read noise takes some pixels below 0
-    torch.testing.assert_close(stable(image), linear(torch.sqrt(image.clamp_min(0) + 0.01)), rtol=0, atol=0)
+    def tiny(in_channels, num_classes, width):
+        received.update(in_channels=in_channels, num_classes=num_classes, width=width)
+        return torch.nn.Identity()
 
-
-def test_exception_unknown_input_transform():
-    with pytest.raises(KeyError, match="anscombe, linear"):
-        build_input_transform("log", 0.01)
+    monkeypatch.setitem(models.MODELS, "tiny", tiny)
+    network_from_config(ModelConfig(name="tiny", width=3, full_width=12, context="pyramid"), in_channels=1,
+                        num_classes=11, tile=2)
+    assert received == {"in_channels": 1, "num_classes": 11, "width": 3}
 
 
 def test_feature_torch_ops_context_runs_no_warp_op(monkeypatch):

@@ -1,7 +1,7 @@
 """Checkpoints that cannot be used: unreadable files (zero-byte, truncated, random, a renamed pickle, a huge header,
-missing or corrupt metadata), a config inside that is invalid or points at a file that is no lens, tensors that do
-not fit the model, missing state. `warpsense eval` and `warpsense train --resume-dir` fail with one line naming
-the file, and resuming writes nothing into the run."""
+missing or corrupt metadata), a config inside that is invalid, asks for a retired behaviour or points at a file
+that is no lens, tensors that do not fit the model, missing state. `warpsense eval` and `warpsense train
+--resume-dir` fail with one line naming the file, and resuming writes nothing into the run."""
 
 import json
 
@@ -33,6 +33,10 @@ def _model_checkpoints(folder):
     write("wrong_type_in_config", {**config.to_dict(), "train": {**config.to_dict()["train"], "lr": "fast"}},
           names=("train.lr",))
     write("unknown_section", {**config.to_dict(), "extra": {}}, names=("extra",))
+    write("retired_behaviour", {**config.to_dict(), "loss": {**config.to_dict()["loss"], "class_balance": 0.5}},
+          names=("loss.class_balance = 0.5 was retired", "docs/history.md"))
+    write("retired_network", {**config.to_dict(), "model": {**config.to_dict()["model"], "name": "packunet"}},
+          names=("model.name = 'packunet' was retired", "docs/history.md"))
     write("no_num_classes", config.to_dict(), state_dict={"epoch": 0}, names=("num_classes",))
     write("other_width", config.to_dict(), tensors_model=build_system(load_config(None, ["model.width=4"]), 11),
           names=("model",))

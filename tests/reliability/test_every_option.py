@@ -18,7 +18,7 @@ import pytest
 
 from tests.reliability.conftest import files_under
 from warpsense import cli
-from warpsense.config import Config, preset_names
+from warpsense.config import RETIRED, RETIRED_VALUES, Config, preset_names
 
 # --------------------------------------------------------------------------------------------------------------------
 # the parser, introspected
@@ -138,8 +138,6 @@ CONTRADICTIONS = {
     "bench --seeds": [("other_suite", ["--suite", "kernels", "--seeds", "0,1"], ("--seeds",))],
 }
 LIST_TYPES = {
-    cli._scale_list: [("wrong_type", "a,b"), ("nan", "1,nan"), ("inf", "1,inf"), ("negative", "-1"), ("zero", "0"),
-                      ("out_of_range", "1000")],
     cli._seed_list: [("wrong_type", "a,b"), ("nan", "nan"), ("negative", "-1"), ("duplicate", "0,0"), ("float", "1.5")],
 }
 
@@ -351,6 +349,10 @@ def _config_cases():
 
 
 CONFIG_CASES = list(_config_cases())
+# retired keys and values (`warpsense.config.RETIRED`, `RETIRED_VALUES`): refused naming them and where to read why
+CONFIG_CASES += [(key, "retired", [f"{key}=1"], (key, "docs/history.md")) for key in RETIRED]
+CONFIG_CASES += [(key, "retired_value", [f'{key}="{value}"'], (key, repr(value), "docs/history.md"))
+                 for key, value in RETIRED_VALUES]
 
 
 @pytest.mark.parametrize("key, kind, overrides, names",

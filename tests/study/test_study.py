@@ -251,28 +251,33 @@ def test_reuse_copies_in_another_studys_runs_of_the_same_training_and_trains_the
 
 
 def test_reuse_reads_an_older_runs_config_with_the_defaults_of_keys_added_since(tmp_path, capsys):
-    """A run saved before a key existed (its config.json without model.decoder_join) trained with that key's
-    default, so it is reused for a cell at the default and not for one that sets the key; a run whose config has a
-    key this version does not know is passed over with its reason."""
+    """A run saved before a key existed (its config.json without model.full_depth) trained with that key's default,
+    so it is reused for a cell at the default and not for one that sets the key; so is a run saved with a key since
+    retired at the value of the behaviour that stayed (loss.lovasz_stride = 1). A run whose config has a key this
+    version does not know, or asks for a retired behaviour, is passed over with its reason."""
     earlier = load_plan("smoke", FAST)
     cell = earlier.cells()[0]
     assert run_cells(earlier, tmp_path / "earlier", [cell]) == 0
     saved = tmp_path / "earlier" / "runs" / cell.run_name / "config.json"
     config = json.loads(saved.read_text())
-    del config["model"]["decoder_join"]
+    del config["model"]["full_depth"]
+    config["loss"]["lovasz_stride"] = 1
     saved.write_text(json.dumps(config))
-    unknown = tmp_path / "earlier" / "runs" / "unknown"
-    shutil.copytree(saved.parent, unknown)
-    config["model"]["gone"] = 1
-    (unknown / "config.json").write_text(json.dumps(config))
+    passed_over = {}
+    for name, section, key in (("unknown", "model", "gone"), ("retired", "loss", "lovasz_stride")):
+        passed_over[name] = tmp_path / "earlier" / "runs" / name
+        shutil.copytree(saved.parent, passed_over[name])
+        (passed_over[name] / "config.json").write_text(json.dumps({**config, section: {**config[section], key: 2}}))
     capsys.readouterr()
 
     found = runner.finished_runs([tmp_path / "earlier"])
     assert list(found.values()) == [saved.parent]
-    assert f"--reuse: {unknown} not considered: " in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert f"--reuse: {passed_over['unknown']} not considered: " in printed
+    assert f"--reuse: {passed_over['retired']} not considered: loss.lovasz_stride = 2 was retired" in printed
     assert runner.reuse_cells(earlier, tmp_path / "same", [cell], found) == {cell: saved.parent}
-    projected = load_plan("smoke", FAST + ["model.decoder_join=project"])
-    assert runner.reuse_cells(projected, tmp_path / "other", [projected.cell(cell.id)], found) == {}
+    deeper = load_plan("smoke", FAST + ["model.full_depth=2"])
+    assert runner.reuse_cells(deeper, tmp_path / "other", [deeper.cell(cell.id)], found) == {}
 
 
 BAD_PLANS = [

@@ -35,3 +35,18 @@ def test_results_doc_quotes_the_co_design_checkpoints_learned_exposure_gain():
     model, _, _ = load_system(CHECKPOINTS / "camvid_codesign.safetensors", "cpu")
     assert model.camera.learned().exposure_gain == pytest.approx(recorded, abs=1e-6)
     assert quoted.group(1) == f"{recorded:.3f}"
+
+
+@pytest.mark.parametrize("name", ["camvid_codesign", "camvid_fixed_isp"])
+def test_committed_checkpoint_saved_with_keys_since_retired_loads(name):
+    """The committed checkpoints were saved with keys since retired (`warpsense.config.RETIRED`), each at the value
+    of the behaviour that stayed: they load, as today's config without those keys."""
+    from warpsense.config import EVERY_VALUE, RETIRED, flatten_keys
+    from warpsense.system import load_system
+
+    stored = flatten_keys(json.loads((CHECKPOINTS / f"{name}.json").read_text())["config"])
+    held = set(stored) & set(RETIRED)
+    assert held, "the checkpoint holds no retired key: this test no longer tests anything"
+    assert all(RETIRED[key].remaining in (EVERY_VALUE, stored[key]) for key in held)
+    _, config, _ = load_system(CHECKPOINTS / f"{name}.safetensors", "cpu")
+    assert not set(flatten_keys(config.to_dict())) & set(RETIRED)

@@ -54,7 +54,7 @@ TASK_CHANGES = {
     "val_split": (["data.val_split=train"], "data.val_split: 'val' -> 'train'"),
     "classes": (["model.num_classes=5"], "model.num_classes: 0 -> 5"),
     "network_width": (["model.width=8"], "model.width: 4 -> 8"),
-    "network_name": (["model.name=packunet"], "model.name: 'dsunet' -> 'packunet'"),
+    "network_context": (["model.context=pyramid"], "model.context: 'none' -> 'pyramid'"),
     "stage_off": (["noise.enabled=false"], "noise.enabled: True -> False"),
     "stage_on": (["optics.enabled=true"], "optics.enabled: False -> True"),
     "isp_on": (["isp.enabled=true"], "isp.enabled: False -> True"),
@@ -104,6 +104,37 @@ def test_a_run_without_its_checkpoint_or_config_is_refused_unchanged(run, capsys
 def test_a_damaged_config_is_refused_unchanged(run, capsys):
     (run / "config.json").write_text('{"train": {"epochs": ')
     assert "config.json: invalid JSON" in _refused(["--resume-dir", str(run), "--extend", "1"], capsys, run)
+
+
+def _saved_with(run, **retired):
+    """Write ``section__key=value`` entries into the run's config.json, as a run saved before those keys were
+    retired holds them."""
+    config = json.loads((run / "config.json").read_text())
+    for dotted, value in retired.items():
+        section, key = dotted.split("__")
+        config[section][key] = value
+    (run / "config.json").write_text(json.dumps(config))
+
+
+def test_a_run_saved_with_a_retired_behaviour_is_refused_unchanged(run, capsys):
+    _saved_with(run, loss__lovasz_stride=2)
+    error = _refused(["--resume-dir", str(run), "--extend", "1"], capsys, run)
+    assert error.endswith(f"loss.lovasz_stride = 2 was retired (the Lovasz term on every Nth pixel; measured, not "
+                          f"adopted: docs/history.md); {run / 'config.json'} asks for it: read that run with the "
+                          "warpsense version that made it")
+
+
+def test_a_run_saved_with_retired_keys_at_todays_behaviour_continues(run, capsys):
+    """The keys it held at the values of the behaviours that stayed are dropped: the continued run's config is
+    today's, the first epochs' config stays as it was written."""
+    _saved_with(run, loss__lovasz_stride=1, loss__class_balance=0.0, data__unprocess=False,
+                model__decoder_join="concat", model__input_transform="linear", model__anscombe_offset=0.0059)
+    original = (run / "config.json").read_text()
+    assert main(["train", "--resume-dir", str(run), "--extend", "1", "--no-progress"]) == 0
+    capsys.readouterr()
+    continued = json.loads((run / "config.json").read_text())
+    assert "lovasz_stride" not in continued["loss"] and "unprocess" not in continued["data"]
+    assert continued["train"]["epochs"] == 2 and (run / "config.epoch1.json").read_text() == original
 
 
 def test_a_continuation_stopped_in_its_first_epoch_leaves_the_run_as_it_was(run, monkeypatch, capsys):

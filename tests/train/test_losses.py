@@ -143,66 +143,7 @@ def test_distillation_mode_unknown_lists_the_valid_ones():
         distillation_loss(torch.zeros(1, 2, 2, 2), torch.zeros(1, 2, 2, 2), 1.0, "spatial")
 
 
-def test_class_balance_weights_follow_the_power_and_keep_the_mean():
-    from warpsense.train.losses import class_balance_weights
-
-    counts = torch.tensor([700, 200, 100, 0])
-    share = torch.tensor([0.7, 0.2, 0.1, 0.0])
-    assert torch.allclose(class_balance_weights(counts, 0.0)[:3], torch.ones(3))
-    for power in (0.5, 1.0):
-        weights = class_balance_weights(counts, power)
-        assert (share * weights).sum().item() == pytest.approx(1.0, rel=1e-6)
-        assert weights[2] / weights[0] == pytest.approx(7.0**power, rel=1e-5)
-        assert weights[3] == weights.max()  # a class absent from the training labels gets the largest weight
-
-
-def test_ohem_with_class_weights_is_the_weighted_pixel_loss():
-    from warpsense.train.losses import class_balance_weights
-
-    torch.manual_seed(0)
-    logits, target = torch.randn(2, 3, 4, 5), torch.randint(0, 3, (2, 4, 5))
-    target[0, 0, 0] = 255
-    weights = class_balance_weights(torch.tensor([10, 3, 1]), 1.0)
-    per_pixel = F.cross_entropy(logits, target, reduction="none", ignore_index=255) * weights[target.clamp(max=2)]
-    valid = (target != 255).flatten()
-    torch.testing.assert_close(ohem_cross_entropy(logits, target, 1.0, class_weights=weights),
-                               per_pixel.flatten()[valid].sum() / valid.sum())
-    hardest = per_pixel.flatten()[valid].sort(descending=True).values[:10]  # round(0.25 * 39) = 10
-    torch.testing.assert_close(ohem_cross_entropy(logits, target, 0.25, class_weights=weights), hardest.mean())
-
-
-def test_lovasz_stride_is_the_lovasz_term_of_the_grid_pixels():
-    from warpsense.config import load_config
-    from warpsense.train.losses import segmentation_loss
-
-    generator = torch.Generator().manual_seed(0)
-    logits = torch.randn(2, 4, 6, 8, generator=generator, requires_grad=True)
-    target = torch.randint(0, 4, (2, 6, 8), generator=generator)
-    target[0, 0, 0] = 255
-    guide = torch.rand(2, 1, 6, 8, generator=generator)
-    only_lovasz = ["loss.ohem_weight=0", "loss.smooth_weight=0", "loss.lovasz_weight=1"]
-    full, _ = segmentation_loss(logits, target, guide, load_config(None, only_lovasz).loss)
-    assert full.item() == pytest.approx(lovasz_softmax(logits, target).item())
-    strided, _ = segmentation_loss(logits, target, guide, load_config(None, only_lovasz + ["loss.lovasz_stride=2"]).loss)
-    reference = lovasz_softmax(logits.detach()[..., 0::2, 0::2].contiguous(), target[..., 0::2, 0::2].contiguous())
-    assert strided.item() == pytest.approx(reference.item(), abs=1e-6)
-    assert strided.item() != pytest.approx(full.item(), abs=1e-3)  # a different estimate on this input
-    strided.backward()
-    off_grid = torch.ones(6, 8, dtype=torch.bool)
-    off_grid[0::2, 0::2] = False
-    assert logits.grad[..., off_grid].abs().max() == 0  # only the grid's pixels get the term's gradient
-    assert logits.grad[..., ~off_grid].abs().max() > 0
-
-
-def test_exception_lovasz_stride_below_one():
-    from warpsense.config import ConfigError, load_config
-
-    with pytest.raises(ConfigError, match="loss.lovasz_stride"):
-        load_config(None, ["loss.lovasz_stride=0"])
-
-
-@pytest.mark.parametrize("stride", [1, 2])
-def test_segmentation_loss_is_the_weighted_sum_of_its_terms(stride):
+def test_segmentation_loss_is_the_weighted_sum_of_its_terms():
     # the terms share one softmax inside segmentation_loss: the total and its gradient are those of the public
     # term functions, each computing its own
     from warpsense.config import load_config
@@ -213,12 +154,12 @@ def test_segmentation_loss_is_the_weighted_sum_of_its_terms(stride):
     target = torch.randint(0, 5, (2, 6, 8), generator=generator)
     target[1, 2, 3] = 255
     guide = torch.rand(2, 3, 6, 8, generator=generator)
-    config = load_config(None, [f"loss.lovasz_stride={stride}"]).loss
+    config = load_config(None, []).loss
     mine = logits.clone().requires_grad_()
     total, parts = segmentation_loss(mine, target, guide, config)
     theirs = logits.clone().requires_grad_()
     expected = (config.ohem_weight * ohem_cross_entropy(theirs, target, config.ohem_fraction)
-                + config.lovasz_weight * lovasz_softmax(theirs[..., ::stride, ::stride], target[..., ::stride, ::stride])
+                + config.lovasz_weight * lovasz_softmax(theirs, target)
                 + config.smooth_weight * edge_aware_smoothness(theirs, guide))
     torch.testing.assert_close(total, expected.float())
     assert set(parts) == {"ohem", "lovasz", "smooth"}

@@ -117,7 +117,6 @@ def test_flip_tta_eval_runs(tmp_path):
 
     dataset = build_dataset(config.data, "val", train=False)
     assert evaluate(model, dataset, "cpu", flip=True)["num_images"] == len(dataset)
-    assert evaluate(model, dataset, "cpu", flip=True, scales=(0.75, 1.0))["num_images"] == len(dataset)
     model.eval()
     images = torch.stack([dataset[i][0] for i in range(2)])
     index = torch.arange(2)
@@ -128,54 +127,6 @@ def test_flip_tta_eval_runs(tmp_path):
     expected = 0.5 * (plain + cfa_unflip(torch.softmax(model.network(mirrored), dim=1), shift))
     torch.testing.assert_close(averaged, expected)
     assert not torch.allclose(averaged, plain)
-
-
-def test_cfa_resize_keeps_every_pixel_on_its_site():
-    """A mosaic whose value names its site (R 1, G 2 and 3, B 4): resized by any scale, every site still holds its
-    own value, because each site plane is resized on its own (bilinear of a constant plane is that constant)."""
-    from warpsense.system import cfa_resize
-
-    sites = torch.tensor([[1.0, 2.0], [3.0, 4.0]])
-    mosaic = sites.repeat(6, 8)[None, None]  # 12 x 16, RGGB
-    for scale in (0.5, 0.75, 1.25, 1.5):
-        resized = cfa_resize(mosaic, scale, 2)
-        height, width = resized.shape[-2:]
-        assert height == 2 * round(6 * scale) and width == 2 * round(8 * scale)
-        torch.testing.assert_close(resized, sites.repeat(height // 2, width // 2)[None, None])
-    assert cfa_resize(mosaic, 1.0, 2) is mosaic
-    rgb = torch.rand(1, 3, 10, 14)
-    torch.testing.assert_close(cfa_resize(rgb, 0.5, 1), torch.nn.functional.interpolate(rgb, size=(5, 7), mode="bilinear"))
-    with pytest.raises(ValueError, match="1x1 and 2x2"):
-        cfa_resize(mosaic, 0.5, 4)
-    with pytest.raises(ValueError, match="> 0"):
-        cfa_resize(mosaic, 0.0, 2)
-
-
-def test_scale_tta_averages_the_resized_captures_predictions(tmp_path):
-    """probabilities(scales=...) is the mean over scales of softmax(the network's logits on the CFA-resized capture,
-    resized back); scale 1 alone is the plain prediction, and flip adds each scale's mirrored view."""
-    from warpsense.system import cfa_resize
-
-    config = load_config(None, TINY + ["train.epochs=1", "train.warmup_epochs=0", f"run.output_dir={tmp_path}"])
-    _, model = train(config, progress=False, return_model=True)
-    model.eval()
-    from warpsense.data import build_dataset
-
-    dataset = build_dataset(config.data, "val", train=False)
-    images, index = torch.stack([dataset[i][0] for i in range(2)]), torch.arange(2)
-    plain = model.probabilities(images, image_index=index)
-    torch.testing.assert_close(model.probabilities(images, image_index=index, scales=(1.0,)), plain, rtol=0, atol=0)
-    logits, sensed = model(images, image_index=index)
-    small = torch.nn.functional.interpolate(model.network(cfa_resize(sensed, 0.5, 2)), size=sensed.shape[-2:],
-                                            mode="bilinear", align_corners=False)
-    expected = 0.5 * (torch.softmax(small, dim=1) + plain)
-    torch.testing.assert_close(model.probabilities(images, image_index=index, scales=(0.5, 1.0)), expected)
-    both = model.probabilities(images, image_index=index, scales=(0.5, 1.0), flip=True)
-    flipped = model.probabilities(images, image_index=index, flip=True)
-    mirrored, shift = cfa_flip(cfa_resize(sensed, 0.5, 2), 2)
-    small_mirrored = torch.nn.functional.interpolate(cfa_unflip(model.network(mirrored), shift),
-                                                     size=sensed.shape[-2:], mode="bilinear", align_corners=False)
-    torch.testing.assert_close(both, 0.5 * flipped + 0.25 * (torch.softmax(small, 1) + torch.softmax(small_mirrored, 1)))
 
 
 def test_holdout_prefix_selects_on_a_sequence_training_never_sees(shared_data, tmp_path):
@@ -200,11 +151,11 @@ def test_exception_cuda_graph_needs_cuda():
 
 
 @pytest.mark.cuda
-@pytest.mark.parametrize("recipe_extras", [False, True], ids=["plain", "ema+class_weights"])
+@pytest.mark.parametrize("recipe_extras", [False, True], ids=["plain", "ema"])
 def test_cuda_graph_steps_match_eager_steps(recipe_extras):
     """A captured-and-replayed step trains exactly like the eager one: the learnable-lens camera in both phases,
     a new batch every step, a changing learning rate, clipped camera gradients, device statistics and, with
-    ``recipe_extras``, class-weighted OHEM and the weight average updated inside the step. The network is
+    ``recipe_extras``, the weight average updated inside the step. The network is
     a small deterministic one (DSUNet's upsampling backward uses atomics, so two of its eager runs differ already),
     cuDNN is set deterministic and the lens renders in float64, so the two runs agree to rounding. (With the
     float32 rendering the two differed by 2e-4 relative in one camera parameter on the H100, most likely because
@@ -225,9 +176,8 @@ def test_cuda_graph_steps_match_eager_steps(recipe_extras):
             optimizer = torch.optim.AdamW([{"params": list(network.parameters()), "lr": 3e-3},
                                            {"params": camera, "lr": 1e-3}], fused=True)
             ema = WeightEMA(model, 0.9) if recipe_extras else None
-            weights = torch.linspace(0.5, 2.0, 11, device="cuda") if recipe_extras else None
             step = TrainingStep(config.loss, optimizer, camera, total_steps=12, amp=True, camera_grad_clip=0.5,
-                                cuda_graph=cuda_graph, class_weights=weights, ema=ema)
+                                cuda_graph=cuda_graph, ema=ema)
             statistics = []
             for index, (images, labels) in enumerate(batches):
                 joint = index >= 6

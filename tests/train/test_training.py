@@ -239,28 +239,6 @@ def test_srgb_input_reads_the_frame_and_refuses_a_camera():
         check_config(load_config(None, ["loss.distill_weight=1.0"]))
 
 
-def test_class_balance_weights_the_training_labels(tmp_path, capsys):
-    """loss.class_balance counts the training labels once (on the device or from the dataset) and weights OHEM."""
-    from warpsense.train.engine import _label_counts
-    from warpsense.train.losses import class_balance_weights
-
-    for on_device in ("never", "always"):
-        config = load_config(None, TINY + ["train.epochs=1", "train.warmup_epochs=0", f"run.output_dir={tmp_path}",
-                                           f"run.name={on_device}", "loss.class_balance=0.5",
-                                           f"data.on_device={on_device}"])
-        train(config, progress=False)
-        line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("class weights"))
-        train_set = build_dataset(config.data, "train", train=True)
-        expected = torch.zeros(len(train_set.classes), dtype=torch.int64)
-        for index in range(len(train_set.dataset)):
-            label = train_set.dataset[index][1].flatten()
-            expected += torch.bincount(label[label < len(expected)], minlength=len(expected))
-        assert torch.equal(_label_counts(None, train_set, len(expected), "cpu"), expected)
-        weights = class_balance_weights(expected, 0.5)
-        assert line == "class weights (OHEM): " + ", ".join(
-            f"{name} {weight:.2f}" for name, weight in zip(train_set.classes, weights.tolist()))
-
-
 def test_weight_average_is_what_is_evaluated_and_saved(tmp_path):
     """train.ema_decay: validation, the checkpoints and the final evaluation use the average; the last checkpoint
     also holds the training weights, which differ from it."""

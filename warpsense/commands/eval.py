@@ -92,8 +92,7 @@ def check_label_space(checkpoint, model, state: dict, dataset, data: str) -> lis
 def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: str, json_out: str | None = None,
              sweep: bool = False, latency: bool = False, latency_size: tuple[int, int] = (192, 640),
              latency_batch: int = 1, device: str = "auto", batch_size: int = 4, limit: int = 0,
-             plot_out: str | None = None, flip: bool = False, progress: bool = True,
-             scales: tuple[float, ...] = (1.0,)) -> dict:
+             plot_out: str | None = None, flip: bool = False, progress: bool = True) -> dict:
     """The `warpsense eval` command as a function; returns the JSON payload. ``latency`` alone (without
     ``sweep``) only times the model: no dataset is read and no mIoU computed."""
     from warpsense.data import HELDOUT_SPLIT, DatasetError, build_dataset, build_fold, frame_sequences
@@ -139,11 +138,10 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
               f"{len(class_names)} classes) is a transfer test, not its own benchmark")
     amp = torch_device.type == "cuda" and config.train.amp
     metrics = evaluate(model, dataset, torch_device, batch_size, class_names=class_names, amp=amp, progress=progress,
-                       flip=flip, scales=scales)
+                       flip=flip)
     payload = dict(metrics)
     payload.update({"checkpoint": str(checkpoint), "dataset": data, "trained_on": trained_on, "split": split,
-                    "flip_tta": flip,
-                    "scale_tta": list(scales)})
+                    "flip_tta": flip})
     print(f"mIoU {metrics['miou']:.4f}  pixel accuracy {metrics['pixel_accuracy']:.4f}  images {metrics['num_images']}")
     for name, iou in metrics["per_class_iou"].items():
         print(f"  {name:>14s}  {'-' if iou is None else f'{iou:.4f}'}")

@@ -131,54 +131,12 @@ CONTEXTS = {"none": lambda channels: nn.Identity(), "pyramid": PyramidPooling}
 """Bottleneck context modules (`warpsense.choices.MODEL_CONTEXTS`): name -> constructor taking the channels."""
 
 
-class Anscombe(nn.Module):
-    """The generalised Anscombe transform (Anscombe 1948; Starck, Murtagh and Bijaoui 1998) up to an affine map,
-    which the first convolution and its batch norm absorb: sqrt(max(x, 0) + offset). For a signal x with
-    Poisson-Gaussian noise of variance a x + s^2, offset = 3/8 a + s^2 / a makes the noise's standard deviation about
-    sqrt(a) / 2 at every level, so the network sees noise of one strength in the shadows and the highlights.
-    No parameters or buffers: a checkpoint's tensors are the same with and without it."""
-
-    def __init__(self, offset: float):
-        super().__init__()
-        self.offset = float(offset)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.sqrt(x.clamp_min(0) + self.offset)
-
-    def extra_repr(self) -> str:
-        return f"offset={self.offset}"
-
-
-INPUT_TRANSFORMS = {"linear": lambda offset: nn.Identity(), "anscombe": Anscombe}
-"""Input transforms (`warpsense.choices.MODEL_INPUT_TRANSFORMS`): name -> constructor taking the offset."""
-
-
-def build_input_transform(name: str, offset: float) -> nn.Module:
-    """The input transform ``name``; unknown names raise a KeyError listing the valid ones."""
-    if name not in INPUT_TRANSFORMS:
-        raise KeyError(f"unknown input transform {name!r}; valid: {', '.join(sorted(INPUT_TRANSFORMS))}")
-    return INPUT_TRANSFORMS[name](offset)
-
-
 def build_context(name: str, channels: int) -> nn.Module:
     """The context module ``name`` for a [B, channels, h, w] bottleneck; unknown names raise a KeyError listing
     the valid ones."""
     if name not in CONTEXTS:
         raise KeyError(f"unknown context {name!r}; valid contexts: {', '.join(sorted(CONTEXTS))}")
     return CONTEXTS[name](channels)
-
-
-JOINS = {"concat": lambda deep, skip: nn.Identity(), "project": lambda deep, skip: nn.Conv2d(deep, skip, 1, bias=False)}
-"""Decoder joins (`warpsense.choices.DECODER_JOINS`): name -> constructor of the module applied to the deeper
-features (``deep`` channels) before their upsampling and concatenation with a ``skip``-channel encoder skip."""
-
-
-def build_join(name: str, deep: int, skip: int) -> nn.Module:
-    """The join ``name``'s module for ``deep``-channel features meeting a ``skip``-channel skip; unknown names raise a
-    KeyError listing the valid ones."""
-    if name not in JOINS:
-        raise KeyError(f"unknown decoder join {name!r}; valid: {', '.join(sorted(JOINS))}")
-    return JOINS[name](deep, skip)
 
 
 class Stage(nn.Sequential):
@@ -198,20 +156,15 @@ class DSUNet(nn.Module):
     resolution. width=16 gives 0.18M parameters, width=24 0.40M (0.455M with the camvid presets' context).
     ``context`` adds a module at 1/16 (`CONTEXTS`; "pyramid": +56k parameters at width 24); "none" adds nothing.
     ``squeeze`` = False leaves out every block's squeeze-and-excitation (-117k parameters at width 24): a speed
-    candidate, since each SE adds a global pooling and a multiply over its block's output. ``input_transform``
-    (`INPUT_TRANSFORMS`, with ``anscombe_offset``) is applied to the input first; "linear" leaves it as it is.
-
-    ``decoder_join`` (`JOINS`) says how each decoder stage takes the deeper features: "concat" upsamples them as they
-    are and concatenates the skip (dec1 then runs on 2w + w channels at full resolution); "project" first maps them
-    by a 1x1 convolution (bias-free, at the deeper resolution, where it costs a quarter as much; it commutes with the
-    bilinear upsampling) to the skip's channels, so each stage runs on twice its skip's channels: about 30% fewer
-    activation bytes at width 24 with ``full_width`` 16, most of them at full resolution, for +30k parameters.
+    candidate, since each SE adds a global pooling and a multiply over its block's output. Each decoder stage
+    upsamples the deeper features as they are and concatenates its encoder skip (dec1 runs on 2w + f channels at
+    full resolution).
 
     The full-resolution path (stem, ``enc1``, ``dec1`` and the head's input) carries ``full_width`` channels (0: w)
     through ``full_depth`` separable blocks in the encoder and in the decoder (1: one each). It is where a pole or a
     sign a few pixels wide is seen whole. It costs little in parameters (width 40 adds 5.6k, depth 2 adds 2.4k at
     w = 24) and much in activations, which are full-resolution there (6-7% longer runs on an
-    H100, docs/results.md, the full-resolution path).
+    H100, docs/history.md, accuracy round 18).
 
     ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 it doubles the training speed (batch
     norm and depthwise convolutions have fast NHWC kernels; their NCHW bf16 backward is slow). The output is the
@@ -220,14 +173,12 @@ class DSUNet(nn.Module):
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 16, tile: int = 2,
-                 channels_last: bool = False, context: str = "none", squeeze: bool = True,
-                 input_transform: str = "linear", anscombe_offset: float = 0.0059, full_width: int = 0,
-                 full_depth: int = 1, decoder_join: str = "concat"):
+                 channels_last: bool = False, context: str = "none", squeeze: bool = True, full_width: int = 0,
+                 full_depth: int = 1):
         super().__init__()
         if full_width < 0 or full_depth < 1:
             raise ValueError(f"full_width must be >= 0 and full_depth >= 1, got {full_width} and {full_depth}")
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
-        self.input_transform = build_input_transform(input_transform, anscombe_offset)
         w = width
         f = full_width or w
         self.tile = tile if in_channels == 1 and tile > 1 else 0
@@ -242,13 +193,11 @@ class DSUNet(nn.Module):
         self.enc4 = Stage(4 * w, 6 * w, 3, 2, squeeze)
         self.enc5 = Stage(6 * w, 8 * w, 3, 2, squeeze)
         self.context = build_context(context, 8 * w)
-        # each decoder stage: (deeper features' channels, skip's channels, the stage's output channels)
-        joins = {"4": (8 * w, 6 * w, 6 * w), "3": (6 * w, 4 * w, 4 * w), "2": (4 * w, 2 * w, 2 * w), "1": (2 * w, f, f)}
-        for level, (deep, skip, out) in joins.items():
-            join = build_join(decoder_join, deep, skip)
-            joined = getattr(join, "out_channels", deep)
-            setattr(self, f"join{level}", join)
-            setattr(self, f"dec{level}", Stage(joined + skip, out, full_depth if level == "1" else 1, 1, squeeze))
+        # each decoder stage runs on the upsampled deeper features joined to its skip
+        self.dec4 = Stage(8 * w + 6 * w, 6 * w, 1, 1, squeeze)
+        self.dec3 = Stage(6 * w + 4 * w, 4 * w, 1, 1, squeeze)
+        self.dec2 = Stage(4 * w + 2 * w, 2 * w, 1, 1, squeeze)
+        self.dec1 = Stage(2 * w + f, f, full_depth, 1, squeeze)
         self.head = nn.Conv2d(f, num_classes, 1)
         self.to(memory_format=self.memory_format)
 
@@ -263,7 +212,7 @@ class DSUNet(nn.Module):
         """``torch.cat([upsampled x, skip], dim=1)``: the decoder's bilinear x2 and skip connection. A channels-last
         network on a `FUSED_DEVICES` device takes them in one pass forward and one backward (`upsample_concat`,
         equal up to float rounding and deterministic; torch's NHWC resize backward was 3.0 ms and the
-        concatenations 1.4 ms of a 41 ms step on an H100, docs/benchmarks.md: upsample_concat), except a single image in
+        concatenations 1.4 ms of a 41 ms step on an H100, docs/history.md, speed round 23), except a single image in
         eval mode run eagerly: there the host's cost per op decides, and torch's resize and cat cost less of it
         than the custom op (~0.1 ms a join at batch 1 on the H100's host, docs/benchmarks.md: batch-1 latency); inside a
         CUDA graph capture the op's shorter GPU time wins again."""
@@ -277,23 +226,18 @@ class DSUNet(nn.Module):
         pad_h, pad_w = (-height) % 16, (-width) % 16
         if pad_h or pad_w:
             raw = F.pad(raw, (0, pad_w, 0, pad_h), mode="replicate")
-        raw = self.input_transform(raw.contiguous(memory_format=self.memory_format))
-        s1, s2 = self.encode_high(raw)
-        s3 = self.enc3(s2)
-        s4 = self.enc4(s3)
-        s5 = self.context(self.enc5(s4))
-        d4 = self.dec4(self._up_cat(self.join4(s5), s4))
-        d3 = self.dec3(self._up_cat(self.join3(d4), s3))
-        d2 = self.dec2(self._up_cat(self.join2(d3), s2))
-        d1 = self.dec1(self._up_cat(self.join1(d2), s1))
-        return self.head(d1)[..., :height, :width]
-
-    def encode_high(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The features at full and half resolution (s1, s2) from the padded input; the rest of the UNet (1/4 to
-        1/16 and the decoder) is shared with the networks built on this one."""
+        raw = raw.contiguous(memory_format=self.memory_format)
         convolution, norm = self.stem
         s1 = self.enc1(norm_relu(norm, convolution(raw)))
         s2 = self.down2(s1)
         if self.tile == 2:
             s2 = self.mix2(torch.cat([s2, F.pixel_unshuffle(raw, 2)], dim=1))
-        return s1, self.enc2(s2)
+        s2 = self.enc2(s2)
+        s3 = self.enc3(s2)
+        s4 = self.enc4(s3)
+        s5 = self.context(self.enc5(s4))
+        d4 = self.dec4(self._up_cat(s5, s4))
+        d3 = self.dec3(self._up_cat(d4, s3))
+        d2 = self.dec2(self._up_cat(d3, s2))
+        d1 = self.dec1(self._up_cat(d2, s1))
+        return self.head(d1)[..., :height, :width]

@@ -44,7 +44,7 @@ def build_system(config, num_classes: int) -> SensingModel:
         isp = FixedISP(letters, config.isp.gamma)
     srgb = config.model.input == "srgb"
     network = network_from_config(config.model, 3 if isp is not None or srgb else 1, num_classes, camera.tile)
-    return SensingModel(camera, network, isp, unprocess_input=config.data.unprocess, srgb_input=srgb)
+    return SensingModel(camera, network, isp, srgb_input=srgb)
 
 
 def load_teacher(checkpoint: str | Path, num_classes: int, device) -> SensingModel:

@@ -8,7 +8,7 @@ from torch.nn import functional as F
 
 from warpsense.camera import Camera
 from warpsense.camera.isp import FixedISP
-from warpsense.data.color import linear_to_srgb, srgb_to_linear, unprocess
+from warpsense.data.color import linear_to_srgb, srgb_to_linear
 
 
 class SensingModel(nn.Module):
@@ -17,22 +17,16 @@ class SensingModel(nn.Module):
     ``srgb_input``: the network reads the clean sRGB frame in [0, 1] instead of a capture (no camera: the RGB
     teacher of distillation, model.input = "srgb"; linear radiance is encoded back to sRGB)."""
 
-    def __init__(self, camera: Camera, network: nn.Module, isp: FixedISP | None = None, unprocess_input: bool = False,
-                 srgb_input: bool = False):
+    def __init__(self, camera: Camera, network: nn.Module, isp: FixedISP | None = None, srgb_input: bool = False):
         super().__init__()
         self.camera = camera
         self.isp = isp
         self.network = network
-        self.unprocess_input = unprocess_input
         self.srgb_input = srgb_input
 
     def radiance(self, image: torch.Tensor) -> torch.Tensor:
         """uint8 sRGB -> linear radiance (float tensors are taken as radiance already)."""
-        if image.dtype == torch.uint8:
-            image = srgb_to_linear(image)
-            if self.unprocess_input:
-                image = unprocess(image)
-        return image
+        return srgb_to_linear(image) if image.dtype == torch.uint8 else image
 
     def sense(self, image: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         if self.srgb_input:
@@ -49,64 +43,21 @@ class SensingModel(nn.Module):
 
     @torch.no_grad()
     def probabilities(self, image: torch.Tensor, amp: bool = False, image_index: torch.Tensor | None = None,
-                      flip: bool = False, scales: tuple[float, ...] = (1.0,)) -> torch.Tensor:
-        """Class probabilities [B, K, H, W] of one capture. Test-time augmentation, all of it on that capture (no
-        second exposure): ``scales``: averaged over the capture resized by each scale (`cfa_resize`, the CFA phase
-        kept; each view's logits resized back bilinearly before the softmax); ``flip``: at every scale also the
-        horizontally mirrored capture (`cfa_flip`)."""
+                      flip: bool = False) -> torch.Tensor:
+        """Class probabilities [B, K, H, W] of one capture; ``flip``: averaged with those of the horizontally
+        mirrored capture (`cfa_flip`, the CFA phase kept: test-time augmentation on that capture, no second
+        exposure)."""
         logits, sensed = self(image, amp, image_index)
-        if not flip and tuple(scales) == (1.0,):
-            return torch.softmax(logits.float(), dim=1)
-        views = [view for scale_views in self.scaled_views(sensed, logits, scales, flip, amp) for view in scale_views]
-        return sum(views) / len(views)
-
-    @torch.no_grad()
-    def scaled_views(self, sensed: torch.Tensor, logits: torch.Tensor, scales, flip: bool = False,
-                     amp: bool = False) -> list[list[torch.Tensor]]:
-        """Per scale of ``scales``, the class probabilities [B, K, H, W] of the capture ``sensed`` resized by it
-        (`cfa_resize`; ``logits`` are the network's on ``sensed`` itself, reused at scale 1), each view's logits
-        resized back to H x W before the softmax; with ``flip`` each scale's list also holds the mirrored view
-        (`cfa_flip`). `probabilities` averages them; tools that score several scale sets average their own."""
-        tile = self.camera.tile if self.isp is None else 1
-        height, width = sensed.shape[-2:]
-        per_scale = []
-        for scale in scales:
-            if scale == 1.0:
-                scaled, scaled_logits = sensed, logits
-            else:
-                scaled = cfa_resize(sensed, scale, tile)
-                scaled_logits = self._network(scaled, amp)
-            view_logits = [scaled_logits.float()]
-            if flip:
-                flipped, shift = cfa_flip(scaled, tile)
-                view_logits.append(cfa_unflip(self._network(flipped, amp).float(), shift))
-            views = []
-            for view in view_logits:
-                if view.shape[-2:] != (height, width):  # logits are resized, then turned into probabilities
-                    view = F.interpolate(view, size=(height, width), mode="bilinear", align_corners=False)
-                views.append(torch.softmax(view, dim=1))
-            per_scale.append(views)
-        return per_scale
+        probabilities = torch.softmax(logits.float(), dim=1)
+        if not flip:
+            return probabilities
+        mirrored, shift = cfa_flip(sensed, self.camera.tile if self.isp is None else 1)
+        flipped = cfa_unflip(self._network(mirrored, amp).float(), shift)
+        return (probabilities + torch.softmax(flipped, dim=1)) / 2
 
     def _network(self, sensed: torch.Tensor, amp: bool) -> torch.Tensor:
         with torch.autocast(device_type=sensed.device.type, dtype=torch.bfloat16, enabled=amp):
             return self.network(sensed)
-
-
-def cfa_resize(sensed: torch.Tensor, scale: float, tile: int) -> torch.Tensor:
-    """A capture [B, C, H, W] resized by ``scale`` (bilinear) so that every pixel keeps its CFA site: with 2 x 2
-    tiles the mosaic's four sites are resized as planes at half resolution (the output is 2 round(H s / 2) x
-    2 round(W s / 2)); with 1 x 1 (RGB after an ISP) the capture is resized directly. Scale 1 returns it as is."""
-    if scale == 1.0:
-        return sensed
-    if scale <= 0:
-        raise ValueError(f"scale test-time augmentation needs scales > 0, got {scale}")
-    if tile not in (1, 2):
-        raise ValueError(f"scale test-time augmentation keeps the CFA phase only for 1x1 and 2x2 tiles, got {tile}x{tile}")
-    planes = F.pixel_unshuffle(sensed, tile) if tile == 2 else sensed
-    size = tuple(max(1, round(side * scale)) for side in planes.shape[-2:])
-    planes = F.interpolate(planes, size=size, mode="bilinear", align_corners=False)
-    return F.pixel_shuffle(planes, tile) if tile == 2 else planes
 
 
 def cfa_flip(sensed: torch.Tensor, tile: int) -> tuple[torch.Tensor, int]:

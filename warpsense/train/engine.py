@@ -27,7 +27,6 @@ from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restor
 from warpsense.train.distributed import DistributedContext, wrap_data_parallel
 from warpsense.train.ema import WeightEMA, averaged
 from warpsense.train.evaluate import evaluate
-from warpsense.train.losses import class_balance_weights
 from warpsense.train.reproducibility import deterministic_algorithms
 from warpsense.train.run_dir import LAST, METRICS, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
 from warpsense.train.schedule import Schedule
@@ -112,18 +111,6 @@ def _ranked_batchnorm(model, config, ddp_on_cuda: bool):
     if ddp_on_cuda and config.train.sync_batchnorm:
         return torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
     return model
-
-
-def _label_counts(batches, train_set, num_classes: int, device) -> torch.Tensor:
-    """Pixels per class [K] over the training labels (unaugmented): from the labels on the device when the batches
-    hold them there, else decoded from the dataset once."""
-    counts = torch.zeros(num_classes, dtype=torch.int64, device=device)
-    labels = (batches.labels[index] for index in range(len(batches.labels))) if isinstance(batches, DeviceBatches) \
-        else (train_set.dataset[index][1] for index in range(len(train_set.dataset)))
-    for label in labels:
-        label = label.to(device).flatten().long()
-        counts += torch.bincount(label[label < num_classes], minlength=num_classes)
-    return counts
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -384,16 +371,9 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         if context.is_main:
             print(f"distilling {config.loss.teacher} ({count_parameters(teacher.network):,} parameters), weight "
                   f"{config.loss.distill_weight}, T = {config.loss.distill_temperature}, {config.loss.distill_mode}-wise")
-    class_weights = None
-    if config.loss.class_balance > 0:
-        class_weights = class_balance_weights(_label_counts(loader, datasets.train, num_classes, device),
-                                              config.loss.class_balance)
-        if context.is_main:
-            print("class weights (OHEM): " + ", ".join(f"{name} {weight:.2f}" for name, weight in
-                                                       zip(datasets.train.classes, class_weights.tolist())))
     training_step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), schedule.epochs * steps_per_epoch,
                                  amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph,
-                                 config.train.micro_batch, teacher, class_weights, ema, data_parallel=context.enabled,
+                                 config.train.micro_batch, teacher, ema, data_parallel=context.enabled,
                                  radiance_jitter=RadianceJitter.from_config(config.data))
     wrapped, wrapped_phase = model, None
     epoch = start_epoch

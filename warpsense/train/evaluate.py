@@ -13,13 +13,12 @@ from warpsense.train.metrics import ConfusionMatrix
 
 @torch.no_grad()
 def evaluate(model, dataset, device, batch_size: int = 4, context=None, class_names=None, amp: bool = False,
-             progress: bool = False, blur_sigma: float = 0.0, flip: bool = False, per_image: bool = False,
-             scales: tuple[float, ...] = (1.0,)) -> dict:
+             progress: bool = False, blur_sigma: float = 0.0, flip: bool = False, per_image: bool = False) -> dict:
     """Metrics of ``model`` on ``dataset`` (full images, eval-mode camera: noise seeded by each image's index).
 
     With a distributed ``context`` each rank takes every world_size-th image and the confusion matrices are summed.
     ``blur_sigma`` > 0 adds a Gaussian blur (pixels) to the radiance before the camera (robustness sweep).
-    ``flip``, ``scales``: test-time augmentation on each capture, the CFA phase kept (`SensingModel.probabilities`).
+    ``flip``: test-time augmentation on each capture, the CFA phase kept (`SensingModel.probabilities`).
     ``per_image``: also return "image_counts", int64 [N, K, 3] per-image (TP, FP, FN) pixels per class (not with
     a distributed context).
     """
@@ -40,7 +39,7 @@ def evaluate(model, dataset, device, batch_size: int = 4, context=None, class_na
         if blur_sigma > 0:
             images = gaussian_blur(model.radiance(images), blur_sigma)
         image_index = indices[batch * batch_size : batch * batch_size + images.shape[0]]
-        confusion.update(model.probabilities(images, amp, image_index, flip, scales).argmax(dim=1), labels)
+        confusion.update(model.probabilities(images, amp, image_index, flip).argmax(dim=1), labels)
     if context is not None and context.enabled:
         context.all_reduce_sum(confusion.matrix)
         images_seen = torch.tensor([confusion.images], device=device)

@@ -14,20 +14,8 @@ from warpsense.ops.smoothness import edge_aware_smoothness as fused_smoothness
 from warpsense.ops.switch import OpSwitch
 
 
-def class_balance_weights(counts: torch.Tensor, power: float) -> torch.Tensor:
-    """Per-class loss weights w_k proportional to f_k^-power from pixel counts [K] (f_k = the class's share of the
-    labelled pixels; a class with no pixel gets the largest weight of the others), scaled so that the
-    pixel-weighted mean sum_k f_k w_k is 1: power 0 is no weighting, 0.5 inverse square root, 1 inverse frequency
-    (median-frequency balancing up to a constant: Eigen and Fergus, ICCV 2015)."""
-    counts = counts.double()
-    share = counts / counts.sum().clamp_min(1)
-    weights = torch.where(share > 0, share.clamp_min(1e-12) ** -power, torch.zeros_like(share))
-    weights = torch.where(share > 0, weights, weights.max())
-    return (weights / (share * weights).sum().clamp_min(1e-12)).float()
-
-
 def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: float = 0.25,
-                       ignore_index: int = IGNORE_INDEX, class_weights: torch.Tensor | None = None) -> torch.Tensor:
+                       ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
     """Mean cross-entropy over the hardest ``fraction`` of the valid pixels (eq. 7 of the paper).
 
     Computed without a host round trip (the number of valid pixels stays on the device): the losses are ranked
@@ -36,11 +24,8 @@ def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, fraction: flo
     Args:
         logits: [B, K, H, W]; target: [B, H, W] class indices, ``ignore_index`` excluded.
         fraction: share of valid pixels kept (at least one); 1.0 is plain cross-entropy.
-        class_weights: [K] per-class weights of each pixel's loss (`class_balance_weights`), applied before the
-            hardest pixels are picked; None: unweighted.
     """
-    losses = F.cross_entropy(logits.float(), target, weight=class_weights, ignore_index=ignore_index,
-                             reduction="none")
+    losses = F.cross_entropy(logits.float(), target, ignore_index=ignore_index, reduction="none")
     return hardest_mean(losses, target, fraction, ignore_index)
 
 
@@ -68,7 +53,7 @@ plain-torch references (`warpsense.ops.reference`), as in the benchmarks' plain-
 FUSED_LOSS_DEVICES = ("cuda",)
 """Devices where the softmax with cross-entropy and the Lovasz term take their fused ops (the smoothness op runs
 everywhere): on a CPU the Lovasz op's tiles run as Warp's cooperative fibers, ~20x slower than torch's sort there
-(tools/bench_loss.py --device cpu), and Warp's CPU kernels use one core where torch's use all."""
+(docs/history.md, speed round 25), and Warp's CPU kernels use one core where torch's use all."""
 
 
 def lovasz_softmax(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
@@ -155,35 +140,28 @@ def distillation_loss(student: torch.Tensor, teacher: torch.Tensor, temperature:
     return term(student, teacher, temperature)
 
 
-def segmentation_loss(logits, target, guide, loss_config,
-                      class_weights: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
-    """Total loss 0.6 OHEM + 0.4 Lovasz + lambda smoothness (eq. 10 of the paper; weights from the config), the
-    OHEM term's pixels weighted by ``class_weights`` [K] when given. With ``loss_config.lovasz_stride`` = s > 1 the
-    Lovasz term sees the pixels on a grid of every s-th row and column (the crops' random offsets move the grid over
-    the scene): an estimate of the batch's Jaccard loss from 1/s^2 of the pixels, whose sort dominates its cost.
+def segmentation_loss(logits, target, guide, loss_config) -> tuple[torch.Tensor, dict[str, float]]:
+    """Total loss 0.6 OHEM + 0.4 Lovasz + lambda smoothness (eq. 10 of the paper; weights from the config).
 
     Returns the loss and a dict of its detached parts (tensors: no host sync per step)."""
     parts = {}
     total = logits.new_zeros((), dtype=torch.float32)
-    # one softmax for the two terms that read probabilities (per pixel, so a strided view is the strided softmax)
+    # one softmax for the two terms that read probabilities
     needs_probabilities = loss_config.lovasz_weight > 0 or loss_config.smooth_weight > 0
     if (loss_config.ohem_weight > 0 and needs_probabilities and LOSS_OPS.fused("softmax")
             and logits.device.type in FUSED_LOSS_DEVICES):
         # both from one pass over the (bf16) logits, and one backward into them
-        pixel_losses, probabilities = softmax_cross_entropy(logits, target, class_weights, IGNORE_INDEX)
+        pixel_losses, probabilities = softmax_cross_entropy(logits, target, ignore_index=IGNORE_INDEX)
         parts["ohem"] = hardest_mean(pixel_losses, target, loss_config.ohem_fraction)
     else:
         logits = logits.float()  # once for all terms: a bf16 network's logits are cast (and their gradient) once
         if loss_config.ohem_weight > 0:
-            parts["ohem"] = ohem_cross_entropy(logits, target, loss_config.ohem_fraction,
-                                               class_weights=class_weights)
+            parts["ohem"] = ohem_cross_entropy(logits, target, loss_config.ohem_fraction)
         probabilities = torch.softmax(logits, dim=1) if needs_probabilities else None
     if loss_config.ohem_weight > 0:
         total = total + loss_config.ohem_weight * parts["ohem"]
     if loss_config.lovasz_weight > 0:
-        stride = loss_config.lovasz_stride
-        parts["lovasz"] = _lovasz_of_probabilities(probabilities[..., ::stride, ::stride],
-                                                   target[..., ::stride, ::stride])
+        parts["lovasz"] = _lovasz_of_probabilities(probabilities, target)
         total = total + loss_config.lovasz_weight * parts["lovasz"]
     if loss_config.smooth_weight > 0:
         parts["smooth"] = _smoothness_of_probabilities(probabilities, guide)

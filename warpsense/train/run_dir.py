@@ -20,7 +20,7 @@ RELOCATABLE_KEYS = ("run.output_dir", "run.name", "run.device")
 # "<section>.enabled" (a camera stage or the ISP turned on or off) counts too (`task_changes`).
 TASK_KEYS = ("data.dataset", "data.root", "data.train_split", "data.val_split", "data.holdout_prefix",
              "data.holdout_sequence", "model.num_classes", "model.name", "model.width", "model.context",
-             "model.squeeze", "model.full_width", "model.full_depth", "model.decoder_join", "model.input", "cfa.tile")
+             "model.squeeze", "model.full_width", "model.full_depth", "model.input", "cfa.tile")
 
 
 def fresh_run_dir(base: Path) -> Path:

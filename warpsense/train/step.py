@@ -52,7 +52,6 @@ class TrainingStep:
         teacher: a frozen model (`warpsense.system.build.load_teacher`) whose logits on the same images the
             network distils with weight ``loss_config.distill_weight`` (`distillation_loss`); it runs inside the
             step (compiled and captured with it) and is never part of the trained model.
-        class_weights: [K] weights of the OHEM term's pixels by class (loss.class_balance), on the device.
         ema: a `warpsense.train.ema.WeightEMA` updated after every optimizer step (inside the captured step).
         data_parallel: the model is DDP-wrapped (several ranks). With ``cuda_graph`` the gradient all-reduce (NCCL)
             is captured inside the step: the wrapper must be built within `capture_stream` (the side stream that
@@ -65,7 +64,7 @@ class TrainingStep:
     def __init__(self, loss_config, optimizer: torch.optim.Optimizer, camera_params: list, total_steps: int,
                  amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False,
                  micro_batch: int = 0, teacher: torch.nn.Module | None = None,
-                 class_weights: torch.Tensor | None = None, ema=None, data_parallel: bool = False,
+                 ema=None, data_parallel: bool = False,
                  radiance_jitter: torch.nn.Module | None = None):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
@@ -80,7 +79,6 @@ class TrainingStep:
         self.camera_grad_clip = camera_grad_clip
         self.micro_batch = micro_batch
         self.teacher = teacher if loss_config.distill_weight > 0 else None
-        self.class_weights = class_weights
         self.ema = ema
         self.radiance_jitter = radiance_jitter
         self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
@@ -111,7 +109,7 @@ class TrainingStep:
         if self.radiance_jitter is not None:  # float radiance passes the model's sRGB decoding as it is
             images = self.radiance_jitter(srgb_to_linear(images) if images.dtype == torch.uint8 else images)
         logits, sensed = model(images, self.amp)
-        loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config, self.class_weights)
+        loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config)
         if self.teacher is not None:
             with torch.no_grad():
                 teacher_logits, _ = self.teacher(images, self.amp)
