@@ -165,8 +165,6 @@ class NoiseConfig:
     full_well_electrons: float = _field(0.0, minimum=0, maximum=10000000.0)
     read_electrons: float = _field(0.0, minimum=0, maximum=10000.0)
     learnable: bool = False
-    train_scale_min: float = _field(1.0, minimum=0, maximum=100, exclusive=True)
-    train_scale_max: float = _field(1.0, minimum=0, maximum=100, exclusive=True)
     eval_seed: int = 1234
 
 
@@ -351,6 +349,8 @@ RETIRED = {
     "model.anscombe_offset": Retired("the offset of the Anscombe input transform", EVERY_VALUE),
     "loss.lovasz_stride": Retired("the Lovasz term on every Nth pixel", 1),
     "loss.class_balance": Retired("class-frequency weights on the OHEM pixels", 0.0),
+    "noise.train_scale_min": Retired("noise levels drawn per training step (lower end)", 1.0),
+    "noise.train_scale_max": Retired("noise levels drawn per training step (upper end)", 1.0),
 }
 """Retired keys ("section.key"): any config naming one is refused with a one-line error saying so, except a saved
 run's config holding its `Retired.remaining` value (dropped)."""

@@ -294,37 +294,3 @@ def test_camera_differentiates_with_respect_to_the_scene_without_warnings():
     with pytest.raises(ValueError, match="camera: radiance has 1 non-finite values"):
         camera(bad.requires_grad_())
 
-
-def test_noise_train_scale_draws_per_step_in_training_only():
-    """noise.train_scale_min/max: in training the levels scale by s (shot by s^2), s log-uniform in the range and
-    a new draw per call (a hash of the seed counter, so a resumed run repeats it); eval keeps the deployment levels."""
-    module = SensorNoise(0.015, 0.002, train_scale_range=(0.5, 4.0))
-    shot, read = module.levels()
-    scales = []
-    for _ in range(200):
-        scaled_shot, scaled_read = module.training_levels()
-        scale = float(scaled_read / read)
-        torch.testing.assert_close(scaled_shot, shot * scale**2)
-        scales.append(scale)
-        module.seeds(8)  # a step advances the counter
-    logs = torch.log2(torch.tensor(scales))
-    assert float(logs.min()) >= -1 - 1e-6 and float(logs.max()) <= 2 + 1e-6
-    assert abs(float(logs.mean()) - 0.5) < 0.25 and float(logs.std()) > 0.6  # log-uniform over [-1, 2]
-    module.eval()
-    assert torch.equal(module.training_levels()[0], shot) and torch.equal(module.training_levels()[1], read)
-    noisy = SensorNoise(0.015, 0.002, train_scale_range=(3.0, 3.0))
-    raw = torch.full((1, 1, 64, 64), 0.5)
-    seeds = noisy.seeds(1)
-    noisy.seed_counter.sub_(1)
-    torch.testing.assert_close(noisy(raw), poisson_gaussian(raw, 0.015 * 9, 0.006, seeds))
-
-
-def test_noise_train_scale_exceptions():
-    with pytest.raises(ValueError, match="train_scale_min"):
-        SensorNoise(0.015, 0.002, train_scale_range=(2.0, 1.0))
-    with pytest.raises(ValueError, match="train_scale_min"):
-        SensorNoise(0.015, 0.002, train_scale_range=(0.0, 1.0))
-    from warpsense.system import check_config
-
-    with pytest.raises(ConfigError, match="noise.train_scale_min"):
-        check_config(load_config(None, ["noise.train_scale_min=2.0", "noise.train_scale_max=1.5"]))

@@ -104,15 +104,15 @@ def test_train_on_real_camvid_crops(shared_data, tmp_path):
     assert state["best_miou"] == record["selection_miou"]
 
 
-GENERALISING = ["data.jitter_stops=1.0", "data.jitter_gamma=0.3", "data.jitter_white_balance=0.1",
-                "data.jitter_vignetting=0.3", "noise.train_scale_min=0.5", "noise.train_scale_max=2.0"]
+JITTER = ["data.jitter_stops=1.0", "data.jitter_gamma=0.3", "data.jitter_white_balance=0.1",
+          "data.jitter_vignetting=0.3"]
 
 
-@pytest.mark.parametrize("extra", [[], ["train.ema_decay=0.9"], GENERALISING], ids=["plain", "ema", "jitter"])
+@pytest.mark.parametrize("extra", [[], ["train.ema_decay=0.9"], JITTER], ids=["plain", "ema", "jitter"])
 def test_resume_continues_interrupted_run(tmp_path, extra):
     """An interrupted run resumed from its last checkpoint repeats the uninterrupted one (with a weight average
-    too: the checkpoint's model is the average, its training weights ride along; with the radiance jitter and the
-    noise range too: torch's generator and the noise's seed counter are restored)."""
+    too: the checkpoint's model is the average, its training weights ride along; with the radiance jitter too: torch's
+    generator is restored)."""
     base = TINY + ["train.epochs=3", "train.warmup_epochs=1", f"run.output_dir={tmp_path}"] + extra
     full = train(load_config(None, base + ["run.name=full"]), progress=False)
     expected = [json.loads(line) for line in (full / "metrics.jsonl").read_text().splitlines()]

@@ -30,7 +30,6 @@ class NoisySensor(Stage):
         self.eval_seed = eval_seed
         self.scale = 1.0
         self.exact = False
-        self.train_scale_range = (1.0, 1.0)
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
                               error_msgs):
@@ -63,27 +62,13 @@ class NoisySensor(Stage):
             return torch.arange(self.eval_seed, self.eval_seed + batch, dtype=torch.int32, device=device)
         return ((self.eval_seed + torch.arange(batch, device=device)) % (2**31 - 1)).to(torch.int32)
 
-    def training_levels(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """`levels`, in training scaled by s (shot by s^2) drawn log-uniform in ``train_scale_range`` per call: the
-        network sees noise from brighter to darker scenes than the deployment point, which evaluation keeps (s = 1).
-        s is a hash of the seed counter, so it lives on the device (a captured CUDA graph draws anew on every
-        replay) and a resumed run repeats it."""
-        shot, read = self.levels()
-        low, high = self.train_scale_range
-        if not self.training or low == high == 1.0:
-            return shot, read
-        # Knuth's multiplicative hash of the counter, 31 bits -> u in [0, 1)
-        draw = (((self.seed_counter % 2**31) * 2654435761) % 2**31).to(shot.dtype).squeeze(0) / 2**31
-        scale = torch.exp(math.log(low) + draw * (math.log(high) - math.log(low)))
-        return shot * scale**2, read * scale
-
     def fuse(self, arguments: SensorArguments) -> bool:
         """The gain folds into the responses; the fused kernel draws the Gaussian approximation (exact Poisson counts
         take this stage's own op)."""
         gain = self.signal_gain()
         if gain is not None:
             arguments.multiply_gain(gain)
-        arguments.shot, arguments.read = self.training_levels()
+        arguments.shot, arguments.read = self.levels()
         arguments.seeds = self.seeds
         return not self.exact
 
@@ -91,7 +76,7 @@ class NoisySensor(Stage):
         gain = self.signal_gain()
         if gain is not None:
             raw = raw * gain
-        shot, read = self.training_levels()
+        shot, read = self.levels()
         seeds = self.seeds(raw.shape[0], image_index)
         if self.exact:
             return poisson_gaussian_exact(raw, shot, read, seeds)
@@ -107,16 +92,10 @@ class SensorNoise(NoisySensor):
 
     config_section = "noise"
 
-    def __init__(self, shot: float = 0.015, read: float = 0.002, learnable: bool = False, eval_seed: int = 1234,
-                 train_scale_range: tuple[float, float] = (1.0, 1.0)):
+    def __init__(self, shot: float = 0.015, read: float = 0.002, learnable: bool = False, eval_seed: int = 1234):
         super().__init__(eval_seed)
         if not (0 <= shot < math.inf and 0 <= read < math.inf):
             raise ValueError(f"noise.shot and noise.read must be finite and >= 0, got shot={shot}, read={read}")
-        low, high = train_scale_range
-        if not 0 < low <= high < math.inf:
-            raise ValueError(f"noise.train_scale_min and noise.train_scale_max must satisfy 0 < min <= max, got "
-                             f"{low} and {high}")
-        self.train_scale_range = (float(low), float(high))
         self.register_buffer("shot_init", torch.tensor(float(shot)))
         self.register_buffer("read_init", torch.tensor(float(read)))
         self.shot_logit = nn.Parameter(torch.tensor(0.0), requires_grad=learnable)
@@ -132,17 +111,13 @@ class SensorNoise(NoisySensor):
             shot, read = 1.0 / section.full_well_electrons, section.read_electrons / section.full_well_electrons
         else:
             shot, read = section.shot, section.read
-        return cls(shot, read, section.learnable, section.eval_seed,
-                   (section.train_scale_min, section.train_scale_max))
+        return cls(shot, read, section.learnable, section.eval_seed)
 
     @classmethod
     def check_section(cls, section, where: str) -> None:
         if section.read_electrons > 0 and section.full_well_electrons == 0:
             raise ValueError(f"{where}: noise.read_electrons needs noise.full_well_electrons (electrons at the "
                              "white level)")
-        if section.train_scale_min > section.train_scale_max:
-            raise ValueError(f"{where}: noise.train_scale_min ({section.train_scale_min}) is above "
-                             f"noise.train_scale_max ({section.train_scale_max})")
 
     def summary(self) -> dict:
         """The levels in use: shot variance coefficient and read standard deviation (units of the white level)."""
