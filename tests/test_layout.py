@@ -87,3 +87,15 @@ def test_the_code_cites_only_references_that_ship():
                  for path in sorted((root / folder).rglob("*.py"))
                  for number, line in enumerate(path.read_text().splitlines(), 1) if unshipped.search(line)]
     assert offenders == []
+
+
+def test_no_measurement_rounds_in_the_product():
+    """The product is not a lab notebook: the README, the package, the kernels and the configs name no measurement
+    round (the history of how each choice was reached is docs/history.md)."""
+    root = PACKAGE.parent
+    paths = [root / "README.md", *(path for folder in ("warpsense", "kernels", "configs")
+                                   for path in sorted((root / folder).rglob("*")) if path.suffix in (".py", ".toml"))]
+    rounds = re.compile(r"\bround[ -]?\d+", re.IGNORECASE)
+    offenders = [f"{path.relative_to(root)}:{number}" for path in paths
+                 for number, line in enumerate(path.read_text().splitlines(), 1) if rounds.search(line)]
+    assert offenders == []

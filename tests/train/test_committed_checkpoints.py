@@ -1,5 +1,7 @@
 """The committed CamVid checkpoints reproduce, on the CPU and the original PNG val images, the val mIoU their
-training recorded on the GPU (issue 13: `warpsense eval` on CPU reproduces the committed figure)."""
+training recorded on the GPU (issue 13: `warpsense eval` on CPU reproduces the committed figure). They are the final
+recipe trained on train + val (every labelled frame), so val is a training set here: the test guards the files and
+the CPU path, not accuracy on new streets (docs/results.md, the recipe on held-out drives)."""
 
 import json
 from pathlib import Path
@@ -19,6 +21,9 @@ def test_committed_checkpoint_reproduces_its_val_miou_on_cpu(name, shared_data):
     # training scored a JPEG copy of the images on the GPU in bf16; here: PNG originals, float32
     assert payload["miou"] == pytest.approx(recorded["val_miou"], abs=0.005)
     assert payload["miou"] >= 0.64  # issue 13's bar at the default low-light operating point
+    config = json.loads((CHECKPOINTS / f"{name}.json").read_text())["config"]
+    assert config["data"]["train_split"] == "train+val" and config["train"]["epochs"] == 150
+    assert config["data"]["jitter_stops"] > 0  # the recipe with its photometric jitter
 
 
 def test_results_doc_quotes_the_co_design_checkpoints_learned_exposure_gain():
@@ -35,18 +40,3 @@ def test_results_doc_quotes_the_co_design_checkpoints_learned_exposure_gain():
     model, _, _ = load_system(CHECKPOINTS / "camvid_codesign.safetensors", "cpu")
     assert model.camera.learned().exposure_gain == pytest.approx(recorded, abs=1e-6)
     assert quoted.group(1) == f"{recorded:.3f}"
-
-
-@pytest.mark.parametrize("name", ["camvid_codesign", "camvid_fixed_isp"])
-def test_committed_checkpoint_saved_with_keys_since_retired_loads(name):
-    """The committed checkpoints were saved with keys since retired (`warpsense.config.RETIRED`), each at the value
-    of the behaviour that stayed: they load, as today's config without those keys."""
-    from warpsense.config import EVERY_VALUE, RETIRED, flatten_keys
-    from warpsense.system import load_system
-
-    stored = flatten_keys(json.loads((CHECKPOINTS / f"{name}.json").read_text())["config"])
-    held = set(stored) & set(RETIRED)
-    assert held, "the checkpoint holds no retired key: this test no longer tests anything"
-    assert all(RETIRED[key].remaining in (EVERY_VALUE, stored[key]) for key in held)
-    _, config, _ = load_system(CHECKPOINTS / f"{name}.safetensors", "cpu")
-    assert not set(flatten_keys(config.to_dict())) & set(RETIRED)

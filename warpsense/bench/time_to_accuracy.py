@@ -115,7 +115,7 @@ def process_warmup(config, device: torch.device) -> float:
     """One untimed forward + backward of the recipe's system and of the baseline's, at the training batch and crop
     with bf16 autocast and the loss as they train, in this process: what the first method timed would otherwise pay
     for both (Warp's modules loaded from its kernel cache or built, torch's custom-op machinery imported on first
-    call, cuDNN's kernels loaded). On an H100 (docs/history.md, speed round 15): the recipe, timed first, had an
+    call, cuDNN's kernels loaded). On an H100 (docs/history.md): the recipe, timed first, had an
     11.7-16.0 s first epoch and the baseline after it 1.3-1.5 s. Its wall seconds; nothing trains (the parameters'
     gradients are dropped)."""
     started = time.perf_counter()

@@ -164,7 +164,7 @@ class DSUNet(nn.Module):
     through ``full_depth`` separable blocks in the encoder and in the decoder (1: one each). It is where a pole or a
     sign a few pixels wide is seen whole. It costs little in parameters (width 40 adds 5.6k, depth 2 adds 2.4k at
     w = 24) and much in activations, which are full-resolution there (6-7% longer runs on an
-    H100, docs/history.md, accuracy round 18).
+    H100, docs/history.md).
 
     ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 it doubles the training speed (batch
     norm and depthwise convolutions have fast NHWC kernels; their NCHW bf16 backward is slow). The output is the
@@ -212,7 +212,7 @@ class DSUNet(nn.Module):
         """``torch.cat([upsampled x, skip], dim=1)``: the decoder's bilinear x2 and skip connection. A channels-last
         network on a `FUSED_DEVICES` device takes them in one pass forward and one backward (`upsample_concat`,
         equal up to float rounding and deterministic; torch's NHWC resize backward was 3.0 ms and the
-        concatenations 1.4 ms of a 41 ms step on an H100, docs/history.md, speed round 23), except a single image in
+        concatenations 1.4 ms of a 41 ms step on an H100, docs/history.md), except a single image in
         eval mode run eagerly: there the host's cost per op decides, and torch's resize and cat cost less of it
         than the custom op (~0.1 ms a join at batch 1 on the H100's host, docs/benchmarks.md: batch-1 latency); inside a
         CUDA graph capture the op's shorter GPU time wins again."""

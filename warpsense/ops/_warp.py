@@ -205,7 +205,7 @@ class WarpOp:
     (`plain_eager`), no input that requires a gradient (or gradients off), the profiler off, no forward-AD level
     open, no argument mutated.
     The custom op's dispatch costs 27-42 us of host time per call on an H100 machine (torch 2.11,
-    docs/history.md, speed round 28), which batch-1 inference pays per op. Every other call (autograd, torch.compile,
+    docs/history.md), which batch-1 inference pays per op. Every other call (autograd, torch.compile,
     torch.jit.trace, fake tensors, vmap, profiling) goes through the op, so it is seen as one node with its fake
     implementation and autograd formula. A CUDA-graph capture in eager mode may take either path: both launch
     the same kernels on the current stream. A call that a forward-mode tangent reaches (`forward_tangents`)

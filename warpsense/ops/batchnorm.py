@@ -10,7 +10,7 @@ from warpsense.ops._warp import arithmetic_dtype, element_dtype, kernel_scalar, 
 from warpsense.ops._warp import bfloat16_words as _words
 from warpsense.ops.arguments import check_channel_pairs, check_same_device, check_tensor
 
-# threads per launch on CUDA: 2^17 beat 2^16 and 2^18 at UNROLL 4 (docs/history.md, speed round 24; an H200)
+# threads per launch on CUDA: 2^17 beat 2^16 and 2^18 at UNROLL 4 (docs/history.md; an H200)
 _THREADS = {"cuda": 2**17}
 _CPU_GROUPS = 16  # Warp's CPU backend runs a launch on one thread: few partial sums
 

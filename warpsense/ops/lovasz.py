@@ -61,7 +61,7 @@ def _lovasz_terms(probabilities: torch.Tensor, labels: torch.Tensor,
     foreground = running[:, -1].contiguous()
     # class planes (NCHW) whatever the probabilities' layout: each class's scattered writes then stay within one
     # plane, which the L2 cache holds (10.8 MB at the recipe's batch); channels-last, they spread over the whole
-    # tensor and the kernel took 2.6x longer (2.14 against 0.82 ms, H100, docs/history.md, speed round 25)
+    # tensor and the kernel took 2.6x longer (2.14 against 0.82 ms, H100, docs/history.md)
     gradient = torch.empty(probabilities.shape, dtype=probabilities.dtype, device=device)
     sums = probabilities.new_empty(tiles)
     launch(kernels.lovasz_gradient, tiles,

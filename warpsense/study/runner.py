@@ -349,7 +349,7 @@ def cell_worker(plan: Plan, out: Path) -> int:
     """One process of the local pool: trains the cells whose ids arrive on stdin (one a line), one after another in
     this process, each one's output appended to <out>/logs/<cell>.log, and answers each on stdout with one line,
     ``done <id>`` or ``failed <id> <reason>``. One process per GPU slot rather than one per cell: the interpreter,
-    CUDA context, Warp modules and the data on the device are paid once per worker (2 x H100, docs/history.md, speed round 19:
+    CUDA context, Warp modules and the data on the device are paid once per worker (2 x H100, docs/history.md:
     a process per 10-epoch cell took 60 s against 18 s in one process). Returns 0 at the end of stdin, 130 on Ctrl-C."""
     from warpsense.train.engine import TrainingInterrupted
 
@@ -380,7 +380,7 @@ def worker_environment(gpu: str, workers: int, environ=None, cores: int | None =
     as OpenMP threads (``OMP_NUM_THREADS`` = cores // workers, at least 1; kept where the caller set it), as
     torchrun limits its ranks: every worker running an OpenMP pool of all the cores oversubscribes the CPU, and on
     2 H100s with 16 cores each cell's set-up (the data onto the GPU, its copy-paste classes) took 5-8 s instead of
-    1 s (docs/history.md, speed round 20)."""
+    1 s (docs/history.md)."""
     environment = dict(os.environ if environ is None else environ)
     environment["CUDA_VISIBLE_DEVICES"] = gpu
     cores = cores or os.cpu_count() or 1

@@ -53,7 +53,7 @@ plain-torch references (`warpsense.ops.reference`), as in the benchmarks' plain-
 FUSED_LOSS_DEVICES = ("cuda",)
 """Devices where the softmax with cross-entropy and the Lovasz term take their fused ops (the smoothness op runs
 everywhere): on a CPU the Lovasz op's tiles run as Warp's cooperative fibers, ~20x slower than torch's sort there
-(docs/history.md, speed round 25), and Warp's CPU kernels use one core where torch's use all."""
+(docs/history.md), and Warp's CPU kernels use one core where torch's use all."""
 
 
 def lovasz_softmax(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
