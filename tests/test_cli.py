@@ -54,6 +54,14 @@ def test_eval_argument_mistakes_are_one_line_errors_before_any_work(capsys, argu
     assert message in capsys.readouterr().err
 
 
+def test_building_the_parser_loads_no_torch():
+    """Every `warpsense` call builds every command's parser: the command modules import their work (torch, Warp)
+    when it runs, so --help stays quick and `main` sets the OpenMP defaults before torch loads."""
+    code = "import sys; from warpsense.cli import build_parser; build_parser(); print('torch' in sys.modules)"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.stdout.strip() == "False", result.stderr
+
+
 def test_subpackages_load_on_attribute_access_and_no_driver_warning_on_cpu():
     code = "import warpsense; print(warpsense.ops.cfa_mosaic.__name__)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
@@ -195,6 +203,7 @@ def test_ctrl_c_message_starts_on_its_own_line(tmp_path, capsys, monkeypatch):
     """The epoch's bar is left mid-line when Ctrl-C stops training: the message that says how to continue must not
     be glued onto it."""
     import warpsense.commands.train as train_command
+    from warpsense.train import engine
     from warpsense.train.engine import TrainingInterrupted
 
     def interrupted_mid_epoch(config, **kwargs):
@@ -202,7 +211,7 @@ def test_ctrl_c_message_starts_on_its_own_line(tmp_path, capsys, monkeypatch):
         raise TrainingInterrupted(tmp_path)
 
     (tmp_path / "checkpoint_last.safetensors").write_bytes(b"")
-    monkeypatch.setattr(train_command, "train", interrupted_mid_epoch)
+    monkeypatch.setattr(engine, "train", interrupted_mid_epoch)  # run_train imports it when it runs
     assert train_command.run_train(None, [f"run.output_dir={tmp_path}"], progress=True) == 130
     lines = capsys.readouterr().err.splitlines()
     assert lines[-1] == f"warpsense train: interrupted; continue with: warpsense train --resume-dir {tmp_path}"

@@ -6,7 +6,7 @@ import pytest
 from PIL import Image
 
 from warpsense.cli import main
-from warpsense.data.raw import load_raw
+from warpsense.data.raw import load_raw, read_capture
 
 rawpy = pytest.importorskip("rawpy")
 tifffile = pytest.importorskip("tifffile")
@@ -139,8 +139,6 @@ def test_checkpoint_camera_output_is_what_predict_reads(tmp_path, capsys):
                  "--device", "cpu"]) == 0
     assert Image.open(tmp_path / "seg.png").size[0] == 64
     # the DNG of the same capture reads back in predict's normalisation equal to the safetensors mosaic
-    from warpsense.commands.predict import read_capture
-
     from_dng, _ = read_capture(out / "a.dng")
     np.testing.assert_allclose(from_dng, load_raw(out / "a.safetensors")[0][0].numpy(), atol=1e-6)
 

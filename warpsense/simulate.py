@@ -179,9 +179,9 @@ def simulate_image(sim: SimulatedCamera, radiance: torch.Tensor, key: int = 0) -
 
 def preview(mosaic: np.ndarray, letters: str | None) -> np.ndarray:
     """[H, W, 3] uint8 sRGB preview: a Bayer mosaic's 2 x 2 tiles as (R, mean G, B) on their four pixels, any other
-    mosaic as each tile's mean in grey (`warpsense.commands.predict.preview_grey`)."""
-    from warpsense.commands.predict import preview_grey
+    mosaic as each tile's mean in grey (`warpsense.data.raw.preview_grey`)."""
     from warpsense.data.color import linear_to_srgb
+    from warpsense.data.raw import preview_grey
 
     height, width = mosaic.shape
     if letters in BAYER_LAYOUTS:

@@ -49,6 +49,18 @@ def test_feature_time_interleaved_pairs_each_round_with_the_reference(monkeypatc
     assert all(abs(bound - 2.0) < 1e-9 for bound in result["slow"]["vs_reference_ci95_ms"])
 
 
+def test_latency_is_timed_eager_or_replayed_with_the_repeats_asked(monkeypatch):
+    """`time_latency`, the one latency timer of the benchmarks and `warpsense eval --latency`: eager calls through
+    `time_function` (50 by default), a CUDA graph's replays through `time_cuda_graph` (100 by default)."""
+    calls = []
+    monkeypatch.setattr(timing, "time_cuda_graph", lambda function, repeats: calls.append(("graph", repeats)))
+    assert timing.time_latency(lambda: None, "cpu")["repeats"] == timing.LATENCY_REPEATS == 50
+    assert timing.time_latency(lambda: None, "cpu", repeats=4)["repeats"] == 4
+    timing.time_latency(lambda: None, "cuda", graph=True)
+    timing.time_latency(lambda: None, "cuda", graph=True, repeats=7)
+    assert calls == [("graph", timing.GRAPH_LATENCY_REPEATS), ("graph", 7)] and timing.GRAPH_LATENCY_REPEATS == 100
+
+
 def test_feature_median_interval_order_statistics():
     """n = 100: k = floor((100 - 1.96 * 10) / 2) = 40, so the 41st smallest and 41st largest of 0..99 (Conover's
     interval covers the median with ~95% probability); tiny samples get their whole range."""

@@ -9,7 +9,14 @@ from warpsense.cli import main
 from warpsense.ops import cfa_mosaic
 
 rawpy = pytest.importorskip("rawpy")
-from warpsense.data.raw import RawFileError, convert_file, read_raw_file, write_dng  # noqa: E402
+from warpsense.data.raw import (  # noqa: E402
+    RawFileError,
+    bin_mosaic,
+    convert_file,
+    preview_grey,
+    read_raw_file,
+    write_dng,
+)
 
 GOOD = {"canon_eos_kiss_x4_colorchart_rggb14.dng": "RGGB", "pidng_indoor_gbrg10.dng": "GBRG",
         "rpi_imx296_checkerboard_bggr10.dng": "BGGR"}
@@ -94,7 +101,7 @@ def test_bad_files_clear_errors(shared_data, name, reason):
 
 
 def test_phase_offset_and_binning():
-    from warpsense.commands.predict import bin_mosaic, phase_offset
+    from warpsense.camera.geometry import phase_offset
 
     assert phase_offset("RGGB", "RGGB") == (0, 0)
     assert phase_offset("GBRG", "RGGB") == (1, 0)
@@ -102,6 +109,19 @@ def test_phase_offset_and_binning():
     assert phase_offset("BGGR", "RGGB") == (1, 1)
     mosaic = torch.tensor([[1.0, 2.0], [3.0, 4.0]]).repeat(4, 4)
     torch.testing.assert_close(bin_mosaic(mosaic, 2), torch.tensor([[1.0, 2.0], [3.0, 4.0]]).repeat(2, 2))
+
+
+def test_prepare_capture_crops_into_the_models_phase_then_bins():
+    """A GBRG capture 9 x 17 (odd: its last row and column are no whole tile) read by an RGGB model: cropped by one
+    row into RGGB, cut to 8 x 16, clipped to [0, 1] and binned by 2 (16 / 8 wide) with each site's plane kept."""
+    from warpsense.data.raw import prepare_capture
+
+    sites = {"R": 0.2, "G": 0.5, "B": 1.5}  # B above the white level: clipped
+    gbrg = np.array([[sites["G"], sites["B"]], [sites["R"], sites["G"]]], dtype=np.float32)
+    mosaic = np.tile(gbrg, (5, 9))[:9, :17]
+    prepared, factor, crop = prepare_capture(mosaic, "GBRG", "RGGB", target_width=8)
+    assert crop == (1, 0) and factor == 2 and prepared.shape == (4, 8)
+    torch.testing.assert_close(prepared, torch.tensor([[0.2, 0.5], [0.5, 1.0]]).repeat(2, 4))
 
 
 def test_predict_on_real_capture_and_refuses_non_bayer(shared_data, tmp_path):
@@ -171,7 +191,7 @@ def test_batch_problems_are_reported_and_the_batch_goes_on(tmp_path, capsys):
 
 
 def test_predict_legend_scales_with_the_image_and_the_overlay_has_no_checkerboard():
-    from warpsense.commands.predict import legend_strip, preview_grey
+    from warpsense.commands.predict import legend_strip
 
     small = legend_strip(["sky", "road"], {0, 1}, 2, 480)
     large = legend_strip(["sky", "road"], {0, 1}, 2, 1734)

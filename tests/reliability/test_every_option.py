@@ -18,6 +18,7 @@ import pytest
 
 from tests.reliability.conftest import files_under
 from warpsense import cli
+from warpsense.commands.bench import seed_list
 from warpsense.config import RETIRED, RETIRED_VALUES, Config, preset_names
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -93,6 +94,14 @@ FREE_STRINGS = {
     "bench --json": [("missing_folder", ["--json", "no_dir/b.json"], ("--json",))],
     "bench --plot": [("missing_folder", ["--plot", "no_dir/b.png"], ("--plot",))],
     "bench --camvid": [("missing_folder", ["--camvid", "no_such_camvid"], ("no_such_camvid",))],
+    "bench --plan": [("missing_plan", ["--suite", "study", "--out", "suite", "--plan", "no_such_plan"],
+                      ("no_such_plan",)), ("other_suite", ["--plan", "smoke"], ("--plan",))],
+    "bench --out": [("without_plan", ["--suite", "study", "--out", "suite"], ("--plan",)),
+                    ("other_suite", ["--out", "suite"], ("--out",))],
+    "bench --gpus": [("not_ids", ["--suite", "study", "--plan", "smoke", "--out", "suite", "--gpus", "one,two"],
+                      ("--gpus",))],
+    "bench --set": [("unknown_key", ["--suite", "study", "--plan", "smoke", "--out", "suite", "--set",
+                                     "train.epoch=3"], ("train.epoch",))],
     "convert inputs": [("missing_file", [], ("no_such_raw.dng",))],  # the base names a raw file that does not exist
     "convert --out": [("a_file", ["--out", "file.txt"], ("--out",))],
     "predict checkpoint": [("missing_file", [], ("<checkpoint>",))],  # replaced by a missing file below
@@ -138,7 +147,7 @@ CONTRADICTIONS = {
     "bench --seeds": [("other_suite", ["--suite", "kernels", "--seeds", "0,1"], ("--seeds",))],
 }
 LIST_TYPES = {
-    cli._seed_list: [("wrong_type", "a,b"), ("nan", "nan"), ("negative", "-1"), ("duplicate", "0,0"), ("float", "1.5")],
+    seed_list: [("wrong_type", "a,b"), ("nan", "nan"), ("negative", "-1"), ("duplicate", "0,0"), ("float", "1.5")],
 }
 
 

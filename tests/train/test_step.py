@@ -9,8 +9,9 @@ import torch
 from tests.conftest import device_params
 from tests.train.test_training import TINY
 from warpsense.camera import Camera
+from warpsense.camera.geometry import cfa_flip, cfa_unflip
 from warpsense.config import load_config
-from warpsense.system import SensingModel, build_system, cfa_flip, cfa_unflip
+from warpsense.system import SensingModel, build_system
 from warpsense.train import engine
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.ema import WeightEMA

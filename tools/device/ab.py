@@ -1,14 +1,16 @@
 """Run a tool with some of the fused Warp ops of the network or the loss in their torch form, for an A/B in one call:
 
-    python tools/device/ab.py SWITCH tools/bench_train_bound.py ARGS...
+    python tools/device/ab.py SWITCH SCRIPT ARGS...
+    python tools/device/ab.py torch-norm warpsense/__main__.py bench --suite train --device cuda --json OUT.json
 
 SWITCH: "fused" (as shipped); "torch-joins", "torch-norm", "torch-gate" (that network op through torch: the
 decoder's upsampling and concatenation, batch norm + ReLU, the squeeze-and-excitation gate and residual);
 "torch-softmax", "torch-lovasz", "torch-smoothness" (that loss op's torch form: torch's softmax and
 cross-entropy, the terms' plain-torch references); "torch-network" (the three network ops), "torch-loss" (the three
 loss ops), "torch-all" (all six); "fused-single-joins" (as shipped, but a single image in eager eval mode joins with
-the fused op too, as until round 26). The script runs inside the switches the benchmarks'
-baseline uses (`warpsense.models.dsunet.NETWORK_OPS`, `warpsense.train.losses.LOSS_OPS`).
+the fused op too, as it once did). The script (any Python file, `warpsense/__main__.py` for a `warpsense` command)
+runs inside the switches the benchmarks' baseline uses (`warpsense.models.dsunet.NETWORK_OPS`,
+`warpsense.train.losses.LOSS_OPS`).
 """
 
 import contextlib

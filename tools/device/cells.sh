@@ -6,8 +6,8 @@
 # KEEP="CELL_DIR ..." (e.g. paste.night.seed0) brings those finished cells' last weights back too (~5 MB each).
 # REUSE=".device/state/OLD ..." copies in OLD's finished runs of the same configs (`study run --reuse`, one per
 # directory; carry them too).
-# PER_GPU=N runs N cells at once on the GPU (the study's local pool, N worker processes; round 9 found 6 at once slower
-# than 1 on an H100 without MPS: the GPU time-slices processes). Unset: the cells one after another in one process.
+# PER_GPU=N runs N cells at once on the GPU (the study's local pool, N worker processes; 6 at once ran slower than 1
+# on an H100 without MPS: the GPU time-slices processes). Unset: the cells one after another in one process.
 set -u
 plan=$1; limit=$2; which=${3:-all}; name=${4:-$1}
 source tools/device/env.sh

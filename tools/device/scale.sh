@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Issue 32 on a machine of several GPUs (tools/device/README.md: the kit installed, .device/camvid carried).
+# Multi-GPU scaling on a machine of several GPUs: a study's cells on one GPU against all, and torchrun training on
+# one rank against all (tools/device/README.md: the kit installed, .device/camvid carried).
 #   bash tools/device/scale.sh study 0      camvid_scaling on GPU 0 alone -> .device/state/scale_1gpu
 #   bash tools/device/scale.sh study auto   camvid_scaling over every GPU  -> .device/state/scale_all
 #   bash tools/device/scale.sh warm         an untimed warm-up for the two above (every cell for 2 epochs in one
@@ -18,7 +19,7 @@
 #                                           SIDES=all runs the all-rank side only (SIDES=1: the 1-rank side)
 # Each torchrun is stopped after $LIMIT s (default 300: a rank that hangs at exit must not eat the call).
 # Extra overrides for the study runs go in $SET (e.g. SET="--set run.deterministic=true" for the per-cell equality
-# check, which the throughput figures should not carry: it costs 31% of the step, docs/benchmarks.md round 14).
+# check, which the throughput figures should not carry: it costs 31% of the step, docs/history.md).
 # Cells per hour and the GPUs' busy fraction are in each study's throughput.json; everything comes back as
 # $OUT/scale.tgz (no plots, no weights).
 set -u

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Issue 27's headline benchmark on the GPU: `warpsense bench --suite time-to-accuracy` for one seed (the recipe as
-# shipped, then the plain-torch baseline, the presets' epochs each (150 since round 19: ~420 s on an H100), stopped
-# after LIMIT seconds.
+# The time-to-accuracy benchmark on the GPU: `warpsense bench --suite time-to-accuracy` for one seed (the recipe as
+# shipped, then the plain-torch baseline, the presets' epochs each: 150, ~420 s on an H100), stopped after LIMIT
+# seconds.
 # Records and curves come back as $OUT/tta_seedS.json / .png. Usage: bash tools/device/tta.sh LIMIT SEED
 set -u
 limit=$1; seed=$2

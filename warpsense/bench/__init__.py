@@ -1,8 +1,9 @@
 """Benchmarks: the kernels against their references, error against run time, and training against the plain-torch
 baseline."""
 
-BENCH_SUITES = ("kernels", "accuracy", "train", "time-to-accuracy", "all")
-"""Suites of `warpsense bench`; "all" runs kernels, accuracy and train (time-to-accuracy trains for minutes)."""
+BENCH_SUITES = ("kernels", "accuracy", "train", "time-to-accuracy", "study", "all")
+"""Suites of `warpsense bench`; "all" runs kernels, accuracy and train (time-to-accuracy trains for minutes, study
+trains a plan's cells twice)."""
 
 
 def parse_size(text: str, option: str, example: str) -> tuple[int, int]:

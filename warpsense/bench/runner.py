@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from warpsense.bench import BENCH_SUITES
-from warpsense.bench.timing import UNSTABLE_NOTE, _summary, _sync, is_unstable, time_cuda_graph, time_function
+from warpsense.bench.timing import UNSTABLE_NOTE, _summary, _sync, is_unstable, time_function, time_latency
 from warpsense.files import environment, write_json
 from warpsense.ops import (
     cfa_mosaic,
@@ -272,10 +272,10 @@ def _end_to_end(bench: Bench, device: str) -> None:
     with torch.no_grad(), torch.autocast(device, dtype=torch.bfloat16, enabled=device == "cuda"):
         for name, function in (("torch_eager_sensor", baseline), ("warp_sensor", ours)):
             bench.record("sensor_plus_network", name, "bf16" if device == "cuda" else "float32", (1, 3, 192, 640),
-                         "fwd", time_function(function, device, 50))
+                         "fwd", time_latency(function, device))
             if device == "cuda":
                 bench.record("sensor_plus_network", name + "_graph", "bf16", (1, 3, 192, 640), "fwd",
-                             time_cuda_graph(function, 100))
+                             time_latency(function, device, graph=True))
         sensed = camera(radiance)
         bench.record("network_only", "dsunet", "bf16" if device == "cuda" else "float32", (1, 1, 192, 640), "fwd",
-                     time_function(lambda: network(sensed), device, 50))
+                     time_latency(lambda: network(sensed), device))

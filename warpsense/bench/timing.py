@@ -1,5 +1,6 @@
-"""Timing helpers: median and IQR after warm-up, with the device synchronised around each repetition; the kernels
-of a call by time (`torch.profiler`)."""
+"""Timing helpers: median and IQR after warm-up, with the device synchronised around each repetition; the inference
+latency every benchmark and `warpsense eval --latency` report (`time_latency`); the kernels of a call by time
+(`torch.profiler`)."""
 
 from __future__ import annotations
 
@@ -95,6 +96,61 @@ def time_cuda_graph(function, repeats: int = 50, warmup: int = 3) -> dict:
     with torch.cuda.graph(graph):
         function()
     return time_function(graph.replay, "cuda", repeats, warmup=2)
+
+
+LATENCY_REPEATS = 50
+"""Timed calls of an eager inference (`time_latency`)."""
+
+GRAPH_LATENCY_REPEATS = 100
+"""Timed replays of an inference captured as a CUDA graph (`time_latency`)."""
+
+
+def time_latency(function, device, graph: bool = False, repeats: int | None = None) -> dict:
+    """Latency of one inference ``function()`` (a batch through a model, no arguments), as `time_function`'s
+    summary: eager, or captured once and replayed as a CUDA graph (``graph``, CUDA only: no host work per call).
+
+    Args:
+        function: the inference; the caller enters what it runs under (`torch.no_grad`, autocast, a cached camera)
+            inside it or around this call.
+        device: where it runs (synchronised around each call).
+        graph: replay a CUDA graph instead of calling eagerly.
+        repeats: timed calls (default: `LATENCY_REPEATS` eager, `GRAPH_LATENCY_REPEATS` replayed).
+    """
+    if graph:
+        return time_cuda_graph(function, GRAPH_LATENCY_REPEATS if repeats is None else repeats)
+    return time_function(function, device, LATENCY_REPEATS if repeats is None else repeats)
+
+
+def model_latency(model, device, height: int, width: int, batch: int, repeats: int = LATENCY_REPEATS) -> dict:
+    """Median latency (ms, `time_latency`) of a loaded `SensingModel` on random uint8 frames: sensor simulation +
+    network, and the network alone; on CUDA also replayed as CUDA graphs.
+
+    The checkpoint's camera is fixed, so it runs cached (`Camera.cached`), as a deployed one would.
+
+    Args:
+        model: the model, on ``device``.
+        device: a torch.device.
+        height, width, batch: the frames' size.
+        repeats: timed calls of each, eager and replayed.
+
+    Returns:
+        {"device", "height", "width", "batch", "camera_cached", "sensor_plus_network_ms", "network_ms"}, with
+        "sensor_plus_network_graph_ms" and "network_graph_ms" on CUDA: `warpsense eval --latency`'s record.
+    """
+    from warpsense.camera.camera import cached_cameras  # the camera loads Warp: only when a model is timed
+
+    images = torch.randint(0, 256, (batch, 3, height, width), dtype=torch.uint8, device=device)
+    sensed = model.sense(images)
+    result = {"device": str(device), "height": height, "width": width, "batch": batch, "camera_cached": True}
+    with torch.no_grad(), cached_cameras(model):
+        result["sensor_plus_network_ms"] = time_latency(lambda: model(images), device, repeats=repeats)["median_ms"]
+        result["network_ms"] = time_latency(lambda: model.network(sensed), device, repeats=repeats)["median_ms"]
+        if device.type == "cuda":
+            result["sensor_plus_network_graph_ms"] = time_latency(lambda: model(images), device, graph=True,
+                                                                  repeats=repeats)["median_ms"]
+            result["network_graph_ms"] = time_latency(lambda: model.network(sensed), device, graph=True,
+                                                      repeats=repeats)["median_ms"]
+    return result
 
 
 def write_kernel_table(function, device, out: str, warmup: int = 3, rows: int = 60) -> None:

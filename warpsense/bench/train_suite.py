@@ -16,7 +16,7 @@ import time
 import torch
 from torch import nn
 
-from warpsense.bench.timing import UNSTABLE_NOTE, _sync, is_unstable, time_cuda_graph, time_function
+from warpsense.bench.timing import UNSTABLE_NOTE, _sync, is_unstable, time_cuda_graph, time_function, time_latency
 from warpsense.camera import Camera
 from warpsense.camera.camera import cached_cameras, set_finite_check
 from warpsense.config import load_config
@@ -157,7 +157,7 @@ def latency(method, camera_name, device, height, width, graph: bool, cached: boo
     the camera cached (`Camera.cached`, a fixed camera's inference)."""
     with contextlib.ExitStack() as stack:
         infer = inference(method, camera_name, device, height, width, cached=stack if cached else None)
-        return time_cuda_graph(infer, 100) if graph else time_function(infer, device, 50)
+        return time_latency(infer, device, graph)
 
 
 def camera_pass(method, camera_name, device, batch, height, width, graph: bool) -> dict:

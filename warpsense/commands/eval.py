@@ -2,61 +2,64 @@
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import json
 from pathlib import Path
 
-import torch
-
-from warpsense.files import write_json
-from warpsense.system import load_system, resolve_device
-from warpsense.train.evaluate import evaluate
-
-
-def robustness_sweep(model, dataset, device, batch_size: int, class_names, amp: bool,
-                     progress: bool = True) -> list[dict]:
-    """mIoU under extra blur, scaled noise and other bit depths (one factor at a time, the others at the
-    checkpoint's operating point), with a progress bar over the settings; the camera is restored afterwards."""
-    from tqdm import tqdm
-
-    camera = model.camera
-    operating = {"blur_sigma_px": 0.0, **camera.what_if_values()}
-    settings = [("blur_sigma_px", sigma) for sigma in (0.0, 0.5, 1.0, 2.0)]
-    if "noise_scale" in operating:
-        settings += [("noise_scale", scale) for scale in (0.5, 1.0, 2.0, 4.0)]
-    if "bits" in operating:
-        settings += [("bits", value) for value in (4, 6, 8, 10, 12)]
-    rows = []
-    bar = tqdm(settings, desc="sweep", disable=not progress)
-    for factor, value in bar:
-        bar.set_postfix_str(f"{factor}={value}")
-        what_if = {} if factor == "blur_sigma_px" else {factor: value}
-        with camera.overridden(**what_if):
-            metrics = evaluate(model, dataset, device, batch_size, class_names=class_names, amp=amp,
-                               blur_sigma=value if factor == "blur_sigma_px" else 0.0)
-        rows.append({"factor": factor, "value": value, "miou": metrics["miou"],
-                     "operating_point": value == operating[factor]})
-    return rows
+from warpsense.bench import parse_size
+from warpsense.choices import DATASETS, DEVICES
+from warpsense.commands.options import count, show_progress
+from warpsense.files import check_output_file, write_json
 
 
-def measure_latency(model, device, height: int, width: int, batch: int, repeats: int = 50) -> dict:
-    """Median latency (ms) of sensor simulation + network and of the network alone; on CUDA also replayed as
-    CUDA graphs. The checkpoint's camera is fixed, so it runs cached (`Camera.cached`), as a deployed one would."""
-    from warpsense.bench.timing import time_function
-    from warpsense.camera.camera import cached_cameras
+def register(commands: argparse._SubParsersAction, name: str) -> None:
+    """Add the command's parser to ``commands`` (the top-level subparsers) under ``name``."""
+    parser = commands.add_parser(name, help="evaluate a checkpoint (mIoU, per-class IoU, sweeps, latency)",
+                                 description="Evaluate a trained checkpoint on a dataset split.")
+    parser.add_argument("--checkpoint", required=True,
+                        help="a checkpoint .safetensors written by `warpsense train` (its config and classes are "
+                             "inside it; the .json beside it is a readable copy, not needed)")
+    parser.add_argument("--data", choices=DATASETS,
+                        help="dataset kind (default: the one the checkpoint was trained on)")
+    parser.add_argument("--data-root", help="dataset folder (not needed for scenes; default: the checkpoint's "
+                        "data.root when --data is left out)")
+    parser.add_argument("--split", default="val",
+                        help="split name; heldout: a sequence-fold checkpoint's held-out sequence (default: "
+                        "%(default)s)")
+    parser.add_argument("--json", metavar="OUT",
+                        help="write metrics JSON (miou, per_class_iou, pixel_accuracy, num_images)")
+    parser.add_argument("--sweep", action="store_true", help="robustness sweeps: extra blur, noise scale, bit depth")
+    parser.add_argument("--flip-tta", action="store_true",
+                        help="average with the prediction on the mirrored capture (keeps the CFA phase)")
+    parser.add_argument("--plot", metavar="OUT.png", help="with --sweep: plot the sweeps")
+    parser.add_argument("--latency", action="store_true",
+                        help="time sensor simulation + network (the camera cached: Camera.cached) and network alone "
+                             "(alone: no dataset, no mIoU; with --sweep: both)")
+    parser.add_argument("--latency-size", default="192x640", metavar="HxW",
+                        help="input size for --latency (default: %(default)s)")
+    parser.add_argument("--latency-batch", type=count(1), default=1, metavar="N",
+                        help="batch size for --latency (default: %(default)s)")
+    parser.add_argument("--batch-size", type=count(1), default=4, metavar="N",
+                        help="evaluation batch size (default: %(default)s)")
+    parser.add_argument("--limit", type=count(0), default=0, metavar="N",
+                        help="evaluate only the first N images (default: %(default)s = all)")
+    parser.add_argument("--device", default="auto", choices=DEVICES, help="device (default: %(default)s)")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="hide the progress bars (they are drawn only when stderr is a terminal)")
 
-    images = torch.randint(0, 256, (batch, 3, height, width), dtype=torch.uint8, device=device)
-    sensed = model.sense(images)
-    result = {"device": str(device), "height": height, "width": width, "batch": batch, "camera_cached": True}
-    with torch.no_grad(), cached_cameras(model):
-        result["sensor_plus_network_ms"] = time_function(lambda: model(images), device, repeats)["median_ms"]
-        result["network_ms"] = time_function(lambda: model.network(sensed), device, repeats)["median_ms"]
-        if device.type == "cuda":
-            from warpsense.bench.timing import time_cuda_graph
 
-            result["sensor_plus_network_graph_ms"] = time_cuda_graph(lambda: model(images), repeats)["median_ms"]
-            result["network_graph_ms"] = time_cuda_graph(lambda: model.network(sensed), repeats)["median_ms"]
-    return result
+def run(args: argparse.Namespace) -> int:
+    """Check the options that depend on each other and where the outputs go, then `run_eval`; returns 0."""
+    if args.plot and not args.sweep:
+        raise ValueError("--plot draws the sweeps: add --sweep")
+    check_output_file(args.json, "--json")
+    check_output_file(args.plot, "--plot")
+    height, width = parse_size(args.latency_size, "--latency-size", "192x640")
+    run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
+             (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot, args.flip_tta,
+             progress=show_progress(args))
+    return 0
 
 
 def check_label_space(checkpoint, model, state: dict, dataset, data: str) -> list[str]:
@@ -95,13 +98,16 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
              plot_out: str | None = None, flip: bool = False, progress: bool = True) -> dict:
     """The `warpsense eval` command as a function; returns the JSON payload. ``latency`` alone (without
     ``sweep``) only times the model: no dataset is read and no mIoU computed."""
+    from warpsense.bench.timing import model_latency
     from warpsense.data import HELDOUT_SPLIT, DatasetError, build_dataset, build_fold, frame_sequences
+    from warpsense.system import load_system, resolve_device
+    from warpsense.train.evaluate import evaluate, robustness_sweep
 
     torch_device = resolve_device(device)
     model, config, state = load_system(checkpoint, torch_device)
     if latency and not sweep:
-        payload = {"checkpoint": str(checkpoint), "latency": measure_latency(model, torch_device, *latency_size,
-                                                                             latency_batch)}
+        payload = {"checkpoint": str(checkpoint), "latency": model_latency(model, torch_device, *latency_size,
+                                                                           latency_batch)}
         print("latency (no scoring; run without --latency for mIoU):", json.dumps(payload["latency"]))
         if json_out:
             write_json(json_out, payload)
@@ -157,7 +163,7 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
             plot_sweep(rows, plot_out, f"robustness sweep: {Path(checkpoint).name}, {data} {split}, "
                                        f"{metrics['num_images']} images")
     if latency:
-        payload["latency"] = measure_latency(model, torch_device, *latency_size, latency_batch)
+        payload["latency"] = model_latency(model, torch_device, *latency_size, latency_batch)
         print("latency:", json.dumps(payload["latency"]))
     if json_out:
         write_json(json_out, payload)

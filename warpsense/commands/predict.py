@@ -2,37 +2,37 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-import torch
-from torch.nn import functional as F
+from warpsense.choices import BAYER_LAYOUTS, DEVICES
+from warpsense.files import atomic_write, check_output_file
 
-from warpsense.choices import BAYER_LAYOUTS
-from warpsense.data.raw import load_raw, read_raw_file
-from warpsense.files import atomic_write
-from warpsense.system import resolve_device
+if TYPE_CHECKING:  # numpy is imported where the work starts: building the parser loads none of it
+    import numpy as np
 
 
-def phase_offset(file_pattern: str, model_pattern: str) -> tuple[int, int]:
-    """(dy, dx) crop that turns the file's 2x2 layout into the model's (e.g. GBRG -> RGGB is (1, 0))."""
-    grid = [file_pattern[:2], file_pattern[2:]]
-    for dy in (0, 1):
-        for dx in (0, 1):
-            shifted = "".join(grid[(dy + y) % 2][(dx + x) % 2] for y in (0, 1) for x in (0, 1))
-            if shifted == model_pattern:
-                return dy, dx
-    raise ValueError(f"layout {file_pattern} cannot be cropped into {model_pattern}")
+def register(commands: argparse._SubParsersAction, name: str) -> None:
+    """Add the command's parser to ``commands`` (the top-level subparsers) under ``name``."""
+    parser = commands.add_parser(name, help="segment a real raw capture with a fixed-Bayer checkpoint",
+                                 description="Run a checkpoint trained with a fixed Bayer CFA on a DNG and write a "
+                                 "colour-coded segmentation PNG.")
+    parser.add_argument("checkpoint", help="checkpoint .safetensors")
+    parser.add_argument("input", help="raw file (DNG, or another LibRaw raw) or a `warpsense convert` .safetensors")
+    parser.add_argument("--out", required=True,
+                        help="output image, as large as the capture; its type follows the suffix (.png, .jpg, ...)")
+    parser.add_argument("--overlay", action="store_true", help="blend the class colours over the capture")
+    parser.add_argument("--no-legend", action="store_true", help="leave out the strip naming the class colours")
+    parser.add_argument("--device", default="auto", choices=DEVICES, help="device (default: %(default)s)")
 
 
-def bin_mosaic(mosaic: torch.Tensor, factor: int) -> torch.Tensor:
-    """Downscale a 2x2 Bayer mosaic [H, W] by ``factor`` keeping its layout: each of the 4 site planes is
-    average-pooled, then re-interleaved."""
-    if factor <= 1:
-        return mosaic
-    planes = F.pixel_unshuffle(mosaic[None, None], 2)
-    planes = F.avg_pool2d(planes, factor)
-    return F.pixel_shuffle(planes, 2)[0, 0]
+def run(args: argparse.Namespace) -> int:
+    """Check where the image goes, then `predict_raw`; returns 0."""
+    check_output_file(args.out, "--out")
+    predict_raw(args.checkpoint, args.input, args.out, device=args.device, overlay=args.overlay,
+                legend=not args.no_legend)
+    return 0
 
 
 # Pillow format of each output suffix; the image format follows the file name the user gives
@@ -50,20 +50,10 @@ def image_format(path: str | Path) -> str:
     return IMAGE_FORMATS[suffix]
 
 
-def read_capture(path: str | Path) -> tuple[np.ndarray, dict]:
-    """Normalised mosaic float32 [H, W] and metadata (``cfa_pattern`` ...) of a raw file (DNG and what LibRaw
-    reads) or of `warpsense convert`'s output (.safetensors)."""
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"{path}: no such file")
-    if Path(path).suffix.lower() == ".safetensors":
-        mosaic, metadata = load_raw(path)
-        return mosaic[0].numpy(), metadata
-    return read_raw_file(path)
-
-
 def legend_strip(class_names: list[str], present: set[int], num_classes: int, width: int) -> np.ndarray:
     """[h, width, 3] uint8 strip naming the colour of each class present in the prediction; its text scales with the
     image (about 1/60 of its width, at least 11 px) so that it reads on a full-resolution capture."""
+    import numpy as np
     from PIL import Image, ImageDraw, ImageFont
 
     from warpsense.data.labels import colorize
@@ -91,16 +81,6 @@ def legend_strip(class_names: list[str], present: set[int], num_classes: int, wi
     return np.concatenate([np.asarray(row) for row in rows], axis=0)
 
 
-def preview_grey(mosaic: np.ndarray) -> np.ndarray:
-    """[H, W] grey preview of a CFA mosaic without its checkerboard: each 2 x 2 tile's mean (every filter of the
-    tile once), on the tile's four pixels."""
-    height, width = mosaic.shape
-    even = np.pad(mosaic, ((0, height % 2), (0, width % 2)), mode="edge")
-    tiles = (even[0::2, 0::2] + even[0::2, 1::2] + even[1::2, 0::2] + even[1::2, 1::2]) / 4
-    return np.repeat(np.repeat(tiles, 2, axis=0), 2, axis=1)[:height, :width]
-
-
-@torch.no_grad()
 def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "auto", target_width: int = 480,
                 overlay: bool = False, legend: bool = True) -> Path:
     """Run the network of ``checkpoint`` on the mosaic of ``raw_path`` and write a colour-coded label image.
@@ -116,35 +96,35 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
         overlay: blend the colours over the capture (grey) instead of writing colours alone.
         legend: append a strip naming the colour of each class present.
     """
+    import numpy as np
+    import torch
     from PIL import Image
 
     from warpsense.data.labels import colorize
-    from warpsense.system import load_system
+    from warpsense.data.raw import prepare_capture, preview_grey, read_capture
+    from warpsense.system import load_system, resolve_device
 
     file_format = image_format(out_image)
     torch_device = resolve_device(device)
-    model, config, state = load_system(checkpoint, torch_device)
-    learned = model.camera.learned()
-    model_pattern = learned.cfa_layout or ""
-    if model_pattern not in BAYER_LAYOUTS:  # a 2 x 2 R/G/B layout: the only kind a DNG holds
-        raise ValueError(f"{checkpoint}: the checkpoint's CFA ({model_pattern or 'none'}) is not a Bayer layout; "
-                         f"predict needs one of {', '.join(BAYER_LAYOUTS)}")
-    mosaic_np, metadata = read_capture(raw_path)
-    capture_height, capture_width = mosaic_np.shape
-    dy, dx = phase_offset(metadata["cfa_pattern"], model_pattern)
-    mosaic = torch.from_numpy(np.ascontiguousarray(mosaic_np[dy:, dx:])).clamp(0, 1)
-    mosaic = mosaic[: mosaic.shape[0] // 2 * 2, : mosaic.shape[1] // 2 * 2]
-    factor = max(1, round(mosaic.shape[1] / target_width))
-    mosaic = bin_mosaic(mosaic, factor)
-    if learned.exposure_gain is not None:
-        mosaic = mosaic * (model.camera.raw_mean() * 0.5 / max(float(mosaic.mean()), 1e-6))
-    mosaic = mosaic.clamp(0, 1)
-    if learned.digital_gain is not None:  # a photon budget: the capture is in ADC units, as the camera's ADC gives
-        mosaic = mosaic * learned.digital_gain
-    sensed = mosaic[None, None].to(torch_device)
-    if model.isp is not None:
-        sensed = model.isp(sensed)
-    logits = model.network(sensed)
+    with torch.no_grad():  # inference: no autograd graph through the camera or the network
+        model, config, state = load_system(checkpoint, torch_device)
+        learned = model.camera.learned()
+        model_pattern = learned.cfa_layout or ""
+        if model_pattern not in BAYER_LAYOUTS:  # a 2 x 2 R/G/B layout: the only kind a DNG holds
+            raise ValueError(f"{checkpoint}: the checkpoint's CFA ({model_pattern or 'none'}) is not a Bayer layout; "
+                             f"predict needs one of {', '.join(BAYER_LAYOUTS)}")
+        mosaic_np, metadata = read_capture(raw_path)
+        capture_height, capture_width = mosaic_np.shape
+        mosaic, factor, (dy, dx) = prepare_capture(mosaic_np, metadata["cfa_pattern"], model_pattern, target_width)
+        if learned.exposure_gain is not None:
+            mosaic = mosaic * (model.camera.raw_mean() * 0.5 / max(float(mosaic.mean()), 1e-6))
+        mosaic = mosaic.clamp(0, 1)
+        if learned.digital_gain is not None:  # a photon budget: the capture is in ADC units, as the camera's ADC gives
+            mosaic = mosaic * learned.digital_gain
+        sensed = mosaic[None, None].to(torch_device)
+        if model.isp is not None:
+            sensed = model.isp(sensed)
+        logits = model.network(sensed)
     num_classes = logits.shape[1]
     prediction = logits.argmax(dim=1)[0].cpu().numpy().astype(np.uint8)
     labels = np.asarray(Image.fromarray(prediction).resize((capture_width, capture_height), Image.NEAREST))

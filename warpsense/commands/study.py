@@ -2,23 +2,114 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
+from warpsense.choices import MPS_MODES
+from warpsense.commands.options import count, parse_gpus
 from warpsense.files import check_output_file, check_output_folder, write_json
 
 
-def parse_gpus(text: str) -> list[str]:
-    """``--gpus``: "auto" (every GPU torch sees, none without CUDA), "none", or ids "0,1,3"."""
-    if text == "none":
-        return []
-    if text == "auto":
-        import torch
+def register(commands: argparse._SubParsersAction, name: str) -> None:
+    """Add the command's parser, with its subcommands run, status and report, to ``commands`` (the top-level
+    subparsers) under ``name``."""
+    study = commands.add_parser(name, help="compare cameras: cameras x light levels x seeds, with intervals",
+                                description="Run a study plan (one training run per camera, light level and seed, "
+                                "judged at its final epoch) and report which camera wins, by how much, with what "
+                                "confidence.")
+    subcommands = study.add_subparsers(dest="study_command", metavar="run|status|report", required=True)
+    _add_run(subcommands)
+    status = subcommands.add_parser(
+        "status", help="each cell pending, running, done or failed",
+        description="One line per cell of a study directory: done (evaluated), running, pending (queued, or not "
+        "submitted yet) or failed (its last Slurm task ended without finishing it: run the study again to resume "
+        "it), from the directory and, for cells submitted with --executor slurm, from squeue.")
+    status.add_argument("study_dir", metavar="DIR", help="a study directory (warpsense study run --out)")
+    report = subcommands.add_parser(
+        "report", help="per camera and light: mIoU with intervals, differences to the reference",
+        description="Mean mIoU and per-class IoU with 95% t intervals over seeds (over the folds' means with "
+        "sequence folds), the difference to the reference camera paired over seeds (or (fold, seed) pairs) with a "
+        "bootstrap interval that draws blocks of consecutive frames within each sequence, a per-sequence table with "
+        "folds, and the learned camera of every run.")
+    report.add_argument("study_dir", metavar="DIR", help="a study directory (warpsense study run --out)")
+    report.add_argument("--json", metavar="OUT", help="write the report's record as JSON")
+    report.add_argument("--plot", metavar="OUT.png", help="scores with intervals and per-class differences")
+    report.add_argument("--split", help="the split the plot shows (default: the first, val)")
+    report.add_argument("--resamples", type=count(1), default=2000, metavar="N",
+                        help="bootstrap resamples (default: %(default)s)")
+    report.add_argument("--block-frames", type=count(1), default=10, metavar="N",
+                        help="consecutive frames of one sequence drawn together by the bootstrap (default: "
+                        "%(default)s)")
 
-        return [str(i) for i in range(torch.cuda.device_count())] if torch.cuda.is_available() else []
-    ids = [part.strip() for part in text.split(",") if part.strip()]
-    if not ids or not all(part.isdigit() for part in ids):
-        raise ValueError(f"--gpus must be auto, none or GPU ids like 0,1; got {text!r}")
-    return ids
+
+def _add_run(subcommands: argparse._SubParsersAction) -> None:
+    """``study run``'s parser: the plan, the local pool and the Slurm executor."""
+    parser = subcommands.add_parser(
+        "run", help="run the plan's cells (resumable; finished cells are never retrained)",
+        description="Run every cell of a plan into OUT/runs/<camera>.<light>[.<fold>].seed<N>. Finished cells are "
+        "skipped, interrupted ones resume, failed ones are reported and the others go on. With several GPUs the cells "
+        "run on a local pool of worker processes (--per-gpu on each GPU), each taking the next cell.",
+        epilog="shipped plans: configs/studies/")
+    parser.add_argument("plan", help="a study plan TOML file or a shipped plan name (configs/studies/)")
+    parser.add_argument("--out", required=True, help="the study directory")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override one config key of every cell (repeatable)")
+    parser.add_argument("--cell", metavar="CAMERA/LIGHT/[FOLD/]SEED",
+                        help="run this cell only (what --plan-only prints)")
+    parser.add_argument("--plan-only", action="store_true",
+                        help="print one command per cell, for a scheduler (a Slurm job array, ...), and exit")
+    parser.add_argument("--gpus", default="auto",
+                        help="GPUs of the local pool: auto (all torch sees), none (this process), or ids 0,1 "
+                             "(default: %(default)s)")
+    parser.add_argument("--per-gpu", type=count(1), default=1, metavar="N",
+                        help="cells at once on each GPU (default: %(default)s)")
+    parser.add_argument("--mps", choices=MPS_MODES, default="auto",
+                        help="run the pool's workers under a CUDA MPS daemon of the study's own, so that cells "
+                        "sharing a GPU run concurrently instead of time-sliced: auto (with --per-gpu > 1 where "
+                        "nvidia-cuda-mps-control is on the PATH), on, off (default: %(default)s)")
+    parser.add_argument("--progress", action="store_true", help="show each cell's progress bars")
+    parser.add_argument("--reuse", action="append", default=[], metavar="STUDY_DIR",
+                        help="copy in another study's finished runs for the cells whose config they trained "
+                        "(all but run.name and run.output_dir equal; repeatable)")
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)  # the local pool's processes
+    parser.add_argument("--executor", choices=("local", "slurm"), default="local",
+                        help="local: the cells run here (this process, or the local pool over the GPUs); slurm: "
+                        "submit the pending cells to Slurm through submitit as one job array, one cell per task, "
+                        "and return once submitted (OUT must be on a file system the nodes share); "
+                        "`warpsense study status OUT` follows them (default: %(default)s)")
+    slurm = parser.add_argument_group(
+        "Slurm executor (--executor slurm)",
+        "A finished cell is never submitted again, nor one still queued; a cancelled, killed or failed task's cell "
+        "resumes from its last checkpoint when the same command runs again; a preempted task, or one whose time "
+        "runs out, is checkpointed and requeued by submitit. The options are checked with sbatch --test-only "
+        "before anything is written or submitted.")
+    slurm.add_argument("--slurm-partition", metavar="NAME", help="the partition (default: the cluster's default)")
+    slurm.add_argument("--slurm-time", type=int, metavar="MINUTES",
+                       help="time limit of each task; a cell that needs longer is requeued and resumes, up to 3 times "
+                       "(default: 60)")
+    slurm.add_argument("--gpus-per-cell", type=int, metavar="N",
+                       help="GPUs of each task (default: 0 where every cell's config runs on the CPU, else 1)")
+    slurm.add_argument("--array-parallelism", type=int, metavar="N",
+                       help="tasks of the array running at once (default: 256)")
+    slurm.add_argument("--slurm-option", action="append", default=[], metavar="KEY=VALUE",
+                       help="a further sbatch option without its dashes, e.g. qos=high, account=vision, "
+                       "cpus-per-task=8, or KEY alone for a flag (repeatable)")
+    slurm.add_argument("--wait", action="store_true",
+                       help="follow the tasks until every cell has finished or failed, a line per cell as it ends")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the parsed subcommand (`run_study`, `status_study` or `report_study`); returns the exit code."""
+    if args.study_command == "run":
+        slurm = {"partition": args.slurm_partition, "time_minutes": args.slurm_time,
+                 "gpus_per_cell": args.gpus_per_cell, "array_parallelism": args.array_parallelism,
+                 "extra": args.slurm_option, "wait": args.wait}
+        return run_study(args.plan, args.out, args.overrides, args.cell, args.plan_only, args.gpus, args.per_gpu,
+                         progress=args.progress, worker=args.worker, reuse=args.reuse, mps=args.mps,
+                         executor=args.executor, slurm=slurm)
+    if args.study_command == "status":
+        return status_study(args.study_dir)
+    return report_study(args.study_dir, args.json, args.plot, args.split, args.resamples, args.block_frames)
 
 
 def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None = None, plan_only: bool = False,

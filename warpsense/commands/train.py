@@ -2,21 +2,55 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
 
-from warpsense.config import ConfigError, load_config, with_overrides
+from warpsense.commands.options import add_config_options, count, show_progress
+from warpsense.config import ConfigError, load_config, preset_names, with_overrides
 from warpsense.files import check_output_folder
-from warpsense.system.checkpoint import read_checkpoint, resume_state
-from warpsense.train.engine import TrainingInterrupted, train
 from warpsense.train.run_dir import LAST, newest_run, resumed_config
 
 LOCATING_KEYS = ("run.output_dir=", "run.name=")  # overrides that only say where the run to resume is
 
 
+def register(commands: argparse._SubParsersAction, name: str) -> None:
+    """Add the command's parser to ``commands`` (the top-level subparsers) under ``name``."""
+    parser = commands.add_parser(name, help="train camera + network (default: built-in scenes on the CPU)",
+                                 description="Two-phase co-design training. With no arguments it trains on built-in "
+                                 "generated street scenes. Multi-GPU: torchrun --nproc_per_node N -m warpsense train "
+                                 "...",
+                                 epilog=f"presets: {', '.join(preset_names())}. Every key and its default: "
+                                 "configs/default.toml, or --print-config.")
+    add_config_options(parser)
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run <output_dir>/<name> from its last checkpoint")
+    parser.add_argument("--resume-dir", metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint")
+    parser.add_argument("--allow-config-change", action="store_true",
+                        help="with --resume/--resume-dir: continue with the given --config/--set even where it "
+                             "differs from the run's saved config (refused otherwise)")
+    parser.add_argument("--extend", type=count(1), metavar="N",
+                        help="with --resume/--resume-dir: train N more epochs after the last checkpoint, finished run "
+                             "or not (train.epochs becomes the epochs trained + N, any time budget is dropped; the "
+                             "cosine learning rate is laid over the new total, so it rises again and decays to 0 at "
+                             "the new end; the previous config.json is kept as config.epoch<E>.json)")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="hide the progress bars (they are drawn only when stderr is a terminal)")
+    parser.add_argument("--print-config", action="store_true",
+                        help="print the resolved config (after --config and --set) as JSON and exit")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the parsed command (`run_train`); returns the exit code."""
+    return run_train(args.config, args.overrides, args.resume, args.resume_dir, args.allow_config_change,
+                     extend=args.extend, progress=show_progress(args), print_config=args.print_config)
+
+
 def trained_epochs(run_dir: Path) -> int:
     """How many epochs the run's last checkpoint holds."""
+    from warpsense.system.checkpoint import read_checkpoint, resume_state
+
     checkpoint = Path(run_dir) / LAST
     tensors, meta = read_checkpoint(checkpoint)
     return resume_state(checkpoint, tensors, meta)["epoch"] + 1
@@ -40,6 +74,8 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
             dropped.
         print_config: print the resolved config (JSON, as each run saves it) and return without training.
     """
+    from warpsense.train.engine import TrainingInterrupted, train
+
     if print_config:
         print(json.dumps(load_config(config_file, overrides).to_dict(), indent=2))
         return 0

@@ -1,4 +1,5 @@
-"""Raw captures (DNG first; any Bayer raw LibRaw reads) <-> normalised RAW mosaics, through rawpy/LibRaw.
+"""Raw captures (DNG first; any Bayer raw LibRaw reads) <-> normalised RAW mosaics, through rawpy/LibRaw, and a
+capture prepared for a network (cropped to its CFA phase, binned) or previewed in grey.
 
 `warpsense convert` writes ``<stem>.safetensors`` with tensor ``mosaic`` [1, H, W] float32: the visible area,
 black-subtracted per channel and divided by (white - black), and a JSON metadata entry ``warpsense`` (CFA letters,
@@ -19,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
+from torch.nn import functional as F
 from tqdm import tqdm
 
 from warpsense.choices import BAYER_LAYOUTS
@@ -139,6 +141,61 @@ def load_raw(path: str | Path) -> tuple[torch.Tensor, dict]:
     with safe_open(str(path), framework="pt") as handle:
         metadata = json.loads(handle.metadata()["warpsense"])
     return load_file(str(path))["mosaic"], metadata
+
+
+def read_capture(path: str | Path) -> tuple[np.ndarray, dict]:
+    """Normalised mosaic float32 [H, W] and metadata (``cfa_pattern`` ...) of a raw file (DNG and what LibRaw
+    reads) or of `warpsense convert`'s output (.safetensors)."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    if Path(path).suffix.lower() == ".safetensors":
+        mosaic, metadata = load_raw(path)
+        return mosaic[0].numpy(), metadata
+    return read_raw_file(path)
+
+
+def bin_mosaic(mosaic: torch.Tensor, factor: int) -> torch.Tensor:
+    """Downscale a 2x2 Bayer mosaic [H, W] by ``factor`` keeping its layout: each of the 4 site planes is
+    average-pooled, then re-interleaved."""
+    if factor <= 1:
+        return mosaic
+    planes = F.pixel_unshuffle(mosaic[None, None], 2)
+    planes = F.avg_pool2d(planes, factor)
+    return F.pixel_shuffle(planes, 2)[0, 0]
+
+
+def prepare_capture(mosaic: np.ndarray, file_pattern: str, model_pattern: str,
+                    target_width: int) -> tuple[torch.Tensor, int, tuple[int, int]]:
+    """A capture's mosaic as a network trained on ``model_pattern`` reads it: cropped by one pixel into that CFA
+    phase, clipped to [0, 1], cut to whole 2x2 tiles and binned to about ``target_width`` pixels wide (the scale the
+    network was trained at).
+
+    Args:
+        mosaic: [H, W] normalised mosaic (`read_capture`).
+        file_pattern: the capture's 2x2 layout (its metadata's ``cfa_pattern``).
+        model_pattern: the 2x2 Bayer layout the network was trained with.
+        target_width: the width to bin towards.
+
+    Returns:
+        (the prepared mosaic [h, w], the binning factor, the (dy, dx) phase crop).
+    """
+    # imported here: the camera package loads Warp, which `warpsense convert` (a user of this module) never needs
+    from warpsense.camera.geometry import phase_offset
+
+    dy, dx = phase_offset(file_pattern, model_pattern)
+    prepared = torch.from_numpy(np.ascontiguousarray(mosaic[dy:, dx:])).clamp(0, 1)
+    prepared = prepared[: prepared.shape[0] // 2 * 2, : prepared.shape[1] // 2 * 2]
+    factor = max(1, round(prepared.shape[1] / target_width))
+    return bin_mosaic(prepared, factor), factor, (dy, dx)
+
+
+def preview_grey(mosaic: np.ndarray) -> np.ndarray:
+    """[H, W] grey preview of a CFA mosaic without its checkerboard: each 2 x 2 tile's mean (every filter of the
+    tile once), on the tile's four pixels."""
+    height, width = mosaic.shape
+    even = np.pad(mosaic, ((0, height % 2), (0, width % 2)), mode="edge")
+    tiles = (even[0::2, 0::2] + even[0::2, 1::2] + even[1::2, 0::2] + even[1::2, 1::2]) / 4
+    return np.repeat(np.repeat(tiles, 2, axis=0), 2, axis=1)[:height, :width]
 
 
 def expand_inputs(inputs: list[str]) -> tuple[list[Path], list[tuple[Path, str]]]:

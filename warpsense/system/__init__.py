@@ -5,9 +5,9 @@ here; `models/` holds networks only."""
 from warpsense.system.build import build_system, check_config, load_system, load_teacher
 from warpsense.system.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 from warpsense.system.device import resolve_device
-from warpsense.system.model import SensingModel, cfa_flip, cfa_unflip
+from warpsense.system.model import SensingModel
 
 __all__ = [
-    "CheckpointError", "SensingModel", "build_system", "cfa_flip", "cfa_unflip", "check_config", "load_system", "load_teacher",
-    "read_checkpoint", "resolve_device", "save_checkpoint",
+    "CheckpointError", "SensingModel", "build_system", "check_config", "load_system", "load_teacher", "read_checkpoint",
+    "resolve_device", "save_checkpoint",
 ]

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 from torch import nn
-from torch.nn import functional as F
 
 from warpsense.camera import Camera
+from warpsense.camera.geometry import cfa_flip, cfa_unflip
 from warpsense.camera.isp import FixedISP
 from warpsense.data.color import linear_to_srgb, srgb_to_linear
 
@@ -58,26 +58,3 @@ class SensingModel(nn.Module):
     def _network(self, sensed: torch.Tensor, amp: bool) -> torch.Tensor:
         with torch.autocast(device_type=sensed.device.type, dtype=torch.bfloat16, enabled=amp):
             return self.network(sensed)
-
-
-def cfa_flip(sensed: torch.Tensor, tile: int) -> tuple[torch.Tensor, int]:
-    """Mirror a capture [B, C, H, W] left-right so that every pixel keeps its CFA site.
-
-    A plain flip moves column x to W - 1 - x, whose site differs when W is even (2x2 tiles); shifting the mirrored
-    frame by ``shift`` = (W - 1) mod 2 columns (edge column repeated) restores the phase. Tiles wider than 2 have no
-    such shift. Returns (mirrored capture, shift) for `cfa_unflip`."""
-    if tile > 2:
-        raise ValueError(f"flip test-time augmentation keeps the CFA phase only for 1x1 and 2x2 tiles, got {tile}x{tile}")
-    width = sensed.shape[-1]
-    shift = (width - 1) % 2 if tile == 2 else 0
-    mirrored = sensed.flip(-1)
-    if shift:
-        mirrored = F.pad(mirrored, (shift, 0, 0, 0), mode="replicate")[..., :width]
-    return mirrored, shift
-
-
-def cfa_unflip(prediction: torch.Tensor, shift: int) -> torch.Tensor:
-    """Map a prediction on `cfa_flip`'s capture back to the original columns (the ``shift`` edge columns it cannot
-    see repeat their neighbour)."""
-    restored = prediction[..., shift:].flip(-1)
-    return F.pad(restored, (shift, 0, 0, 0), mode="replicate") if shift else restored

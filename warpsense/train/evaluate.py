@@ -1,5 +1,5 @@
-"""Evaluation of a model on a dataset: mIoU / per-class IoU / pixel accuracy (the `warpsense eval` command,
-with sweeps and latency, is `warpsense.commands.eval`)."""
+"""Evaluation of a model on a dataset: mIoU / per-class IoU / pixel accuracy, and the robustness sweep (mIoU as one
+camera factor moves off the operating point). The `warpsense eval` command is `warpsense.commands.eval`."""
 
 from __future__ import annotations
 
@@ -51,7 +51,44 @@ def evaluate(model, dataset, device, batch_size: int = 4, context=None, class_na
     return metrics
 
 
+def robustness_sweep(model, dataset, device, batch_size: int, class_names, amp: bool,
+                     progress: bool = True) -> list[dict]:
+    """mIoU under extra blur, scaled noise and other bit depths, one factor at a time, the others at the
+    checkpoint's operating point; the camera is restored afterwards.
+
+    Args:
+        model: a `SensingModel`; its camera's what-if values (`Camera.what_if_values`) are the operating point, and
+            only the factors it has are swept (no noise: no noise scales).
+        dataset, device, batch_size, class_names, amp: as `evaluate` takes them.
+        progress: a progress bar over the settings.
+
+    Returns:
+        One row per setting: {"factor", "value", "miou", "operating_point"}, the last true where the value is the
+        checkpoint's own.
+    """
+    camera = model.camera
+    operating = {"blur_sigma_px": 0.0, **camera.what_if_values()}
+    settings = [("blur_sigma_px", sigma) for sigma in (0.0, 0.5, 1.0, 2.0)]
+    if "noise_scale" in operating:
+        settings += [("noise_scale", scale) for scale in (0.5, 1.0, 2.0, 4.0)]
+    if "bits" in operating:
+        settings += [("bits", value) for value in (4, 6, 8, 10, 12)]
+    rows = []
+    bar = tqdm(settings, desc="sweep", disable=not progress)
+    for factor, value in bar:
+        bar.set_postfix_str(f"{factor}={value}")
+        # blur is no camera override: `evaluate` blurs the radiance before the camera
+        what_if = {} if factor == "blur_sigma_px" else {factor: value}
+        with camera.overridden(**what_if):
+            metrics = evaluate(model, dataset, device, batch_size, class_names=class_names, amp=amp,
+                               blur_sigma=value if factor == "blur_sigma_px" else 0.0)
+        rows.append({"factor": factor, "value": value, "miou": metrics["miou"],
+                     "operating_point": value == operating[factor]})
+    return rows
+
+
 def gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``image`` [B, C, H, W] blurred by a separable Gaussian of ``sigma`` pixels (3 sigma wide), edges replicated."""
     radius = max(1, int(3 * sigma + 0.5))
     x = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
     kernel = torch.exp(-0.5 * (x / sigma) ** 2)

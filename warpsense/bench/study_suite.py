@@ -1,0 +1,103 @@
+"""The study suite of `warpsense bench`: cells per GPU-hour of a plan's cells run one per GPU and several per GPU,
+in one call on one machine, with each cell's score and time compared between the two.
+
+The same cells train twice, into ``OUT/alone`` (one cell per GPU at a time, no MPS) and ``OUT/shared`` (``per_gpu``
+at a time on each GPU, under MPS as ``mps`` says). A cell's throughput is 1 / its wall time alone and ``per_gpu`` /
+its wall time shared; the suite also reports each run's training epochs (median) and the study-level cells per
+GPU-hour. Runs are not bitwise repeatable on CUDA without ``run.deterministic``: the scores are shown side by side
+with their difference, which a user compares with the spread of seeds. On a CPU (no GPU given) both invocations run
+in this process and a cell repeats exactly.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+from pathlib import Path
+
+from warpsense.study.plan import load_plan
+from warpsense.study.runner import THROUGHPUT, run_cells, run_dir
+
+
+def judged_miou(evaluation: dict) -> tuple[str, float]:
+    """(split, mIoU) a cell is judged by: its held-out sequence in a fold, else val."""
+    splits = evaluation["splits"]
+    split = "heldout" if "heldout" in splits else "val"
+    return split, float(splits[split]["miou"])
+
+
+def _cell_times(path: Path) -> tuple[float, float | None]:
+    """(wall seconds of the run, median epoch seconds after each process's first) from its metrics.jsonl."""
+    records = [json.loads(line) for line in (path / "metrics.jsonl").read_text().splitlines() if line.strip()]
+    epochs = [record["epoch_time_s"] for record in records[1:] if "epoch_time_s" in record]
+    return float(records[-1]["wall_s"]), (statistics.median(epochs) if epochs else None)
+
+
+def _invocation(out: Path) -> dict:
+    return json.loads((out / THROUGHPUT).read_text())[-1]
+
+
+def run_study_suite(plan: str, out: str | Path, cells: int = 0, gpus: list[str] | None = None, per_gpu: int = 2,
+                    mps: str = "auto", overrides: tuple[str, ...] = ()) -> dict:
+    """Train the first ``cells`` cells of ``plan`` (0 = all) alone and ``per_gpu`` to a GPU; the comparison.
+
+    Args:
+        plan: a shipped plan name or a plan TOML path.
+        out: the suite's folder (``alone`` and ``shared`` study directories inside; finished cells are kept, so a
+            second call resumes).
+        gpus: GPU ids of the local pool (None: this process, one cell after another, in both invocations).
+        per_gpu: cells at once on each GPU in the shared invocation (>= 2).
+        mps: the shared invocation's `warpsense.study.mps` mode ("auto", "on", "off"); the alone one runs without.
+        overrides: ``section.key=value`` for every cell (e.g. fewer epochs).
+
+    Returns:
+        {"plan", "gpus", "per_gpu", "mps", "cells": [{"cell", "split", "alone": {"miou", "wall_s", "epoch_s"},
+        "shared": {...}, "miou_difference", "speedup"}], "alone"/"shared": the invocations' throughput entries,
+        "cells_per_gpu_hour": {"alone", "shared"}, "ratio"}; ``speedup`` is ``per_gpu`` x wall alone / wall shared
+        (cells per GPU-hour of that cell), ``ratio`` the same for the whole invocation.
+    """
+    if per_gpu < 2:
+        raise ValueError(f"the study suite compares one cell per GPU with several: --per-gpu must be >= 2, got {per_gpu}")
+    loaded = load_plan(plan, tuple(overrides))
+    chosen = loaded.cells()[: cells or None]
+    out = Path(out)
+    alone, shared = out / "alone", out / "shared"
+    codes = [run_cells(loaded, alone, chosen, gpus, 1, mps="off"),
+             run_cells(loaded, shared, chosen, gpus, per_gpu, mps=mps)]
+    if any(codes):
+        raise RuntimeError(f"study suite: cells failed (exit codes {codes}); their logs are under {out}")
+    slots = per_gpu if gpus else 1
+    rows = []
+    for cell in chosen:
+        row = {"cell": cell.id}
+        for name, folder in (("alone", alone), ("shared", shared)):
+            directory = run_dir(folder, cell)
+            split, miou = judged_miou(json.loads((directory / "evaluation.json").read_text()))
+            wall, epoch = _cell_times(directory)
+            row["split"], row[name] = split, {"miou": miou, "wall_s": wall, "epoch_s": epoch}
+        row["miou_difference"] = row["shared"]["miou"] - row["alone"]["miou"]
+        row["speedup"] = slots * row["alone"]["wall_s"] / row["shared"]["wall_s"]
+        rows.append(row)
+    invocations = {"alone": _invocation(alone), "shared": _invocation(shared)}
+    devices = max(1, len(gpus or []))
+    per_hour = {name: entry["cells_per_hour"] / devices for name, entry in invocations.items()}
+    return {"suite": "study", "plan": str(plan), "gpus": list(gpus or []), "per_gpu": slots,
+            "mps": invocations["shared"].get("mps", False), "overrides": list(overrides), "cells": rows,
+            **invocations, "cells_per_gpu_hour": per_hour, "ratio": per_hour["shared"] / per_hour["alone"]}
+
+
+def format_study_suite(record: dict) -> str:
+    """The suite's record as a table: a line per cell, then the invocations."""
+    lines = [f"study suite: {record['plan']}, {len(record['cells'])} cell(s); alone = one per "
+             f"{'GPU' if record['gpus'] else 'process'}, shared = {record['per_gpu']} per GPU"
+             f"{' under MPS' if record['mps'] else ''}",
+             f"  {'cell':<34} {'mIoU alone':>10} {'shared':>8} {'diff':>8} {'wall alone':>10} {'shared':>8} "
+             f"{'per GPU-hour':>12}"]
+    for row in record["cells"]:
+        lines.append(f"  {row['cell']:<34} {row['alone']['miou']:>10.4f} {row['shared']['miou']:>8.4f} "
+                     f"{row['miou_difference']:>+8.4f} {row['alone']['wall_s']:>9.0f}s {row['shared']['wall_s']:>7.0f}s "
+                     f"{row['speedup']:>11.2f}x")
+    per_hour = record["cells_per_gpu_hour"]
+    lines.append(f"  cells per GPU-hour: alone {per_hour['alone']:.1f}, shared {per_hour['shared']:.1f}: "
+                 f"{record['ratio']:.2f}x")
+    return "\n".join(lines)

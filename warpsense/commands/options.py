@@ -1,0 +1,52 @@
+"""Argument pieces several commands share: the config options, counts with a least value, and whether to draw
+progress bars."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def add_config_options(parser: argparse.ArgumentParser) -> None:
+    """``--config`` and ``--set``: the config a command builds (`warpsense.config.load_config`)."""
+    parser.add_argument("--config", metavar="FILE_OR_PRESET",
+                        help="a TOML file or a preset name (configs/presets/); default: configs/default.toml")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override one config key (repeatable), e.g. --set train.epochs=5")
+
+
+def count(minimum: int):
+    """An argparse ``type`` for an integer >= ``minimum``: a wrong value is a usage error naming the option, before
+    any checkpoint or data is loaded."""
+    def convert(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    convert.__name__ = "integer"  # argparse names the type in its "invalid ... value" message
+    convert.minimum = minimum  # the least valid value, for the bad-input corpus (tests/reliability)
+    return convert
+
+
+def show_progress(args: argparse.Namespace) -> bool:
+    """Whether to draw progress bars: not with --no-progress, and only on a terminal (bars redrawn with carriage
+    returns fill a log file with kilobytes of partial lines)."""
+    return not args.no_progress and sys.stderr.isatty()
+
+
+def parse_gpus(text: str) -> list[str]:
+    """``--gpus``: "auto" (every GPU torch sees, none without CUDA), "none", or ids "0,1,3"."""
+    if text == "none":
+        return []
+    if text == "auto":
+        import torch
+
+        return [str(i) for i in range(torch.cuda.device_count())] if torch.cuda.is_available() else []
+    ids = [part.strip() for part in text.split(",") if part.strip()]
+    if not ids or not all(part.isdigit() for part in ids):
+        raise ValueError(f"--gpus must be auto, none or GPU ids like 0,1; got {text!r}")
+    return ids
