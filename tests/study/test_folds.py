@@ -228,3 +228,17 @@ def test_report_help_and_heatmap_speak_in_the_units_they_print(tmp_path, monkeyp
     assert texts == {"-5.0": "white", "+0.1": "black"}
     colour_bar = figures[0].axes[-1]
     assert "points x100" in colour_bar.get_ylabel() and colour_bar.get_ylim()[1] == pytest.approx(5.0)
+
+
+def test_placeholders_give_each_cell_its_fold_and_seed(tmp_path):
+    """{fold} and {seed} in an override stand for the cell's held-out sequence and seed (a per-fold teacher); without
+    folds, {fold} is a one-line PlanError naming study.folds."""
+    extra = '\n[[camera]]\nname = "taught"\nset = ["loss.teacher=\\"teachers/{fold}/seed{seed}.safetensors\\""]\n'
+    plan = load_plan(_plan_file(tmp_path, extra), FAST + ["study.seeds=[0,1]", "data.scene_sequences=2"])
+    teachers = {(cell.fold, cell.seed): plan.config(cell, tmp_path).loss.teacher
+                for cell in plan.cells() if cell.camera == "taught"}
+    assert teachers == {(fold, seed): f"teachers/{fold}/seed{seed}.safetensors"
+                        for fold in plan.sequences for seed in (0, 1)}
+    assert {plan.config(cell, tmp_path).loss.teacher for cell in plan.cells() if cell.camera == "rggb"} == {""}
+    with pytest.raises(PlanError, match=r"\{fold\} in a set .* study.folds = \"sequence\""):
+        load_plan(_plan_file(tmp_path, extra), ["study.folds=none"])

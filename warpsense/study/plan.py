@@ -40,7 +40,8 @@ A plan is a TOML file (see `configs/studies/`)::
 Every cell (camera x light x seed, and x fold with ``folds = "sequence"``) is one ordinary training run; its config
 is the base, the camera's preset, the study's and the camera's overrides, the light's sensor keys, the fold's
 ``data.holdout_sequence``, the seed, then the command line's ``--set`` (whose ``study.KEY=VALUE`` entries change the
-plan's [study] table instead, e.g. ``--set study.folds=none``). A sweep's point is a camera like the others (crossed
+plan's [study] table instead, e.g. ``--set study.folds=none``). In any of these overrides ``{fold}`` and ``{seed}``
+stand for the cell's held-out sequence and seed (`PLACEHOLDERS`), for inputs made per fold. A sweep's point is a camera like the others (crossed
 with lights, folds and seeds; the reference may be one), named ``<name>_<label><value>_...`` in the grid's key order
 (``grid_f1p4_t30``): camera names hold no '.', which separates a run directory's parts, so a value's decimal point
 is written ``p`` and a minus sign ``m``. Unknown keys, wrong types, duplicate or unknown names,
@@ -183,7 +184,7 @@ class Plan:
         fold = [f"data.holdout_sequence={json.dumps(cell.fold)}"] if cell.fold else []
         overrides = [*self.set, *camera.set, *light.overrides(), *fold, f"run.seed={cell.seed}",
                      f"run.name={cell.run_name}", f"run.output_dir={output_dir}", *cell_overrides(self.overrides)]
-        return load_config(files, overrides)
+        return load_config(files, [fill_placeholders(text, cell) for text in overrides])
 
     def to_dict(self) -> dict:
         """The plan as JSON-ready data; ``sweeps`` only where it has some (a study directory recorded before plans
@@ -218,6 +219,16 @@ LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons"
 
 def _is_study_override(text: str) -> bool:
     return text.split("=", 1)[0].strip().startswith("study.")
+
+
+PLACEHOLDERS = ("{fold}", "{seed}")
+"""Written in an override's value, replaced by each cell's held-out sequence and seed: a per-fold input, such as a
+distillation teacher trained without the held-out drive (``loss.teacher="teachers/runs/rgb.night.{fold}.seed0/..."``)."""
+
+
+def fill_placeholders(text: str, cell: "Cell") -> str:
+    """``text`` with `PLACEHOLDERS` replaced by ``cell``'s fold and seed."""
+    return text.replace("{fold}", cell.fold).replace("{seed}", str(cell.seed))
 
 
 def cell_overrides(overrides) -> list[str]:
@@ -422,6 +433,9 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
         overrides=tuple(overrides), folds=study.get("folds", "none"), sweeps=tuple(sweeps))
     if plan.folds == "sequence":
         plan = dataclasses.replace(plan, sequences=_fold_sequences(plan, study.get("sequences", [])))
+    elif any("{fold}" in text for text in _all_overrides(plan)):
+        raise PlanError(f"{source}: {{fold}} in a set stands for a cell's held-out sequence: it needs "
+                        f"study.folds = \"sequence\"")
     checked_data = set()
     for camera in plan.cameras:  # every cell's config resolves (seeds only change run.seed, folds the held-out name)
         for light in plan.lights:
@@ -450,12 +464,20 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     return plan
 
 
+def _all_overrides(plan: Plan) -> list[str]:
+    """Every override string of the plan: the study's, the cameras', the lights' and the command line's."""
+    return [*plan.set, *(text for camera in plan.cameras for text in camera.set),
+            *(text for light in plan.lights for text in light.set), *cell_overrides(plan.overrides)]
+
+
 def _fold_sequences(plan: Plan, wanted: list) -> tuple[str, ...]:
     """The held-out sequences of a ``folds = "sequence"`` plan: ``wanted`` (study.sequences) or every sequence of
     the base config's labelled splits (train_split + val_split), checked against the frames."""
     where = f"{plan.source}: study.folds"
     try:
-        config = load_config([plan.base] if plan.base else None, [*plan.set, *cell_overrides(plan.overrides)])
+        unfilled = Cell("", "", 0, "")  # the base config's data keys, with any placeholder left empty
+        config = load_config([plan.base] if plan.base else None,
+                             [fill_placeholders(text, unfilled) for text in [*plan.set, *cell_overrides(plan.overrides)]])
         names = sequence_names(config.data)
     except (ConfigError, DatasetError) as error:
         raise PlanError(f"{where}: {error}") from None
