@@ -1,6 +1,6 @@
 """`warpsense study run --executor slurm` (submitit) and `warpsense study status`: the executor's options refused in one
 line before anything is written or submitted, the status of each cell from the directory and the scheduler, and
-(marked `slurm`) the smoke study through a real Slurm end to end: a task killed with scancel mid-run, another
+(marked `slurm`) the smoke study through a real Slurm end to end: a task whose training process is killed mid-run, another
 preempted (submitit checkpoints and requeues it), the study submitted again resumes the killed cell from its
 checkpoint without retraining a finished one, and the report reads the directory.
 
@@ -196,8 +196,11 @@ def test_smoke_study_on_slurm_killed_and_preempted_tasks_resume(cluster, tmp_pat
     def checkpointed(cell):
         return (out / "runs" / cell.run_name / "checkpoint_last.safetensors").is_file()
 
-    def kill(cell):  # the task's training process (its step 0) killed mid-run: the task ends, failed
-        subprocess.run(["scancel", "--signal", "KILL", f"{first[cell.id]}.0"], check=True, timeout=30)
+    def kill(cell):
+        # the task's training process (its step 0) killed mid-run, as the kernel's OOM killer would: the task ends,
+        # failed. Sent to the process itself: a `scancel --signal KILL` of the step made slurmstepd drain the one
+        # node ("Kill task failed") once when the process took longer than UnkillableStepTimeout to go
+        os.kill(int((out / "runs" / cell.run_name / "train.lock").read_text()), signal.SIGKILL)
 
     def preempt(cell):
         # preemption, or a time limit near: Slurm signals the task (USR2, as submitit's sbatch --signal asks), and
@@ -214,7 +217,7 @@ def test_smoke_study_on_slurm_killed_and_preempted_tasks_resume(cluster, tmp_pat
             actions.pop(cell)(cell)
         time.sleep(0.05)
     _wait_for(lambda: first[killed.id] not in (slurm.queue_states() or {first[killed.id]: 0}),
-              "the killed task to end")
+              "the killed task to end", timeout=180.0)
     for cell in (killed, preempted):
         assert not (out / "runs" / cell.run_name / "evaluation.json").exists(), f"{cell.id} finished first"
 
