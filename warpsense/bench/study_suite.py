@@ -16,7 +16,9 @@ import statistics
 from pathlib import Path
 
 from warpsense.study.plan import load_plan
-from warpsense.study.runner import THROUGHPUT, run_cells, run_dir
+from warpsense.study.report import run_seconds
+from warpsense.study.runner import THROUGHPUT, evaluation_path, run_cells, run_dir
+from warpsense.train.run_dir import METRICS, read_metrics
 
 
 def judged_miou(evaluation: dict) -> tuple[str, float]:
@@ -27,10 +29,10 @@ def judged_miou(evaluation: dict) -> tuple[str, float]:
 
 
 def _cell_times(path: Path) -> tuple[float, float | None]:
-    """(wall seconds of the run, median epoch seconds after each process's first) from its metrics.jsonl."""
-    records = [json.loads(line) for line in (path / "metrics.jsonl").read_text().splitlines() if line.strip()]
-    epochs = [record["epoch_time_s"] for record in records[1:] if "epoch_time_s" in record]
-    return float(records[-1]["wall_s"]), (statistics.median(epochs) if epochs else None)
+    """(wall seconds of the run, summed over the processes of a resumed one (`run_seconds`), and the median epoch
+    seconds after its first epoch) from its metrics.jsonl."""
+    epochs = [record["epoch_time_s"] for record in read_metrics(path / METRICS)[1:] if "epoch_time_s" in record]
+    return run_seconds(path / METRICS), (statistics.median(epochs) if epochs else None)
 
 
 def _invocation(out: Path) -> dict:
@@ -57,7 +59,8 @@ def run_study_suite(plan: str, out: str | Path, cells: int = 0, gpus: list[str] 
         (cells per GPU-hour of that cell), ``ratio`` the same for the whole invocation.
     """
     if per_gpu < 2:
-        raise ValueError(f"the study suite compares one cell per GPU with several: --per-gpu must be >= 2, got {per_gpu}")
+        raise ValueError(f"the study suite compares one cell per GPU with several: --per-gpu must be >= 2, "
+                         f"got {per_gpu}")
     loaded = load_plan(plan, tuple(overrides))
     chosen = loaded.cells()[: cells or None]
     out = Path(out)
@@ -71,9 +74,8 @@ def run_study_suite(plan: str, out: str | Path, cells: int = 0, gpus: list[str] 
     for cell in chosen:
         row = {"cell": cell.id}
         for name, folder in (("alone", alone), ("shared", shared)):
-            directory = run_dir(folder, cell)
-            split, miou = judged_miou(json.loads((directory / "evaluation.json").read_text()))
-            wall, epoch = _cell_times(directory)
+            split, miou = judged_miou(json.loads(evaluation_path(folder, cell).read_text()))
+            wall, epoch = _cell_times(run_dir(folder, cell))
             row["split"], row[name] = split, {"miou": miou, "wall_s": wall, "epoch_s": epoch}
         row["miou_difference"] = row["shared"]["miou"] - row["alone"]["miou"]
         row["speedup"] = slots * row["alone"]["wall_s"] / row["shared"]["wall_s"]
@@ -95,8 +97,8 @@ def format_study_suite(record: dict) -> str:
              f"{'per GPU-hour':>12}"]
     for row in record["cells"]:
         lines.append(f"  {row['cell']:<34} {row['alone']['miou']:>10.4f} {row['shared']['miou']:>8.4f} "
-                     f"{row['miou_difference']:>+8.4f} {row['alone']['wall_s']:>9.0f}s {row['shared']['wall_s']:>7.0f}s "
-                     f"{row['speedup']:>11.2f}x")
+                     f"{row['miou_difference']:>+8.4f} {row['alone']['wall_s']:>9.0f}s "
+                     f"{row['shared']['wall_s']:>7.0f}s {row['speedup']:>11.2f}x")
     per_hour = record["cells_per_gpu_hour"]
     lines.append(f"  cells per GPU-hour: alone {per_hour['alone']:.1f}, shared {per_hour['shared']:.1f}: "
                  f"{record['ratio']:.2f}x")

@@ -74,10 +74,10 @@ def run(args: argparse.Namespace) -> int:
     """Refuse --seeds for a suite that trains nothing, then `run_bench_command`; returns the exit code."""
     if args.seeds is not None and args.suite != "time-to-accuracy":
         raise ValueError(f"--seeds are the time-to-accuracy suite's training seeds: --suite {args.suite} trains none")
-    given = [name for name in STUDY_OPTIONS if getattr(args, name) is not None]
     if args.suite == "study":
         return run_study_suite_command(args.plan, args.out, args.cells or 0, args.per_gpu or 3, args.gpus or "auto",
                                        args.mps or "auto", tuple(args.overrides or ()), args.json)
+    given = [name for name in STUDY_OPTIONS if getattr(args, name) is not None]
     if given:
         options = ", ".join("--" + name.replace("_", "-").replace("overrides", "set") for name in given)
         raise ValueError(f"{options}: options of the study suite (--suite study), not of --suite {args.suite}")

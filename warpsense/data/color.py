@@ -15,3 +15,8 @@ def srgb_to_linear(image: torch.Tensor) -> torch.Tensor:
 def linear_to_srgb(image: torch.Tensor) -> torch.Tensor:
     image = image.clamp(0, 1)
     return torch.where(image <= 0.0031308, image * 12.92, 1.055 * image.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def to_radiance(image: torch.Tensor) -> torch.Tensor:
+    """A frame as linear radiance: uint8 sRGB decoded (`srgb_to_linear`); a float tensor is radiance already."""
+    return srgb_to_linear(image) if image.dtype == torch.uint8 else image

@@ -41,10 +41,10 @@ Every cell (camera x light x seed, and x fold with ``folds = "sequence"``) is on
 is the base, the camera's preset, the study's and the camera's overrides, the light's sensor keys, the fold's
 ``data.holdout_sequence``, the seed, then the command line's ``--set`` (whose ``study.KEY=VALUE`` entries change the
 plan's [study] table instead, e.g. ``--set study.folds=none``). In any of these overrides ``{fold}`` and ``{seed}``
-stand for the cell's held-out sequence and seed (`PLACEHOLDERS`), for inputs made per fold. A sweep's point is a camera like the others (crossed
-with lights, folds and seeds; the reference may be one), named ``<name>_<label><value>_...`` in the grid's key order
-(``grid_f1p4_t30``): camera names hold no '.', which separates a run directory's parts, so a value's decimal point
-is written ``p`` and a minus sign ``m``. Unknown keys, wrong types, duplicate or unknown names,
+stand for the cell's held-out sequence and seed (`fill_placeholders`), for inputs made per fold. A sweep's point is
+a camera like the others (crossed with lights, folds and seeds; the reference may be one), named
+``<name>_<label><value>_...`` in the grid's key order (``grid_f1p4_t30``): camera names hold no '.', which
+separates a run directory's parts, so a value's decimal point is written ``p`` and a minus sign ``m``. Unknown keys, wrong types, duplicate or unknown names,
 folds that hold no frame, a dataset without sequence names and configs that do not resolve are one-line `PlanError`s
 naming the plan file and key, found before anything is written.
 """
@@ -221,13 +221,10 @@ def _is_study_override(text: str) -> bool:
     return text.split("=", 1)[0].strip().startswith("study.")
 
 
-PLACEHOLDERS = ("{fold}", "{seed}")
-"""Written in an override's value, replaced by each cell's held-out sequence and seed: a per-fold input, such as a
-distillation teacher trained without the held-out drive (``loss.teacher="teachers/runs/rgb.night.{fold}.seed0/..."``)."""
-
-
 def fill_placeholders(text: str, cell: "Cell") -> str:
-    """``text`` with `PLACEHOLDERS` replaced by ``cell``'s fold and seed."""
+    """``text`` (an override) with ``{fold}`` and ``{seed}`` replaced by ``cell``'s held-out sequence and seed: a
+    per-fold input, such as a distillation teacher trained without the held-out drive
+    (``loss.teacher="teachers/runs/rgb.night.{fold}.seed0/..."``)."""
     return text.replace("{fold}", cell.fold).replace("{seed}", str(cell.seed))
 
 
@@ -476,8 +473,8 @@ def _fold_sequences(plan: Plan, wanted: list) -> tuple[str, ...]:
     where = f"{plan.source}: study.folds"
     try:
         unfilled = Cell("", "", 0, "")  # the base config's data keys, with any placeholder left empty
-        config = load_config([plan.base] if plan.base else None,
-                             [fill_placeholders(text, unfilled) for text in [*plan.set, *cell_overrides(plan.overrides)]])
+        overrides = [fill_placeholders(text, unfilled) for text in [*plan.set, *cell_overrides(plan.overrides)]]
+        config = load_config([plan.base] if plan.base else None, overrides)
         names = sequence_names(config.data)
     except (ConfigError, DatasetError) as error:
         raise PlanError(f"{where}: {error}") from None

@@ -8,7 +8,7 @@ from torch import nn
 from warpsense.camera import Camera
 from warpsense.camera.geometry import cfa_flip, cfa_unflip
 from warpsense.camera.isp import FixedISP
-from warpsense.data.color import linear_to_srgb, srgb_to_linear
+from warpsense.data.color import linear_to_srgb, to_radiance
 
 
 class SensingModel(nn.Module):
@@ -26,7 +26,7 @@ class SensingModel(nn.Module):
 
     def radiance(self, image: torch.Tensor) -> torch.Tensor:
         """uint8 sRGB -> linear radiance (float tensors are taken as radiance already)."""
-        return srgb_to_linear(image) if image.dtype == torch.uint8 else image
+        return to_radiance(image)
 
     def sense(self, image: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         if self.srgb_input:

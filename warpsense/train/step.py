@@ -11,7 +11,7 @@ import time
 import torch
 
 from warpsense.choices import COMPILE_MODES, SELF_CAPTURING_COMPILE_MODES
-from warpsense.data.color import srgb_to_linear
+from warpsense.data.color import to_radiance
 from warpsense.errors import first_line
 from warpsense.train.losses import distillation_loss, segmentation_loss
 
@@ -107,7 +107,7 @@ class TrainingStep:
 
     def _forward_loss(self, model, images, labels):
         if self.radiance_jitter is not None:  # float radiance passes the model's sRGB decoding as it is
-            images = self.radiance_jitter(srgb_to_linear(images) if images.dtype == torch.uint8 else images)
+            images = self.radiance_jitter(to_radiance(images))
         logits, sensed = model(images, self.amp)
         loss, parts = segmentation_loss(logits, labels, sensed, self.loss_config)
         if self.teacher is not None:
