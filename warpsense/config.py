@@ -220,7 +220,6 @@ class TrainConfig:
     cuda_graph: bool = False
     micro_batch: int = _field(0, minimum=0)
     sync_batchnorm: bool = True
-    ema_decay: float = _field(0.0, minimum=0, maximum=0.99999)
     max_steps_per_epoch: int = _field(0, minimum=0)
     time_budget_minutes: float = _field(0.0, minimum=0)
     eval_every: int = _field(1, minimum=1)
@@ -351,6 +350,8 @@ RETIRED = {
     "loss.class_balance": Retired("class-frequency weights on the OHEM pixels", 0.0),
     "noise.train_scale_min": Retired("noise levels drawn per training step (lower end)", 1.0),
     "noise.train_scale_max": Retired("noise levels drawn per training step (upper end)", 1.0),
+    "train.ema_decay": Retired("weight EMA: an exponential moving average of the weights, evaluated and saved", 0.0,
+                               "0.999 not distinguishable from none on val and on held-out drives"),
 }
 """Retired keys ("section.key"): any config naming one is refused with a one-line error saying so, except a saved
 run's config holding its `Retired.remaining` value (dropped)."""

@@ -108,11 +108,10 @@ JITTER = ["data.jitter_stops=1.0", "data.jitter_gamma=0.3", "data.jitter_white_b
           "data.jitter_vignetting=0.3"]
 
 
-@pytest.mark.parametrize("extra", [[], ["train.ema_decay=0.9"], JITTER], ids=["plain", "ema", "jitter"])
+@pytest.mark.parametrize("extra", [[], JITTER], ids=["plain", "jitter"])
 def test_resume_continues_interrupted_run(tmp_path, extra):
-    """An interrupted run resumed from its last checkpoint repeats the uninterrupted one (with a weight average
-    too: the checkpoint's model is the average, its training weights ride along; with the radiance jitter too: torch's
-    generator is restored)."""
+    """An interrupted run resumed from its last checkpoint repeats the uninterrupted one (with the radiance jitter
+    too: torch's generator is restored)."""
     base = TINY + ["train.epochs=3", "train.warmup_epochs=1", f"run.output_dir={tmp_path}"] + extra
     full = train(load_config(None, base + ["run.name=full"]), progress=False)
     expected = [json.loads(line) for line in (full / "metrics.jsonl").read_text().splitlines()]
@@ -237,26 +236,6 @@ def test_srgb_input_reads_the_frame_and_refuses_a_camera():
         check_config(load_config(None, ["model.input=srgb"] + [o for o in off if not o.startswith("cfa")]))
     with pytest.raises(ConfigError, match="loss.distill_weight = 1.0 needs loss.teacher"):
         check_config(load_config(None, ["loss.distill_weight=1.0"]))
-
-
-def test_weight_average_is_what_is_evaluated_and_saved(tmp_path):
-    """train.ema_decay: validation, the checkpoints and the final evaluation use the average; the last checkpoint
-    also holds the training weights, which differ from it."""
-    from warpsense.system import load_system
-    from warpsense.train.evaluate import evaluate
-
-    config = load_config(None, TINY + ["train.epochs=2", "train.warmup_epochs=1", f"run.output_dir={tmp_path}",
-                                       "train.ema_decay=0.9"])
-    run = train(config, progress=False)
-    tensors, _ = read_checkpoint(run / "checkpoint_last.safetensors")
-    live = {name[len("live."):]: value for name, value in tensors.items() if name.startswith("live.")}
-    assert live and tensors["ema_updates"].item() == 8  # 16 scenes / batch 4 x 2 epochs
-    moved = [name for name, value in live.items() if not torch.equal(value, tensors[f"model.{name}"])]
-    assert any(name.startswith("network.") for name in moved)
-    model, _, _ = load_system(run / "checkpoint_last.safetensors", "cpu")
-    val = build_dataset(config.data, "val", train=False)
-    recorded = json.loads((run / "evaluation.json").read_text())["splits"]["val"]["miou"]
-    assert evaluate(model, val, "cpu", batch_size=2)["miou"] == pytest.approx(recorded, abs=1e-9)
 
 
 def test_context_module_trains_and_its_checkpoint_loads(tmp_path):

@@ -26,13 +26,11 @@ class CheckpointError(ValueError):
 
 
 def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict, state: dict,
-                    optimizer: torch.optim.Optimizer | None = None, rng_state: torch.Tensor | None = None,
-                    extra: dict[str, torch.Tensor] | None = None) -> None:
+                    optimizer: torch.optim.Optimizer | None = None, rng_state: torch.Tensor | None = None) -> None:
     """Write ``path`` (.safetensors, atomically) and a readable copy of its metadata at ``path.with_suffix('.json')``.
 
     Tensors: ``model.*`` (state dict), ``optimizer.<param index>.<key>`` (AdamW moments and step), ``rng`` (torch
-    CPU generator state), ``extra`` as given (a weight average's training weights, `warpsense.train.ema`). JSON:
-    {"config": ..., "state": ...} with the epoch, step, best mIoU, CFA layout etc.
+    CPU generator state). JSON: {"config": ..., "state": ...} with the epoch, step, best mIoU, CFA layout etc.
     """
     path = Path(path)
     tensors = {f"model.{k}": v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
@@ -42,7 +40,6 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict,
                 tensors[f"optimizer.{index}.{key}"] = torch.as_tensor(value).detach().contiguous().cpu()
     if rng_state is not None:
         tensors["rng"] = rng_state
-    tensors.update(extra or {})
     payload = {"config": config_dict, "state": state}
     with atomic_write(path) as temporary:
         save_file(tensors, str(temporary), metadata={METADATA_KEY: json.dumps(payload, sort_keys=True)})

@@ -25,7 +25,6 @@ from warpsense.models import count_parameters
 from warpsense.system import build_system, check_config, load_teacher
 from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
 from warpsense.train.distributed import DistributedContext, wrap_data_parallel
-from warpsense.train.ema import WeightEMA, averaged
 from warpsense.train.evaluate import evaluate
 from warpsense.train.reproducibility import deterministic_algorithms
 from warpsense.train.run_dir import LAST, METRICS, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
@@ -290,20 +289,16 @@ def _supersede_final_files(run_dir: Path, start_epoch: int) -> None:
             path.replace(run_dir / superseded_name(path.name, start_epoch))
 
 
-def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: bool, is_resume_point: bool,
-                 ema=None) -> None:
+def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: bool, is_resume_point: bool) -> None:
     """Append the epoch's record to metrics.jsonl, then write the checkpoints: the best one when the epoch scored
     best, and the last one (with optimizer and RNG state, for resuming) when the epoch is a resume point
-    (``train.checkpoint_every``; a resume drops the records after it). With a weight average (``ema``) the
-    checkpoints' model is the average; the last one also holds the training weights."""
+    (``train.checkpoint_every``; a resume drops the records after it)."""
     with open(run_dir / METRICS, "a") as log:
         log.write(json.dumps(state["record"]) + "\n")
-    live = ema.live_tensors() if ema is not None and is_resume_point else None
-    with averaged(ema):
-        if is_best:
-            save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
-        if is_resume_point:
-            save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state(), live)
+    if is_best:
+        save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
+    if is_resume_point:
+        save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state())
 
 
 def _epoch_line(record: dict, schedule: Schedule, config) -> str:
@@ -325,7 +320,6 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     set_finite_check(model, False)  # 8-bit inputs; the loss and parameters are checked each epoch (_check_finite)
     model = _ranked_batchnorm(model, config, context.enabled and device.type == "cuda")
     optimizer = _optimizer(config, model, device)
-    ema = WeightEMA(model, config.train.ema_decay) if config.train.ema_decay > 0 else None
     if config.data.batch_size % context.world_size:
         raise ValueError(f"data.batch_size={config.data.batch_size} must be divisible by {context.world_size} ranks")
     loader = build_train_batches(config, datasets.train, context, progress)
@@ -345,8 +339,6 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         tensors, meta = read_checkpoint(run_dir / LAST)
         state = resume_state(run_dir / LAST, tensors, meta)
         restore(tensors, model, optimizer, source=run_dir / LAST)
-        if ema is not None:
-            ema.resume(tensors)
         start_epoch, step, best_miou = state["epoch"] + 1, state["step"], state["best_miou"]
         schedule = _resumed_schedule(state, requested, run_dir / LAST)
         torch.set_rng_state(tensors["rng"])
@@ -373,7 +365,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
                   f"{config.loss.distill_weight}, T = {config.loss.distill_temperature}, {config.loss.distill_mode}-wise")
     training_step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), schedule.epochs * steps_per_epoch,
                                  amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph,
-                                 config.train.micro_batch, teacher, ema, data_parallel=context.enabled,
+                                 config.train.micro_batch, teacher, data_parallel=context.enabled,
                                  radiance_jitter=RadianceJitter.from_config(config.data))
     wrapped, wrapped_phase = model, None
     epoch = start_epoch
@@ -409,8 +401,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         if capture_s:
             record["capture_s"] = capture_s  # of this epoch's time: the CUDA graph capture of a new phase
         if every(epoch, config.train.eval_every, schedule.epochs):
-            with averaged(ema):
-                record.update(_validate(model, datasets, config, context, amp, progress))
+            record.update(_validate(model, datasets, config, context, amp, progress))
         record["wall_s"] = time.perf_counter() - run_started  # this process's time so far, setup and evaluation included
         record.update(model.camera.summary())
         score = record.get("selection_miou", record.get("val_miou", -1.0))
@@ -424,12 +415,10 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
                      "class_names": list(datasets.train.classes), "record": record, "environment": versions,
                      "schedule": {**schedule.to_dict(), "requested": [requested.epochs, requested.warmup_epochs]}}
             _write_epoch(run_dir, model, optimizer, config, state, is_best,
-                         every(epoch, config.train.checkpoint_every, schedule.epochs), ema)
+                         every(epoch, config.train.checkpoint_every, schedule.epochs))
             print(_epoch_line(record, schedule, config), flush=True)
         context.barrier()
         epoch += 1
-    if ema is not None:  # training is over: the model is the average from here on (evaluation, plots, return)
-        ema.apply_for_good()
     if context.is_main:
         final_evaluation(run_dir, model, datasets, config, schedule.epochs - 1, num_classes, device, amp, progress)
     if context.is_main and config.train.plots:

@@ -52,7 +52,6 @@ class TrainingStep:
         teacher: a frozen model (`warpsense.system.build.load_teacher`) whose logits on the same images the
             network distils with weight ``loss_config.distill_weight`` (`distillation_loss`); it runs inside the
             step (compiled and captured with it) and is never part of the trained model.
-        ema: a `warpsense.train.ema.WeightEMA` updated after every optimizer step (inside the captured step).
         data_parallel: the model is DDP-wrapped (several ranks). With ``cuda_graph`` the gradient all-reduce (NCCL)
             is captured inside the step: the wrapper must be built within `capture_stream` (the side stream that
             warms up and captures), `DDP_EAGER_STEPS_BEFORE_CAPTURE` eager steps run first, and the capture is
@@ -63,8 +62,7 @@ class TrainingStep:
 
     def __init__(self, loss_config, optimizer: torch.optim.Optimizer, camera_params: list, total_steps: int,
                  amp: bool, camera_grad_clip: float = 0.0, compile_mode: str = "off", cuda_graph: bool = False,
-                 micro_batch: int = 0, teacher: torch.nn.Module | None = None,
-                 ema=None, data_parallel: bool = False,
+                 micro_batch: int = 0, teacher: torch.nn.Module | None = None, data_parallel: bool = False,
                  radiance_jitter: torch.nn.Module | None = None):
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {compile_mode!r}")
@@ -79,7 +77,6 @@ class TrainingStep:
         self.camera_grad_clip = camera_grad_clip
         self.micro_batch = micro_batch
         self.teacher = teacher if loss_config.distill_weight > 0 else None
-        self.ema = ema
         self.radiance_jitter = radiance_jitter
         self.base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
         self.compiled = compile_mode != "off"
@@ -176,8 +173,6 @@ class TrainingStep:
             if trainable:
                 torch.nn.utils.clip_grad_norm_(trainable, self.camera_grad_clip)
         self.optimizer.step()
-        if self.ema is not None:
-            self.ema.update()
         self._accumulate(loss.detach(), parts)
 
     @contextlib.contextmanager
