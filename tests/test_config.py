@@ -138,27 +138,6 @@ def test_a_retired_key_or_value_is_refused_in_one_line_naming_it_and_where_to_re
     assert str(refused.value) == f"{why}; remove it from {path}"
 
 
-def test_weight_ema_is_retired(tmp_path):
-    """train.ema_decay (weight EMA) is retired: a config naming it, from --set or a TOML file, is refused in one line
-    naming the key and why; a saved run that trained without it (0.0) is read as today's config."""
-    why = ("train.ema_decay was retired (weight EMA: an exponential moving average of the weights, evaluated and "
-           "saved; 0.999 not distinguishable from none on val and on held-out drives: docs/history.md)")
-    with pytest.raises(ConfigError) as refused:
-        load_config(None, ["train.ema_decay=0.999"])
-    assert str(refused.value) == f"{why}; drop --set train.ema_decay=0.999"
-    path = tmp_path / "ema.toml"
-    path.write_text("[train]\nema_decay = 0.999\n")
-    with pytest.raises(ConfigError) as refused:
-        load_config(path)
-    assert str(refused.value) == f"{why}; remove it from {path}"
-    saved = Config().to_dict()
-    saved["train"]["ema_decay"] = 0.0
-    assert config_from_dict(saved) == Config()
-    saved["train"]["ema_decay"] = 0.999
-    with pytest.raises(ConfigError, match=r"^train.ema_decay = 0.999 was retired \(weight EMA"):
-        config_from_dict(saved, "runs/old/config.json")
-
-
 def test_a_saved_config_drops_retired_keys_that_ask_for_the_behaviour_that_stayed():
     """A run or checkpoint saved before a key was retired holds it: at the value of the behaviour that stayed (any
     value for model.anscombe_offset, which acted only with the Anscombe transform) it is read as today's config; at
@@ -169,7 +148,8 @@ def test_a_saved_config_drops_retired_keys_that_ask_for_the_behaviour_that_staye
         saved[section][name] = 0.02 if retired.remaining is EVERY_VALUE else retired.remaining
     assert config_from_dict(saved) == Config()
     for key, value in [("loss.lovasz_stride", 2), ("loss.class_balance", 0.5), ("data.unprocess", True),
-                       ("model.decoder_join", "project"), ("model.input_transform", "anscombe"), RETIRED_VALUE]:
+                       ("model.decoder_join", "project"), ("model.input_transform", "anscombe"),
+                       ("train.ema_decay", 0.999), RETIRED_VALUE]:
         section, name = key.split(".")
         asking = copy.deepcopy(saved)
         asking[section][name] = value

@@ -2,8 +2,8 @@
 in one call on one machine, with each cell's score and time compared between the two.
 
 The same cells train twice, into ``OUT/alone`` (one cell per GPU at a time, no MPS) and ``OUT/shared`` (``per_gpu``
-at a time on each GPU, under MPS as ``mps`` says). A cell's throughput is 1 / its wall time alone and ``per_gpu`` /
-its wall time shared; the suite also reports each run's training epochs (median) and the study-level cells per
+at a time on each GPU, under MPS as ``mps`` says). A cell's throughput is 1 / its time alone and ``per_gpu`` / its
+time shared; the suite also reports each run's training epochs (median) and the study-level cells per
 GPU-hour. A cell's speedup compares steady wall times (`warpsense.study.report.steady_run_seconds`: a process's
 first epoch, where a fresh worker compiles its kernels, counted at the median of its other epochs): a pool worker
 pays that first use with its first cell only, so in a small suite the cells that happen to come first on a worker
@@ -20,7 +20,7 @@ import statistics
 from pathlib import Path
 
 from warpsense.study.plan import load_plan
-from warpsense.study.report import run_seconds, steady_run_seconds
+from warpsense.study.report import run_times
 from warpsense.study.runner import THROUGHPUT, evaluation_path, run_cells, run_dir
 from warpsense.train.run_dir import METRICS, read_metrics
 
@@ -35,10 +35,11 @@ def judged_miou(evaluation: dict) -> tuple[str, float]:
 def _cell_times(path: Path) -> dict:
     """{"wall_s": wall seconds of the run, summed over the processes of a resumed one (`run_seconds`),
     "steady_s": the same without a fresh process's first-use costs (`steady_run_seconds`), "epoch_s": the median
-    epoch seconds after the first} from its metrics.jsonl."""
-    epochs = [record["epoch_time_s"] for record in read_metrics(path / METRICS)[1:] if "epoch_time_s" in record]
-    return {"wall_s": run_seconds(path / METRICS), "steady_s": steady_run_seconds(path / METRICS),
-            "epoch_s": statistics.median(epochs) if epochs else None}
+    epoch seconds after the first} from its metrics.jsonl, read once."""
+    records = read_metrics(path / METRICS)
+    wall, steady = run_times(records)
+    epochs = [record["epoch_time_s"] for record in records[1:] if "epoch_time_s" in record]
+    return {"wall_s": wall, "steady_s": steady, "epoch_s": statistics.median(epochs) if epochs else None}
 
 
 def _invocation(out: Path) -> dict:
@@ -59,9 +60,9 @@ def run_study_suite(plan: str, out: str | Path, cells: int = 0, gpus: list[str] 
         overrides: ``section.key=value`` for every cell (e.g. fewer epochs).
 
     Returns:
-        {"plan", "gpus", "per_gpu", "mps", "cells": [{"cell", "split", "alone": {"miou", "wall_s", "epoch_s"},
-        "shared": {...}, "miou_difference", "speedup"}], "alone"/"shared": the invocations' throughput entries,
-        "cells_per_gpu_hour": {"alone", "shared"}, "ratio", "steady_ratio"} (each side also has "steady_s");
+        {"plan", "gpus", "per_gpu", "mps", "cells": [{"cell", "split", "alone": {"miou", "wall_s", "steady_s",
+        "epoch_s"}, "shared": {...}, "miou_difference", "speedup"}], "alone"/"shared": the invocations' throughput
+        entries, "cells_per_gpu_hour": {"alone", "shared"}, "ratio", "steady_ratio"};
         ``speedup`` is ``per_gpu`` x steady wall alone / steady wall shared (cells per GPU-hour of that cell, first
         use left out), ``steady_ratio`` the same with the cells' steady walls summed, ``ratio`` the invocations'
         cells per GPU-hour as they ran (first use and packing included).

@@ -101,6 +101,13 @@ def _steady_seconds(processes: list[list[dict]]) -> float | None:
     return total
 
 
+def run_times(records: list[dict]) -> tuple[float | None, float | None]:
+    """(`run_seconds`, `steady_run_seconds`) of a run's metrics ``records`` (`read_metrics`), for a caller that
+    holds them already: the log read once for both times."""
+    processes = _processes(records)
+    return _total_seconds(processes), _steady_seconds(processes)
+
+
 def run_seconds(metrics_path: Path) -> float | None:
     """A run's wall seconds from its ``metrics.jsonl``: each process's ``wall_s`` at its last epoch (setup,
     training and evaluation), summed over the processes of a resumed run (a record with ``setup_s`` starts one); None
@@ -259,8 +266,7 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
         _check_scores(evaluation, cell.id, path)
         key = (cell.camera, cell.light, cell.fold, cell.seed)
         evaluations[key] = evaluation
-        processes = _processes(read_metrics(path.parent / METRICS))  # the log read once for both times
-        run_s[key], steady_s[key] = _total_seconds(processes), _steady_seconds(processes)
+        run_s[key], steady_s[key] = run_times(read_metrics(path.parent / METRICS))
         cells.append({"cell": cell.id, "camera": cell.camera, "light": cell.light, "fold": cell.fold,
                       "seed": cell.seed, "epoch": evaluation["epoch"],
                       "network_parameters": evaluation["network_parameters"], "run_s": run_s[key],
