@@ -1,6 +1,8 @@
 """`warpsense bench --suite train --quick` on the CPU: every case is timed and recorded (the GPU-only modes,
 compiled and CUDA-graph steps, are left out there)."""
 
+import torch
+
 from warpsense.bench.train_suite import run_train_suite
 
 
@@ -20,3 +22,17 @@ def test_quick_cpu_suite_records_every_case():
     assert all(r["median_ms"] > 0 for r in timed)
     assert {tuple(r["shape"]) for r in timed if r["mode"].startswith("camera")} == {(2, 3, 64, 96)}
     assert all(r["suite"] == "train" and r["device"] == "cpu" for r in records)
+
+
+def test_train_suite_times_the_presets_network():
+    """The suite's network is the one the camvid recipe trains (its preset's [model]), not a fixed stand-in: the same
+    parameter count as `warpsense train --config camvid_codesign` builds, in the layout asked for."""
+    from warpsense.bench.train_suite import recipe_network
+    from warpsense.config import load_config
+    from warpsense.models import count_parameters, network_from_config
+
+    expected = network_from_config(load_config("camvid_codesign", []).model, 1, 11, 2)
+    for channels_last in (True, False):
+        network = recipe_network(channels_last)
+        assert count_parameters(network) == count_parameters(expected) == 336_267
+        assert network.memory_format == (torch.channels_last if channels_last else torch.contiguous_format)

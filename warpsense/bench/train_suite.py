@@ -5,7 +5,8 @@ network and loss run through torch's own ops (`method_ops`: none of warpsense's 
 Cameras: "simple" = the baseline's camera (one 7x7 Gaussian PSF, exposure, 2x2 softmax CFA, Poisson-Gaussian
 noise, 10-bit ADC); "codesign" = the camvid_codesign preset's camera (learnable 80/68 deg lens rendered every step,
 5x5 PSF grid, the rest learnable as in training). Losses: "ce" (cross-entropy) and "full" (0.6 OHEM + 0.4 Lovasz +
-0.01 edge-aware smoothness, the training loss). Network: DSUNet in bf16 autocast on CUDA.
+0.01 edge-aware smoothness, the training loss). Network: the camvid presets' (`configs/presets/camvid.toml`'s
+[model], the network the recipe trains) on the RAW mosaic, in bf16 autocast on CUDA.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from warpsense.camera.camera import cached_cameras, set_finite_check
 from warpsense.config import load_config
 from warpsense.data.color import srgb_to_linear
 from warpsense.errors import first_line
-from warpsense.models import build_model
+from warpsense.models import network_from_config
 from warpsense.models.dsunet import torch_ops
 from warpsense.ops import psf_conv
 from warpsense.ops.reference import (
@@ -79,8 +80,14 @@ def build(method: str, camera_name: str, device, channels_last: bool = True) -> 
         camera = Camera.from_config(load_config("camvid_codesign", []))
     else:
         camera = BaselineCamera() if method == "torch_baseline" else SimpleCamera()
-    network = build_model("dsunet", in_channels=1, num_classes=11, width=16, tile=2, channels_last=channels_last)
-    return camera.to(device), network.to(device)
+    return camera.to(device), recipe_network(channels_last).to(device)
+
+
+def recipe_network(channels_last: bool = True) -> nn.Module:
+    """The camvid presets' network for the RAW mosaic (1 channel, 2 x 2 tile, CamVid's 11 classes), in the layout
+    ``channels_last`` asks for: the suite times the network the recipe trains, whatever its preset sets."""
+    model = load_config("camvid_codesign", [f"model.channels_last={str(channels_last).lower()}"]).model
+    return network_from_config(model, 1, 11, 2)
 
 
 @contextlib.contextmanager
