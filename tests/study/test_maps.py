@@ -228,3 +228,21 @@ def test_a_one_key_sweep_is_a_curve_with_the_learned_path_at_its_score(tmp_path)
         [10.0], [12.0], [14.0]]
     assert "t_exposure_ms30  optics.exposure_ms 30: *0.5500" in render_text(record)
     assert plot_maps(record, tmp_path / "curve.png") and (tmp_path / "curve.png").stat().st_size > 10_000
+
+
+def test_a_flat_map_names_no_best_point(tmp_path):
+    """Every point at the same mean (runs too short to learn, as in a smoke run): the report says they tie instead of
+    starring whichever came first."""
+    body = '\n[[sweep]]\nname = "t"\ngrid = { "optics.exposure_ms" = [3.0, 10.0, 30.0] }\n'
+    plan = load_plan(_plan(tmp_path, body, reference="t_exposure_ms3"))
+    keys = [("", 0), ("", 1)]
+    flat = {("", 0): 0.0005, ("", 1): 0.0005}
+    _fabricate(tmp_path / "study", plan, {"t_exposure_ms3": flat, "t_exposure_ms10": flat,
+                                          "t_exposure_ms30": {("", 0): 0.0004, ("", 1): 0.0005}},
+               {key: [12.0, 14.0] for key in keys})
+    record = study_record(tmp_path / "study", resamples=20, block=2)
+    [entry] = record["maps"]
+    assert entry["best"]["tied"] == ["t_exposure_ms3", "t_exposure_ms10"]
+    text = render_text(record)
+    assert "best: none, 2 points tie at 0.0005 (t_exposure_ms3, t_exposure_ms10)" in text and ": *0." not in text
+    assert plot_maps(record, tmp_path / "flat.png")

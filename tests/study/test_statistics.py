@@ -114,9 +114,16 @@ def test_block_weights_stay_within_sequences_and_keep_blocks_together():
     weights = block_weights(sequences, block=3, resamples=500, generator=np.random.default_rng(0))
     a, b = np.array([s == "a" for s in sequences]), np.array([s == "b" for s in sequences])
     assert (weights[:, a].sum(1) == 9).all() and (weights[:, b].sum(1) == 3).all()  # each keeps its size
-    # b (3 frames, blocks of 3) is drawn whole every time; a's 9 frames come as 3 blocks of 3 consecutive ones
-    assert (weights[:, b] == 1).all()
+    # a's 9 frames come as 3 blocks of 3 consecutive ones; b, no longer than a block, in blocks of 3 // 2 = 1: drawn
+    # whole as one block it would be the same in every resample
     assert weights[:, a].max() <= 3 and (weights[:, a] > 0).sum(1).min() >= 3
+    assert len({tuple(row) for row in weights[:, b]}) > 1
+    # a sequence shorter than the block (8 frames, blocks of 10: the smoke plan's val) still varies: two blocks of 4
+    short = block_weights(["s"] * 8, block=10, resamples=500, generator=np.random.default_rng(2))
+    assert (short.sum(1) == 8).all() and len({tuple(row) for row in short}) > 1
+    windows = [set(range(start, start + 4)) for start in range(5)]
+    for row in short[:50]:  # each draw is two runs of 4 consecutive frames (possibly overlapping)
+        assert set(np.flatnonzero(row)) in [first | second for first in windows for second in windows]
     single = block_weights(["s"] * 5, block=1, resamples=2000, generator=np.random.default_rng(1))
     assert single.mean(0) == pytest.approx(np.ones(5), abs=0.1)  # blocks of one: the ordinary bootstrap
 

@@ -3,12 +3,15 @@ training recorded on the GPU (issue 13: `warpsense eval` on CPU reproduces the c
 recipe trained on train + val (every labelled frame), so val is a training set here: the test guards the files and
 the CPU path, not accuracy on new streets (docs/results.md, the recipe on held-out drives)."""
 
+import dataclasses
 import json
 from pathlib import Path
 
 import pytest
+from safetensors import safe_open
 
 from warpsense.commands.eval import run_eval
+from warpsense.config import load_config
 
 CHECKPOINTS = Path(__file__).resolve().parents[2] / "checkpoints"
 
@@ -24,6 +27,12 @@ def test_committed_checkpoint_reproduces_its_val_miou_on_cpu(name, shared_data):
     config = json.loads((CHECKPOINTS / f"{name}.json").read_text())["config"]
     assert config["data"]["train_split"] == "train+val" and config["train"]["epochs"] == 150
     assert config["data"]["jitter_stops"] > 0  # the recipe with its photometric jitter
+    # where the repository's CamVid is, as in the presets, so that the README's `warpsense eval --checkpoint ...`
+    # finds its data from a clone (not the training machine's folder)
+    assert config["data"]["root"] == load_config("camvid", []).data.root
+    assert config["model"] == dataclasses.asdict(load_config(name, []).model)  # the network the preset ships
+    with safe_open(str(CHECKPOINTS / f"{name}.safetensors"), "pt") as checkpoint:  # the readable copy is the file's
+        assert json.loads(checkpoint.metadata()["warpsense"])["config"] == config
 
 
 def test_results_doc_quotes_the_co_design_checkpoints_learned_exposure_gain():

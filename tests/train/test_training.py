@@ -76,7 +76,7 @@ def test_train_then_eval_cli_on_scenes(tmp_path, capsys):
     assert json.loads(out.read_text())["dataset"] == "scenes"
 
 
-def test_train_on_real_camvid_crops(shared_data, tmp_path):
+def test_train_on_real_camvid_crops(shared_data, tmp_path, monkeypatch, capsys):
     config = load_config("camvid_codesign", TINY + [f"data.root={shared_data / 'camvid'}", "data.max_train_images=8",
                          "data.max_val_images=2", "train.epochs=1", "train.warmup_epochs=0", "optics.learnable=false",
                          f"run.output_dir={tmp_path}", "data.scale_min=0.25", "data.scale_max=0.3"])
@@ -102,6 +102,30 @@ def test_train_on_real_camvid_crops(shared_data, tmp_path):
     assert 0.0 <= record["selection_miou"] <= 1.0
     state = json.loads((held / "checkpoint_best.json").read_text())["state"]
     assert state["best_miou"] == record["selection_miou"]
+    # `warpsense eval` with the checkpoint's own data: a split it trained on is scored with a note saying so
+    from warpsense import system
+    from warpsense.commands.eval import run_eval
+
+    checkpoint = str(run / "checkpoint_last.safetensors")
+    capsys.readouterr()
+    run_eval(checkpoint, None, None, "train", device="cpu", limit=1, progress=False)
+    assert "note: the checkpoint trained on train (data.train_split = 'train')" in capsys.readouterr().out
+    run_eval(checkpoint, None, None, "val", device="cpu", limit=1, progress=False)
+    assert "note:" not in capsys.readouterr().out
+    # ... and one trained where its data.root was another folder asks for --data-root, in one line
+    loaded = system.load_system
+
+    def elsewhere(*args):
+        model, moved, state = loaded(*args)
+        moved.data.root = str(tmp_path / "training-machine" / "camvid")
+        return model, moved, state
+
+    monkeypatch.setattr(system, "load_system", elsewhere)
+    with pytest.raises(ValueError, match=r"its data.root '.*training-machine/camvid' is not a folder here: pass "
+                                         r"--data-root DIR \(the camvid folder\)$"):
+        run_eval(checkpoint, None, None, "val", device="cpu", limit=1, progress=False)
+    assert run_eval(checkpoint, None, str(shared_data / "camvid"), "val", device="cpu", limit=1,
+                    progress=False)["num_images"] == 1
 
 
 JITTER = ["data.jitter_stops=1.0", "data.jitter_gamma=0.3", "data.jitter_white_balance=0.1",

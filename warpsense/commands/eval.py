@@ -115,7 +115,11 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
     trained_on = config.data.dataset
     if data is None:  # the checkpoint's own dataset, said out loud
         data = trained_on
-        data_root = config.data.root if data_root is None else data_root
+        if data_root is None:
+            data_root = config.data.root
+            if data != "scenes" and not Path(data_root).is_dir():  # trained where the data lived elsewhere
+                raise ValueError(f"{checkpoint}: its data.root {data_root!r} is not a folder here: pass --data-root "
+                                 f"DIR (the {data} folder)")
         print(f"dataset: {data} (the checkpoint's; --data picks another)"
               + (f", root {data_root}" if data != "scenes" else ""))
     config.data.dataset = data
@@ -138,6 +142,9 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
         if seen and split in (config.data.train_split, config.data.val_split):
             print(f"note: the checkpoint trained on the frames of {split} from {', '.join(sorted(seen))} (its fold "
                   f"held out {fold} only); --split {HELDOUT_SPLIT} scores the held-out sequence")
+        elif not fold and data == trained_on and split in config.data.train_split.split("+"):
+            print(f"note: the checkpoint trained on {split} (data.train_split = {config.data.train_split!r}): this "
+                  "score measures fit to frames it saw, not accuracy on new ones")
     class_names = check_label_space(checkpoint, model, state, dataset, data)
     if data != trained_on:
         print(f"note: the checkpoint was trained on {trained_on}; scoring it on {data} (the same "

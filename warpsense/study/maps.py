@@ -135,6 +135,8 @@ def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: di
                 if not scored:
                     continue
                 best = max(scored, key=lambda point: point["miou"]["mean"])
+                # points at the best mean (a flat map, e.g. runs too short to learn): none of them is "the best"
+                tied = [point["camera"] for point in scored if point["miou"]["mean"] == best["miou"]["mean"]]
                 learned = []
                 for camera in plan_spec.cameras:
                     config = configs.get(camera.name)
@@ -158,7 +160,8 @@ def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: di
                 maps.append({"split": split, "sweep": sweep.name, "light": light.name,
                              "parameters": list(sweep.parameters), "labels": list(sweep.labels),
                              "values": [list(v) for v in sweep.values], "grid": grid,
-                             "best": {"camera": best["camera"], "values": best["values"], "miou": best["miou"]},
+                             "best": {"camera": best["camera"], "values": best["values"], "miou": best["miou"],
+                                      "tied": tied if len(tied) > 1 else []},
                              "learned": learned,
                              "cost": {"points": len(grid), **_cost([groups[p["camera"]] for p in scored])}})
     return maps
@@ -181,7 +184,8 @@ def map_lines(maps: list[dict], level: str = "95%") -> list[str]:
         parameters, grid = entry["parameters"], entry["grid"]
         lines.append(f"\n[{entry['split']}] map of sweep {entry['sweep']!r} at {entry['light']}: mIoU mean over "
                      f"(fold, seed) [{level} interval] per point of {' x '.join(parameters)}; * the best")
-        cells = {tuple(map(repr, p["values"])): ("*" if p["camera"] == entry["best"]["camera"] else "") +
+        tied = entry["best"].get("tied", [])
+        cells = {tuple(map(repr, p["values"])): ("*" if p["camera"] == entry["best"]["camera"] and not tied else "") +
                  interval_text(p["miou"]) for p in grid}
         if len(parameters) == 2:
             rows, columns = entry["values"]
@@ -199,7 +203,12 @@ def map_lines(maps: list[dict], level: str = "95%") -> list[str]:
             lines += [f"  {p['camera']:<{width}s}  {_point(parameters, p['values'])}: "
                       f"{cells[tuple(map(repr, p['values']))]}" for p in grid]
         best = entry["best"]
-        lines.append(f"  best: {best['camera']} ({_point(parameters, best['values'])}): {interval_text(best['miou'])}")
+        if tied:
+            lines.append(f"  best: none, {len(tied)} points tie at {best['miou']['mean']:.4f} ({', '.join(tied)}): "
+                         "the map is flat (too few epochs to tell the points apart?)")
+        else:
+            lines.append(f"  best: {best['camera']} ({_point(parameters, best['values'])}): "
+                         f"{interval_text(best['miou'])}")
         for learned in entry["learned"]:
             inside = {True: "inside", False: "outside", None: "not comparable with"}[learned["inside_best_interval"]]
             lines.append(f"  learned {learned['camera']} (learns {', '.join(learned['learns'])}): "
@@ -262,7 +271,7 @@ def plot_maps(record: dict, path: str | Path, split: str | None = None) -> bool:
     for axis, entry in zip(axes[0], maps):
         values, labels, grid = entry["values"], entry["labels"], entry["grid"]
         places = [_positions(v) for v in values]
-        best = entry["best"]["camera"]
+        best = None if entry["best"].get("tied") else entry["best"]["camera"]  # a flat map outlines no point
         if len(values) == 2:
             means = np.full((len(values[1]), len(values[0])), np.nan)
             scores = [p["miou"]["mean"] for p in grid if p["miou"] is not None]

@@ -105,15 +105,17 @@ def block_weights(sequences: list, block: int, resamples: int, generator: np.ran
     """Moving-block bootstrap weights [resamples, N] for N frames in their order, resampled within each sequence.
 
     Each sequence of n frames (those of ``sequences`` with its name, in order) is rebuilt from ceil(n / b) blocks of
-    b = min(block, n) consecutive frames, each starting at a uniform position of the n - b + 1, truncated to n frames
-    (Kuensch 1989): neighbouring frames of one drive are alike, so they are drawn together, and a sequence keeps its
-    size, so no sequence stands in for another. Weight [r, i]: how often frame i is drawn in resample r."""
+    b = min(block, n // 2) consecutive frames (at least 1), each starting at a uniform position of the n - b + 1,
+    truncated to n frames (Kuensch 1989): neighbouring frames of one drive are alike, so they are drawn together, and
+    a sequence keeps its size, so no sequence stands in for another. A sequence of at most ``block`` frames is drawn
+    in two blocks or more: as one block it would be the same draw in every resample (a zero-width interval). Weight
+    [r, i]: how often frame i is drawn in resample r."""
     sequences = list(sequences)
     weights = np.zeros((resamples, len(sequences)))
     for name in dict.fromkeys(sequences):
         frames = np.array([i for i, other in enumerate(sequences) if other == name])
         n = len(frames)
-        length = max(1, min(block, n))
+        length = max(1, min(block, n // 2))
         blocks = -(-n // length)
         starts = generator.integers(0, n - length + 1, size=(resamples, blocks))
         drawn = (starts[:, :, None] + np.arange(length)).reshape(resamples, -1)[:, :n]
