@@ -1,12 +1,17 @@
 """Raw captures that cannot be converted: empty, random, text, truncated at several points, other formats named
 .dng, folders and missing paths. `warpsense convert` reports each in one line naming it, exits non-zero and writes
-no output for it (issue 14, item 4); the batch case lives in tests/data/test_raw.py."""
+no output for it (issue 14, item 4); the batch case lives in tests/data/test_raw.py. `warpsense predict` refuses a
+capture input that is not one (a .safetensors that `warpsense convert` did not write, a folder) the same way."""
 
 import io
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
+from safetensors.torch import save_file
 
 from tests.data.test_raw import _simulated_dng
 from tests.reliability.conftest import assert_clean_failure
@@ -53,3 +58,43 @@ def test_paths_that_are_not_raw_files(tmp_path, capsys):
     blocker.write_text("")
     assert_clean_failure(capsys, ["convert", str(good), "--out", str(blocker), "--no-progress"], (blocker.name,),
                          watched=tmp_path)
+
+
+CHECKPOINT = Path(__file__).resolve().parents[2] / "checkpoints" / "camvid_fixed_isp.safetensors"
+
+
+def _capture_bytes(tmp_path, metadata):
+    path = tmp_path / "whole.safetensors"
+    save_file({"mosaic": torch.zeros(1, 8, 8)}, str(path), metadata=metadata)
+    whole = path.read_bytes()
+    path.unlink()
+    return whole
+
+
+@pytest.mark.parametrize("kind,reason", [
+    ("empty", "header too small"), ("text", "header"), ("truncated", "Error while deserializing"),
+    ("no metadata", "no 'warpsense' metadata"), ("metadata not JSON", "not JSON"),
+    ("no cfa_pattern", "names no cfa_pattern"), ("checkpoint", "no 'mosaic' tensor")])
+def test_predict_refuses_a_safetensors_that_is_no_capture(kind, reason, tmp_path, capsys):
+    """Each was a traceback (safetensors' "header too small", a TypeError for no metadata) or a bare "mosaic" (a
+    checkpoint given as the capture)."""
+    capture = _capture_bytes(tmp_path, {"warpsense": json.dumps({"cfa_pattern": "RGGB"})})
+    content = {"empty": b"", "text": b"hello\n", "truncated": capture[: len(capture) // 2],
+               "no metadata": _capture_bytes(tmp_path, None),
+               "metadata not JSON": _capture_bytes(tmp_path, {"warpsense": "{oops"}),
+               "no cfa_pattern": _capture_bytes(tmp_path, {"warpsense": "{}"}),
+               "checkpoint": CHECKPOINT.read_bytes()}[kind]
+    path = tmp_path / "capture.safetensors"
+    path.write_bytes(content)
+    out = tmp_path / "p.png"
+    assert_clean_failure(capsys, ["predict", str(CHECKPOINT), str(path), "--out", str(out), "--device", "cpu"],
+                         (f"{path}: not a raw capture written by `warpsense convert`", reason), watched=tmp_path)
+
+
+def test_predict_names_a_folder_given_as_the_capture(tmp_path, capsys):
+    """A folder was reported as "no such file"."""
+    folder = tmp_path / "captures"
+    folder.mkdir()
+    out = tmp_path / "p.png"
+    assert_clean_failure(capsys, ["predict", str(CHECKPOINT), str(folder), "--out", str(out), "--device", "cpu"],
+                         (f"{folder}: is a folder, expected a raw file",), watched=tmp_path)

@@ -47,15 +47,28 @@ def test_resumed_config_is_the_runs_own_and_changes_are_refused(tmp_path):
 def test_resume_dir_alone_continues_with_the_runs_config(tmp_path, capsys):
     config, run = _run(tmp_path, extra=["train.epochs=2"])
     (run / "metrics.jsonl").write_text((run / "metrics.jsonl").read_text() + '{"epoch": 2, "trai')  # torn by a kill
+    (run / engine.EVALUATION).unlink()  # killed after its last epoch, before its final evaluation: one to resume
     state = json.loads((run / "checkpoint_last.json").read_text())["state"]
     assert state["epoch"] == 1
     assert main(["train", "--resume-dir", str(run), "--no-progress"]) == 0
-    assert f"resuming {run} from epoch 3/2" in capsys.readouterr().out
+    assert f"resuming {run}: all 2 epochs trained; writing its final evaluation" in capsys.readouterr().out
+    assert (run / engine.EVALUATION).is_file()
     assert [r["epoch"] for r in read_metrics(run / "metrics.jsonl", 10)] == [0, 1]
     # --resume finds the newest run of the name; a changed --set is refused before anything is written
     assert main(["train", "--resume", "--set", f"run.output_dir={tmp_path}", "--set", "run.name=tiny",
                  "--set", "train.epochs=3"]) == 2
     assert "train.epochs: 2 -> 3" in capsys.readouterr().err
+
+
+def test_resuming_a_finished_run_says_so_and_changes_nothing(tmp_path, capsys):
+    """It printed "resuming <run> from epoch 3/2", evaluated the run again and rewrote its evaluation."""
+    _, run = _run(tmp_path, extra=["train.epochs=2"])
+    capsys.readouterr()
+    before = {path.name: path.read_bytes() for path in run.iterdir()}
+    assert main(["train", "--resume-dir", str(run), "--no-progress"]) == 0
+    assert capsys.readouterr().out.strip() == (f"{run}: already finished (2 of 2 epochs); nothing to resume "
+                                               "(--extend N trains N more)")
+    assert {path.name: path.read_bytes() for path in run.iterdir()} == before
 
 
 def test_extend_trains_more_epochs_of_a_finished_run_and_keeps_the_old_config(tmp_path, capsys):

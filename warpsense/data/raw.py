@@ -19,11 +19,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from torch.nn import functional as F
 from tqdm import tqdm
 
 from warpsense.choices import BAYER_LAYOUTS
+from warpsense.errors import first_line
 from warpsense.files import atomic_write
 
 RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw"}
@@ -134,18 +135,45 @@ def convert_file(path: str | Path, out_dir: str | Path) -> Path:
 
 
 def load_raw(path: str | Path) -> tuple[torch.Tensor, dict]:
-    """Read a converted file: (mosaic float32 [1, H, W], metadata dict with ``cfa_pattern`` etc.)."""
+    """Read a converted file: (mosaic float32 [1, H, W], metadata dict with ``cfa_pattern`` etc.).
+
+    Raises:
+        RawFileError: the file is not one `warpsense convert` or `warpsense simulate` wrote (empty, truncated, not
+            safetensors, or another safetensors file such as a checkpoint); the message names it and the reason.
+    """
     from safetensors import safe_open
 
     path = Path(path)
-    with safe_open(str(path), framework="pt") as handle:
-        metadata = json.loads(handle.metadata()["warpsense"])
-    return load_file(str(path))["mosaic"], metadata
+
+    def refused(reason: str) -> RawFileError:
+        return RawFileError(f"{path}: not a raw capture written by `warpsense convert` or `warpsense simulate` "
+                            f"({reason})")
+
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            text = (handle.metadata() or {}).get("warpsense")
+            mosaic = handle.get_tensor("mosaic") if "mosaic" in handle.keys() else None
+    except Exception as error:  # safetensors raises several types for zero-byte, truncated or foreign files
+        raise refused(first_line(error)) from None
+    if mosaic is None:
+        raise refused("no 'mosaic' tensor")
+    if text is None:
+        raise refused("no 'warpsense' metadata")
+    try:
+        metadata = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise refused(f"its 'warpsense' metadata is not JSON: {error}") from None
+    if not isinstance(metadata, dict) or "cfa_pattern" not in metadata:
+        raise refused("its 'warpsense' metadata names no cfa_pattern")
+    return mosaic, metadata
 
 
 def read_capture(path: str | Path) -> tuple[np.ndarray, dict]:
     """Normalised mosaic float32 [H, W] and metadata (``cfa_pattern`` ...) of a raw file (DNG and what LibRaw
     reads) or of `warpsense convert`'s output (.safetensors)."""
+    if Path(path).is_dir():
+        raise RawFileError(f"{path}: is a folder, expected a raw file (.dng or another raw format LibRaw reads, or "
+                           "a .safetensors written by `warpsense convert` or `warpsense simulate`)")
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path}: no such file")
     if Path(path).suffix.lower() == ".safetensors":
