@@ -73,7 +73,10 @@ def test_cli_runs_the_suite_and_writes_its_record(tmp_path, capsys):
 
 @pytest.mark.parametrize("args,message", [
     (["--suite", "kernels", "--plan", "smoke"], "--plan: options of the study suite"),
-    (["--suite", "train", "--per-gpu", "3", "--set", "train.epochs=1"], "--per-gpu, --set: options of the study"),
+    (["--suite", "train", "--per-gpu", "3", "--set", "train.epochs=1"], "--per-gpu: options of the study"),
+    (["--suite", "kernels", "--set", "model.squeeze=true"], "--set configures the train and study suites, not "
+                                                            "--suite kernels"),
+    (["--suite", "train", "--set", "model.sqeeze=true"], "model.sqeeze"),
     (["--suite", "study", "--plan", "smoke"], "needs --plan"),
 ])
 def test_exception_cli_options(args, message, capsys):

@@ -1,13 +1,20 @@
 """`warpsense bench --suite train --quick` on the CPU: every case is timed and recorded (the GPU-only modes,
 compiled and CUDA-graph steps, are left out there)."""
 
+import json
+
 import torch
 
-from warpsense.bench.train_suite import run_train_suite
+from warpsense.cli import main
 
 
-def test_quick_cpu_suite_records_every_case():
-    records = run_train_suite("cpu", quick=True, metadata={"device_name": "cpu"})
+def test_quick_cpu_suite_records_every_case(tmp_path):
+    """Through the command, with a --set that changes the network timed (recorded in the JSON's metadata)."""
+    out = tmp_path / "train.json"
+    assert main(["bench", "--suite", "train", "--quick", "--set", "model.squeeze=true", "--json", str(out)]) == 0
+    saved = json.loads(out.read_text())
+    assert saved["metadata"]["overrides"] == ["model.squeeze=true"]
+    records = saved["records"]
     training = {(r["method"], r["camera"], r["loss"]) for r in records if "images_per_s" in r}
     assert training == {(method, camera, loss) for method, camera in
                         [("torch_baseline", "simple"), ("warpsense", "simple"), ("warpsense", "codesign")]
@@ -36,3 +43,5 @@ def test_train_suite_times_the_presets_network():
         network = recipe_network(channels_last)
         assert count_parameters(network) == count_parameters(expected) == 336_267
         assert network.memory_format == (torch.channels_last if channels_last else torch.contiguous_format)
+    # --set changes the network timed: the preset's with squeeze-excitation put back
+    assert count_parameters(recipe_network(True, ("model.squeeze=true",))) == 452_591

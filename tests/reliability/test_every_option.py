@@ -101,7 +101,9 @@ FREE_STRINGS = {
     "bench --gpus": [("not_ids", ["--suite", "study", "--plan", "smoke", "--out", "suite", "--gpus", "one,two"],
                       ("--gpus",))],
     "bench --set": [("unknown_key", ["--suite", "study", "--plan", "smoke", "--out", "suite", "--set",
-                                     "train.epoch=3"], ("train.epoch",))],
+                                     "train.epoch=3"], ("train.epoch",)),
+                    ("unknown_train_key", ["--suite", "train", "--set", "model.sqeeze=true"], ("model.sqeeze",)),
+                    ("other_suite", ["--suite", "kernels", "--set", "model.squeeze=true"], ("--set",))],
     "convert inputs": [("missing_file", [], ("no_such_raw.dng",))],  # the base names a raw file that does not exist
     "convert --out": [("a_file", ["--out", "file.txt"], ("--out",))],
     "predict checkpoint": [("missing_file", [], ("<checkpoint>",))],  # replaced by a missing file below

@@ -113,11 +113,12 @@ class Bench:
 
 
 def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = None, plot_out: str | None = None,
-              suite: str = "kernels", camvid_root: str | None = None, seeds: tuple[int, ...] = (0,)) -> list[dict]:
+              suite: str = "kernels", camvid_root: str | None = None, seeds: tuple[int, ...] = (0,),
+              overrides: tuple[str, ...] = ()) -> list[dict]:
     """Run a benchmark suite ("kernels": every op against its reference; "accuracy": error against run time,
     `warpsense.bench.accuracy`, with CamVid frames from ``camvid_root`` when given; "train": training step and
-    latency of the whole system against the plain-torch baseline; "all"; "time-to-accuracy", for each of ``seeds``)
-    and write the JSON / the accuracy plot."""
+    latency of the whole system against the plain-torch baseline, of the camvid_codesign preset changed by
+    ``overrides``; "all"; "time-to-accuracy", for each of ``seeds``) and write the JSON / the accuracy plot."""
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda: no CUDA device available")
     if suite not in BENCH_SUITES:
@@ -127,7 +128,11 @@ def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = N
     if plot_out and suite not in ("accuracy", "all", "time-to-accuracy"):
         raise ValueError(f"--plot draws the accuracy suite's error against run time or the time-to-accuracy curves: "
                          f"use --suite accuracy, all or time-to-accuracy, not {suite!r}")
+    if overrides and suite != "train":
+        raise ValueError(f"--set configures the train suite's preset, not the {suite!r} suite")
     records, metadata = [], _metadata(device)
+    if overrides:
+        metadata["overrides"] = list(overrides)
     if suite in ("kernels", "all"):
         records += _kernel_suite(device, quick)
     if suite in ("accuracy", "all"):
@@ -137,7 +142,7 @@ def run_bench(device: str = "cpu", quick: bool = False, json_out: str | None = N
     if suite in ("train", "all"):
         from warpsense.bench.train_suite import run_train_suite
 
-        records += run_train_suite(device, quick, metadata)
+        records += run_train_suite(device, quick, metadata, overrides)
     if suite == "time-to-accuracy":
         from warpsense.bench.time_to_accuracy import plot_time_to_accuracy, run_time_to_accuracy_suite
 

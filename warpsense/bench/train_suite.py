@@ -6,7 +6,8 @@ Cameras: "simple" = the baseline's camera (one 7x7 Gaussian PSF, exposure, 2x2 s
 noise, 10-bit ADC); "codesign" = the camvid_codesign preset's camera (learnable 80/68 deg lens rendered every step,
 5x5 PSF grid, the rest learnable as in training). Losses: "ce" (cross-entropy) and "full" (0.6 OHEM + 0.4 Lovasz +
 0.01 edge-aware smoothness, the training loss). Network: the camvid presets' (`configs/presets/camvid.toml`'s
-[model], the network the recipe trains) on the RAW mosaic, in bf16 autocast on CUDA.
+[model], the network the recipe trains; ``--set`` changes it, e.g. model.squeeze=true) on the RAW mosaic, in bf16
+autocast on CUDA.
 """
 
 from __future__ import annotations
@@ -35,6 +36,9 @@ from warpsense.ops.reference import (
 from warpsense.system import SensingModel
 from warpsense.train.losses import LOSS_OPS
 from warpsense.train.step import TrainingStep
+
+PRESET = "camvid_codesign"
+"""The preset whose network (and codesign camera) the suite times: the recipe's."""
 
 
 def gaussian_psf(size: int = 7, sigma: float = 1.2, channels: int = 3) -> torch.Tensor:
@@ -73,20 +77,23 @@ class SimpleCamera(nn.Module):
         return self.camera(psf_conv(radiance, self.psf), image_index)
 
 
-def build(method: str, camera_name: str, device, channels_last: bool = True) -> tuple[nn.Module, nn.Module]:
+def build(method: str, camera_name: str, device, channels_last: bool = True,
+          overrides: tuple[str, ...] = ()) -> tuple[nn.Module, nn.Module]:
+    """The camera and network a case times: the network of the `PRESET` changed by ``overrides`` (both methods),
+    with the preset's codesign camera or the baseline's simple camera."""
     if camera_name == "codesign":
         if method != "warpsense":
             raise ValueError("the codesign camera is timed for warpsense only")
-        camera = Camera.from_config(load_config("camvid_codesign", []))
+        camera = Camera.from_config(load_config(PRESET, list(overrides)))
     else:
         camera = BaselineCamera() if method == "torch_baseline" else SimpleCamera()
-    return camera.to(device), recipe_network(channels_last).to(device)
+    return camera.to(device), recipe_network(channels_last, overrides).to(device)
 
 
-def recipe_network(channels_last: bool = True) -> nn.Module:
-    """The camvid presets' network for the RAW mosaic (1 channel, 2 x 2 tile, CamVid's 11 classes), in the layout
-    ``channels_last`` asks for: the suite times the network the recipe trains, whatever its preset sets."""
-    model = load_config("camvid_codesign", [f"model.channels_last={str(channels_last).lower()}"]).model
+def recipe_network(channels_last: bool = True, overrides: tuple[str, ...] = ()) -> nn.Module:
+    """The `PRESET`'s network (changed by ``overrides``) for the RAW mosaic (1 channel, 2 x 2 tile, CamVid's 11
+    classes), in the layout ``channels_last`` asks for: the suite times the network the recipe trains."""
+    model = load_config(PRESET, [*overrides, f"model.channels_last={str(channels_last).lower()}"]).model
     return network_from_config(model, 1, 11, 2)
 
 
@@ -103,12 +110,12 @@ def method_ops(method: str):
 
 
 def training_throughput(method, camera_name, loss_name, device, batch, height, width, steps, warmup,
-                        compile_mode: str = "off", cuda_graph: bool = False) -> float:
+                        compile_mode: str = "off", cuda_graph: bool = False, overrides: tuple[str, ...] = ()) -> float:
     """Images per second of full training steps (the training engine's `TrainingStep`: sensor + network forward,
     loss, backward, fused AdamW on CUDA), after ``warmup`` steps (which include any compilation)."""
     torch.manual_seed(0)
     # eager steps run the network in NHWC (2x faster in bf16); inductor does better from NCHW (its own layouts)
-    system = SensingModel(*build(method, camera_name, device, channels_last=compile_mode == "off")).train()
+    system = SensingModel(*build(method, camera_name, device, compile_mode == "off", overrides)).train()
     set_finite_check(system, False)  # as in training: no host read per step
     parameters = [p for p in system.parameters() if p.requires_grad]
     cuda = torch.device(device).type == "cuda"
@@ -139,12 +146,13 @@ def step_throughput(step: TrainingStep, model, batch: int, height: int, width: i
     return steps * batch / (time.perf_counter() - start)
 
 
-def inference(method, camera_name, device, height, width, cached: contextlib.ExitStack | None = None):
+def inference(method, camera_name, device, height, width, cached: contextlib.ExitStack | None = None,
+              overrides: tuple[str, ...] = ()):
     """A batch-1 end-to-end inference (uint8 frame -> logits) of the system, as a function of no arguments: the
     camera and network in eval mode, bf16 autocast on CUDA. ``cached``: an exit stack that the camera's
     `Camera.cached` context is entered on (the camera reuses its sensor arguments until the stack closes)."""
     torch.manual_seed(0)
-    camera, network = build(method, camera_name, device)
+    camera, network = build(method, camera_name, device, overrides=overrides)
     camera.eval(), network.eval()
     if cached is not None:
         cached.enter_context(cached_cameras(camera))
@@ -159,19 +167,21 @@ def inference(method, camera_name, device, height, width, cached: contextlib.Exi
     return infer
 
 
-def latency(method, camera_name, device, height, width, graph: bool, cached: bool = False) -> dict:
+def latency(method, camera_name, device, height, width, graph: bool, cached: bool = False,
+            overrides: tuple[str, ...] = ()) -> dict:
     """Batch-1 end-to-end inference time (`inference`), eager or replayed as a CUDA graph; ``cached``: eager with
     the camera cached (`Camera.cached`, a fixed camera's inference)."""
     with contextlib.ExitStack() as stack:
-        infer = inference(method, camera_name, device, height, width, cached=stack if cached else None)
+        infer = inference(method, camera_name, device, height, width, stack if cached else None, overrides)
         return time_latency(infer, device, graph)
 
 
-def camera_pass(method, camera_name, device, batch, height, width, graph: bool) -> dict:
+def camera_pass(method, camera_name, device, batch, height, width, graph: bool,
+                overrides: tuple[str, ...] = ()) -> dict:
     """The camera alone in training: forward from linear radiance [batch, 3, height, width] to RAW, and backward to
     its learnable parameters (the lens re-rendered, as in the joint phase), eager or replayed as a CUDA graph."""
     torch.manual_seed(0)
-    camera, _ = build(method, camera_name, device)
+    camera, _ = build(method, camera_name, device, overrides=overrides)
     camera.train()
     set_finite_check(camera, False)
     parameters = [p for p in camera.parameters() if p.requires_grad]
@@ -185,8 +195,9 @@ def camera_pass(method, camera_name, device, batch, height, width, graph: bool) 
     return time_cuda_graph(step, 50) if graph else time_function(step, device, 20)
 
 
-def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
-    """All records of the suite; prints one line each."""
+def run_train_suite(device: str, quick: bool, metadata: dict, overrides: tuple[str, ...] = ()) -> list[dict]:
+    """All records of the suite, of the `PRESET` changed by ``overrides`` (e.g. ``("model.squeeze=true",)``);
+    prints one line each."""
     if quick:
         batch, height, width, steps, warmup = 2, 64, 96, 2, 1
     else:
@@ -222,7 +233,7 @@ def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
             try:
                 record["images_per_s"] = training_throughput(method, camera_name, loss_name, device, batch, height,
                                                              width, steps, warmup + extra_warmup, compile_mode,
-                                                             cuda_graph)
+                                                             cuda_graph, overrides)
             except Exception as error:  # a compiler failure is a result to report, not the end of the suite
                 if compile_mode == "off" and not cuda_graph:
                     raise
@@ -231,14 +242,15 @@ def run_train_suite(device: str, quick: bool, metadata: dict) -> list[dict]:
     camera_shape = (2, 64, 96) if quick else (16, 352, 480)  # the CamVid recipe's training crop
     for method, camera_name in cases:
         for graph in ((False, True) if device == "cuda" else (False,)):
-            timing = camera_pass(method, camera_name, device, *camera_shape, graph)
+            timing = camera_pass(method, camera_name, device, *camera_shape, graph, overrides)
             add({"method": method, "camera": camera_name, "mode": "camera fwd+bwd " + ("graph" if graph else "eager"),
                  "median_ms": timing["median_ms"], "iqr_ms": timing["iqr_ms"], "shape": [camera_shape[0], 3,
                                                                                           *camera_shape[1:]]})
     for method, camera_name in cases:
         modes = ["eager", *(["eager_cached"] if method == "warpsense" else []), *(["graph"] if device == "cuda" else [])]
         for mode in modes:
-            timing = latency(method, camera_name, device, height, width, mode == "graph", mode == "eager_cached")
+            timing = latency(method, camera_name, device, height, width, mode == "graph", mode == "eager_cached",
+                             overrides)
             add({"method": method, "camera": camera_name, "mode": mode,
                  "median_ms": timing["median_ms"], "iqr_ms": timing["iqr_ms"], "shape": [1, 3, height, width]})
     return records

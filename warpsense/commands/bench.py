@@ -9,8 +9,10 @@ from warpsense.choices import DEVICES, MPS_MODES
 from warpsense.commands.options import count, parse_gpus
 from warpsense.files import check_output_file
 
-STUDY_OPTIONS = ("plan", "out", "cells", "per_gpu", "gpus", "mps", "overrides")
+STUDY_OPTIONS = ("plan", "out", "cells", "per_gpu", "gpus", "mps")
 """The study suite's own options (refused with another suite)."""
+SET_SUITES = ("train", "study")
+"""The suites ``--set`` configures: the train suite's preset (its network and codesign camera), the study's cells."""
 
 
 def comma_separated(text: str, convert, example: str) -> tuple:
@@ -66,8 +68,10 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
                        help="GPUs of the local pool: auto, none (this process), or ids 0,1 (default: auto)")
     study.add_argument("--mps", choices=MPS_MODES, default=None,
                        help="the shared invocation's CUDA MPS daemon (default: auto); the alone one runs without")
-    study.add_argument("--set", dest="overrides", action="append", default=None, metavar="SECTION.KEY=VALUE",
-                       help="override one config key of every cell (repeatable), e.g. train.epochs=30")
+    parser.add_argument("--set", dest="overrides", action="append", default=None, metavar="SECTION.KEY=VALUE",
+                        help="override one config key (repeatable): of the camvid_codesign preset the train suite "
+                             "times (its network and codesign camera), e.g. model.squeeze=true; of every cell of the "
+                             "study suite, e.g. train.epochs=30")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -79,25 +83,33 @@ def run(args: argparse.Namespace) -> int:
                                        args.mps or "auto", tuple(args.overrides or ()), args.json)
     given = [name for name in STUDY_OPTIONS if getattr(args, name) is not None]
     if given:
-        options = ", ".join("--" + name.replace("_", "-").replace("overrides", "set") for name in given)
+        options = ", ".join("--" + name.replace("_", "-") for name in given)
         raise ValueError(f"{options}: options of the study suite (--suite study), not of --suite {args.suite}")
+    if args.overrides and args.suite not in SET_SUITES:
+        raise ValueError(f"--set configures the {' and '.join(SET_SUITES)} suites, not --suite {args.suite}")
     return run_bench_command(args.device, args.suite, args.quick, args.json, args.plot, args.camvid,
-                             args.seeds or (0,))
+                             args.seeds or (0,), tuple(args.overrides or ()))
 
 
 def run_bench_command(device: str, suite: str, quick: bool, json_out: str | None, plot_out: str | None,
-                      camvid_root: str | None = None, seeds: tuple[int, ...] = (0,)) -> int:
+                      camvid_root: str | None = None, seeds: tuple[int, ...] = (0,),
+                      overrides: tuple[str, ...] = ()) -> int:
     """Run the suite (`warpsense.bench.runner.run_bench`) after checking its inputs and where its outputs go."""
     from warpsense.bench.runner import run_bench
 
     check_output_file(json_out, "--json")
     check_output_file(plot_out, "--plot")
+    if overrides:  # a bad key or value, before minutes of other suites
+        from warpsense.bench.train_suite import PRESET
+        from warpsense.config import load_config
+
+        load_config(PRESET, list(overrides))
     if camvid_root is not None:  # the dataset's own checks, before minutes of other suites
         from warpsense.data.datasets import CamVid
 
         CamVid(camvid_root, "val", limit=1)
     run_bench(device=device, quick=quick, json_out=json_out, plot_out=plot_out, suite=suite, camvid_root=camvid_root,
-              seeds=seeds)
+              seeds=seeds, overrides=overrides)
     return 0
 
 
