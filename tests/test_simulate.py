@@ -152,3 +152,13 @@ def test_camera_choice_mistakes_are_one_line_errors(tmp_path, capsys, arguments,
     assert main(["simulate", str(tmp_path / "a.png"), *arguments, "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
+
+
+def test_help_says_the_camera_is_required_without_a_checkpoint(capsys):
+    """--config has no default here (the command refuses to run without a camera): its help says so."""
+    from warpsense.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "required unless --checkpoint" in text and "default: configs/default.toml" not in text

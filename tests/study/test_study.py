@@ -134,6 +134,12 @@ def test_plan_only_prints_one_command_per_cell(tmp_path, capsys):
     words = shlex.split(commands[1])
     assert words[:3] == ["warpsense", "study", "run"] and words[-4:] == ["--cell", "rccb/night/0", "--set",
                                                                          "train.epochs=3"]
+    # --reuse travels into each cell's command, so a scheduler copies in what the local run would (not retrain it)
+    (tmp_path / "old" / "runs").mkdir(parents=True)
+    assert main(["study", "run", "smoke", "--out", str(tmp_path / "s"), "--plan-only", "--reuse",
+                 str(tmp_path / "old")]) == 0
+    words = shlex.split(capsys.readouterr().out.strip().splitlines()[1])
+    assert words[-4:] == ["--cell", "rccb/night/0", "--reuse", str(tmp_path / "old")]
 
 
 def test_the_local_pool_gives_the_same_cells_as_one_process(tmp_path, capsys):

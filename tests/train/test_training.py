@@ -26,6 +26,16 @@ def test_model_parameter_budget():
     assert model(torch.randint(0, 255, (1, 3, 30, 44), dtype=torch.uint8))[0].shape == (1, 11, 30, 44)
 
 
+@pytest.mark.parametrize("preset,parameters", [("camvid_codesign", 336_267), ("camvid_fixed_isp", 334_011),
+                                               ("camvid_rgb_teacher", 1_071_691)])
+def test_presets_build_the_measured_networks(preset, parameters):
+    """The camvid recipe's network (no squeeze-excitation, within the 0.5M budget) and the clean-RGB teacher as it
+    was measured (val 0.7277: width 40 with squeeze-excitation, its width throughout), which must not follow the
+    recipe's network changes (docs/results.md)."""
+    config = load_config(preset, [])
+    assert count_parameters(build_system(config, 11).network) == parameters
+
+
 def test_overfits_a_fixed_batch():
     config = load_config(None, ["noise.enabled=false"])
     model = build_system(config, 11)

@@ -7,10 +7,12 @@ import argparse
 import sys
 
 
-def add_config_options(parser: argparse.ArgumentParser) -> None:
-    """``--config`` and ``--set``: the config a command builds (`warpsense.config.load_config`)."""
+def add_config_options(parser: argparse.ArgumentParser,
+                       default: str = "default: configs/default.toml") -> None:
+    """``--config`` and ``--set``: the config a command builds (`warpsense.config.load_config`); ``default`` says
+    what the command does without ``--config``."""
     parser.add_argument("--config", metavar="FILE_OR_PRESET",
-                        help="a TOML file or a preset name (configs/presets/); default: configs/default.toml")
+                        help=f"a TOML file or a preset name (configs/presets/); {default}")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override one config key (repeatable), e.g. --set train.epochs=5")
 

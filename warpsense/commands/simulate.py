@@ -17,7 +17,7 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
         "`warpsense predict` reads), <stem>.dng (where the CFA is a 2x2 Bayer layout) and <stem>.preview.png. A bad "
         "file is reported and the others go on (exit 2 at the end).")
     parser.add_argument("images", nargs="+", help="image files")
-    add_config_options(parser)
+    add_config_options(parser, default="the camera: required unless --checkpoint")
     parser.add_argument("--checkpoint", metavar="CKPT", help="use a trained checkpoint's camera instead of --config")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--linear", action="store_true",

@@ -140,10 +140,10 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         plan.cell(cell)  # an unknown --cell is refused on every path, --plan-only and --worker included
     if worker:
         return cell_worker(plan, Path(out))
-    if plan_only:
-        print("\n".join(plan_commands(plan, Path(out))))
-        return 0
     reuse_dirs = [Path(path) for path in reuse or []]
+    if plan_only:
+        print("\n".join(plan_commands(plan, Path(out), reuse_dirs)))
+        return 0
     if cluster is not None:
         return submit_study(plan, Path(out), cluster, None if cell is None else [plan.cell(cell)], reuse_dirs)
     if cell is not None:

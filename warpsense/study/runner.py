@@ -135,9 +135,10 @@ def _run_command(plan: Plan, out: Path, *options: str) -> list[str]:
     return command
 
 
-def cell_command(plan: Plan, out: Path, cell: Cell) -> list[str]:
-    """The command that runs one cell (what `--plan-only` prints, for a scheduler)."""
-    return _run_command(plan, out, "--cell", cell.id)
+def cell_command(plan: Plan, out: Path, cell: Cell, reuse: list[Path] | tuple = ()) -> list[str]:
+    """The command that runs one cell (what `--plan-only` prints, for a scheduler), copying it in from ``reuse``
+    (study directories) where one holds the same training, as the local run would."""
+    return _run_command(plan, out, "--cell", cell.id, *(option for path in reuse for option in ("--reuse", str(path))))
 
 
 def record_plan(plan: Plan, out: Path) -> None:
@@ -477,6 +478,6 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None)
     return sorted(failed, key=lambda cell: numbering[cell])
 
 
-def plan_commands(plan: Plan, out: Path) -> list[str]:
-    """One shell command per cell, for a scheduler of the user's."""
-    return [shlex.join(cell_command(plan, out, cell)) for cell in plan.cells()]
+def plan_commands(plan: Plan, out: Path, reuse: list[Path] | tuple = ()) -> list[str]:
+    """One shell command per cell, for a scheduler of the user's (with ``reuse``'s --reuse options)."""
+    return [shlex.join(cell_command(plan, out, cell, reuse)) for cell in plan.cells()]
