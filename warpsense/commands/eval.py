@@ -100,6 +100,7 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
     ``sweep``) only times the model: no dataset is read and no mIoU computed."""
     from warpsense.bench.timing import model_latency
     from warpsense.data import HELDOUT_SPLIT, DatasetError, build_dataset, build_fold, frame_sequences
+    from warpsense.data.datasets import split_parts
     from warpsense.system import load_system, resolve_device
     from warpsense.train.evaluate import evaluate, robustness_sweep
 
@@ -142,7 +143,7 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
         if seen and split in (config.data.train_split, config.data.val_split):
             print(f"note: the checkpoint trained on the frames of {split} from {', '.join(sorted(seen))} (its fold "
                   f"held out {fold} only); --split {HELDOUT_SPLIT} scores the held-out sequence")
-        elif not fold and data == trained_on and split in config.data.train_split.split("+"):
+        elif not fold and data == trained_on and split in split_parts(config.data.train_split):
             print(f"note: the checkpoint trained on {split} (data.train_split = {config.data.train_split!r}): this "
                   "score measures fit to frames it saw, not accuracy on new ones")
     class_names = check_label_space(checkpoint, model, state, dataset, data)

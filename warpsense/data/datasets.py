@@ -96,11 +96,16 @@ def read_pair_list(listing: Path, resolve) -> list[tuple[Path, Path]]:
     return pairs
 
 
+def split_parts(split: str) -> list[str]:
+    """The splits a joint split names, in order: "train+val" -> ["train", "val"] (a final model's training set)."""
+    return split.split("+")
+
+
 def read_split_lists(root: Path, split: str, resolve, kind: str) -> list[tuple[Path, Path]]:
     """The pairs of ``<root>/<part>.txt`` for each part of ``split`` ("train+val": both lists, in order: a final
     model's training set); DatasetError naming a missing list (``kind``: the dataset, for the message)."""
     pairs = []
-    for part in split.split("+"):
+    for part in split_parts(split):
         listing = root / f"{part}.txt"
         if not listing.is_file():
             raise DatasetError(f"{listing}: {kind} split list not found (expected <root>/{part}.txt with "

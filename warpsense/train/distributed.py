@@ -11,6 +11,11 @@ import torch.distributed as dist
 from warpsense.system.device import resolve_device
 
 
+def launch_rank() -> int:
+    """This process's rank as torchrun set it (RANK; 0 without torchrun), readable before any process group."""
+    return int(os.environ.get("RANK", "0"))
+
+
 @dataclass
 class DistributedContext:
     rank: int = 0
@@ -31,7 +36,7 @@ class DistributedContext:
         """Read torchrun's RANK / WORLD_SIZE / LOCAL_RANK; initialise the process group (NCCL on CUDA, gloo on
         CPU) and pick this rank's device (cuda:LOCAL_RANK)."""
         world_size = int(os.environ.get("WORLD_SIZE", "1"))
-        rank = int(os.environ.get("RANK", "0"))
+        rank = launch_rank()
         local_rank = int(os.environ.get("LOCAL_RANK", "0"))
         use_cuda = resolve_device(device_choice).type == "cuda"
         if device_choice == "cuda" and not torch.cuda.is_available():

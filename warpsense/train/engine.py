@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
 import shutil
 import sys
 import time
@@ -35,7 +34,7 @@ from warpsense.files import atomic_write, environment, write_json
 from warpsense.models import count_parameters
 from warpsense.system import build_system, check_config, load_teacher
 from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
-from warpsense.train.distributed import DistributedContext, wrap_data_parallel
+from warpsense.train.distributed import DistributedContext, launch_rank, wrap_data_parallel
 from warpsense.train.evaluate import evaluate
 from warpsense.train.reproducibility import deterministic_algorithms
 from warpsense.train.run_dir import LAST, METRICS, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
@@ -157,7 +156,7 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
         check_config(config, f"{run_dir / 'config.json'}")
         finished = _finished_epochs(run_dir, config)
         if finished:
-            if os.environ.get("RANK", "0") == "0":  # torchrun's rank 0 (no process group yet): one line, not one a rank
+            if launch_rank() == 0:  # no process group yet: one line from torchrun's rank 0, not one a rank
                 print(f"{run_dir}: already finished ({finished[0]} of {finished[1]} epochs); nothing to resume "
                       "(--extend N trains N more)")
             return (run_dir, None) if return_model else run_dir
