@@ -1,0 +1,86 @@
+"""The PSF convolution's kernels at the camera's training shape, with their layout constants changed.
+
+    python docs/runs/psf/variants.py [--rows 4,8,16] [--taps 8,16] [--json OUT.json]
+
+Each variant runs in a process of its own (the kernels take ROWS and TAPS when their module is built): the
+forward alone and the forward + gradient to the PSF grid (as the camera trains it), 16 x 3 x 352 x 480, 5 x 5 grid,
+K = 15, float32, replayed as one CUDA graph (`warpsense.bench.timing.time_cuda_graph`, median of 50), and the
+forward's and PSF gradient's largest relative difference from the shipped layout's (ROWS 8, TAPS 8).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+SHAPE, GRID, SIZE = (16, 3, 352, 480), (5, 5), 15
+
+
+def measure(rows: int, taps: int, reference: str | None) -> dict:
+    import torch
+
+    from warpsense.bench.timing import time_cuda_graph
+    from warpsense.kernels import psf as kernels
+
+    kernels.ROWS, kernels.TAPS = rows, taps  # before the kernels' modules are built
+    from warpsense.ops import psf_conv
+
+    torch.manual_seed(0)
+    image = torch.rand(*SHAPE, device="cuda")
+    psf = torch.rand(SHAPE[1], *GRID, SIZE, SIZE, device="cuda", requires_grad=True)
+    forward = time_cuda_graph(lambda: psf_conv(image, psf, "direct"))
+    both = time_cuda_graph(lambda: torch.autograd.grad(psf_conv(image, psf, "direct").sum(), psf))
+    out = psf_conv(image, psf, "direct")
+    grad = torch.autograd.grad((out * torch.linspace(0, 1, SHAPE[-1], device="cuda")).sum(), psf)[0]
+    record = {"rows": rows, "taps": taps, "forward_ms": forward["median_ms"], "forward_iqr_ms": forward["iqr_ms"],
+              "forward_psf_grad_ms": both["median_ms"], "forward_psf_grad_iqr_ms": both["iqr_ms"]}
+    if reference:
+        saved = torch.load(reference)
+        record["forward_rel_diff"] = float((out - saved["out"]).abs().max() / saved["out"].abs().max())
+        record["grad_rel_diff"] = float((grad - saved["grad"]).abs().max() / saved["grad"].abs().max())
+    else:
+        return {**record, "_save": {"out": out.detach(), "grad": grad}}
+    return record
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rows", default="4,8,16")
+    parser.add_argument("--taps", default="8,16")
+    parser.add_argument("--json")
+    parser.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        import torch
+
+        rows, taps, reference = int(args.child[0]), int(args.child[1]), args.child[2]
+        record = measure(rows, taps, None if reference == "-" else reference)
+        if "_save" in record:
+            torch.save(record.pop("_save"), "/tmp/psf_reference.pt")
+        print(json.dumps(record), flush=True)
+        return
+    variants = [(8, 8)] + [(r, 8) for r in map(int, args.rows.split(",")) if r != 8] + \
+               [(8, t) for t in map(int, args.taps.split(",")) if t != 8] + [(8, 8)]
+    records = []
+    for index, (rows, taps) in enumerate(variants):
+        reference = "-" if index == 0 else "/tmp/psf_reference.pt"
+        # a kernel cache of its own: the layout constants must not meet another variant's compiled module
+        cache = {**os.environ, "WARP_CACHE_PATH": f"/tmp/warp-cache-psf-{rows}-{taps}"}
+        done = subprocess.run([sys.executable, __file__, "--child", str(rows), str(taps), reference],
+                              capture_output=True, text=True, env=cache)
+        if done.returncode != 0:
+            print(f"rows {rows} taps {taps}: failed: {done.stderr.strip().splitlines()[-1:]}", flush=True)
+            continue
+        record = json.loads(done.stdout.strip().splitlines()[-1])
+        records.append(record)
+        print(json.dumps(record), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(records, indent=1))
+
+
+if __name__ == "__main__":
+    main()
