@@ -34,6 +34,37 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
+# Loads by flat element offset from a contiguous array's start. Warp's `array[i, j, k]` computes a 64-bit byte
+# offset per axis and wraps negative indices per axis on every access: in the forward that was two thirds of the
+# instructions (docs/benchmarks.md, PSF convolution). With offsets the compiler folds a constant step into the load
+# (`at + i * size` with i and size constants) and keeps one running offset per loop. On CUDA a 4-vector of float32 is
+# one 16-byte load (the op layer passes 16-byte-aligned cells).
+_LOAD = "return a.data[i];"
+_LOAD_VEC4F = """#if defined(__CUDA_ARCH__)
+const float4 v = __ldg(reinterpret_cast<const float4*>(a.data) + i);
+return wp::vec_t<4, wp::float32>(v.x, v.y, v.z, v.w);
+#else
+return a.data[i];
+#endif
+"""  # the closing newline: Warp appends the function's brace to the snippet's last line
+
+
+@wp.func_native(_LOAD)
+def load(a: wp.array3d(dtype=wp.float32), i: int) -> wp.float32: ...
+
+
+@wp.func_native(_LOAD)
+def load(a: wp.array3d(dtype=wp.float64), i: int) -> wp.float64: ...  # noqa: F811 (an overload)
+
+
+@wp.func_native(_LOAD_VEC4F)
+def load_node(a: wp.array4d(dtype=wp.vec4f), i: int) -> wp.vec4f: ...
+
+
+@wp.func_native(_LOAD)
+def load_node(a: wp.array4d(dtype=wp.vec4d), i: int) -> wp.vec4d: ...  # noqa: F811 (an overload)
+
+
 ROWS = 8  # output rows per thread in the forward and image-adjoint kernels
 TAPS = 8  # PSF taps (consecutive j) per thread in the PSF-adjoint kernel (8 beat 4 on an H100)
 
@@ -106,18 +137,19 @@ def psf_backward_cells(
     s11 = wp.vector(length=TAPS, dtype=source.dtype)
     window = wp.vector(length=TAPS, dtype=source.dtype)
     for s in range(s_start, s_stop):
-        g_row = s + i
+        grads = (bc * padded_grad.shape[1] + s + i) * padded_grad.shape[2] + j0  # padded_grad[bc, s + i, j0 + 0]
+        sources = (bc * source.shape[1] + s) * source.shape[2]  # source[bc, s, 0]
         for m in range(TAPS - 1):
-            window[m + 1] = padded_grad[bc, g_row, t_first + j0 + m]
+            window[m + 1] = load(padded_grad, grads + t_first + m)
         total = wp.vector(length=TAPS, dtype=source.dtype)
         upper = wp.vector(length=TAPS, dtype=source.dtype)
         for t in range(t_first, t_end):
             for m in range(TAPS - 1):
                 window[m] = window[m + 1]
-            window[TAPS - 1] = padded_grad[bc, g_row, t + j0 + TAPS - 1]
-            v = window * source[bc, s, t]
-            total += v
-            upper += v * col_frac[t]
+            window[TAPS - 1] = load(padded_grad, grads + t + TAPS - 1)
+            value = load(source, sources + t)
+            total += window * value  # fused multiply-adds: upper takes the value weighted by fx first
+            upper += window * (value * col_frac[t])
         fy = row_frac[s]
         lower = total - upper
         s00 += (one - fy) * lower
@@ -181,9 +213,14 @@ def psf_kernels(size: int) -> PsfKernels:
         j_end = wp.min(j_begin + taps, size)
         c = bc % cells.shape[0]
         y = group * ROWS
+        pitch = source.shape[2]
+        # flat offsets: source[bc, y, x + size - 1] (tap column j reads source column t = x + size - 1 - j, window
+        # row r at + r * pitch) and the PSF cells of channel c (cell n's tap (i, j) at + (n * size + i) * size + j)
+        corner = (bc * source.shape[1] + y) * pitch + x + size - 1
+        channel = c * cells.shape[1]
         # the window: padded source rows y .. y + WINDOW - 1; output y + k reads window row size - 1 - i + k under
         # tap row i. Its rows lie in one grid cell, or in two split at `split` (cells taller than the window, as
-        # in every image the size of the kernel's window or more per cell), or in more (`simple` false)
+        # in every image the size of the kernel's window or more per cell), or in more
         fy = wp.vector(length=wp.static(window), dtype=source.dtype)
         for r in range(wp.static(window)):
             fy[r] = row_frac[y + r]
@@ -192,45 +229,61 @@ def psf_kernels(size: int) -> PsfKernels:
         split = window
         if last != first:
             split = row_bounds[first + 1] - y
-        simple = last - first <= 1
         acc = wp.vector(length=ROWS, dtype=source.dtype)
         value = wp.vector(length=wp.static(window), dtype=source.dtype)
         if last == first:
             # the whole window in one cell (most threads): a loop without branches, small enough for the
             # instruction cache
-            cell = first * cells_x
+            cell = channel + first * cells_x
             for j in range(j_begin, j_end):
-                t = x + size - 1 - j  # output x reads source column t under tap column j
+                t = x + size - 1 - j
                 fx = col_frac[t]
-                column = cell + col_cell[t]
+                nodes = (cell + col_cell[t]) * wp.static(size * size) + j
                 for r in range(wp.static(window)):
-                    value[r] = source[bc, y + r, t]
+                    value[r] = load(source, corner - j + r * pitch)
                 for i in range(wp.static(size)):
-                    low, high = along_x(cells[c, column, i, j], fx)
+                    low, high = along_x(load_node(cells, nodes + i * size), fx)
                     slope = high - low
                     for k in range(wp.static(ROWS)):
                         acc[k] = acc[k] + value[size - 1 - i + k] * (low + fy[size - 1 - i + k] * slope)
+        elif last - first == 1:
+            # two cells (the window straddles a cell row): both cells' PSFs interpolated along x once per tap,
+            # each output taking the one its row lies in
+            top = channel + first * cells_x
+            bottom = channel + last * cells_x
+            for j in range(j_begin, j_end):
+                t = x + size - 1 - j
+                fx = col_frac[t]
+                column = col_cell[t]
+                nodes_top = (top + column) * wp.static(size * size) + j
+                nodes_bottom = (bottom + column) * wp.static(size * size) + j
+                for r in range(wp.static(window)):
+                    value[r] = load(source, corner - j + r * pitch)
+                for i in range(wp.static(size)):
+                    r0 = size - 1 - i
+                    low_top, high_top = along_x(load_node(cells, nodes_top + i * size), fx)
+                    low_bottom, high_bottom = along_x(load_node(cells, nodes_bottom + i * size), fx)
+                    slope_top = high_top - low_top
+                    slope_bottom = high_bottom - low_bottom
+                    for k in range(wp.static(ROWS)):
+                        below = r0 + k >= split
+                        low = wp.where(below, low_bottom, low_top)
+                        slope = wp.where(below, slope_bottom, slope_top)
+                        acc[k] = acc[k] + value[r0 + k] * (low + fy[r0 + k] * slope)
         else:
+            # more cells (cells shorter than the window): each output's own cell
             for j in range(j_begin, j_end):
                 t = x + size - 1 - j
                 fx = col_frac[t]
                 column = col_cell[t]
                 for r in range(wp.static(window)):
-                    value[r] = source[bc, y + r, t]
+                    value[r] = load(source, corner - j + r * pitch)
                 for i in range(wp.static(size)):
                     r0 = size - 1 - i
-                    if simple and (r0 + ROWS <= split or r0 >= split):
-                        base = first
-                        if r0 >= split:
-                            base = last
-                        low, high = along_x(cells[c, base * cells_x + column, i, j], fx)
-                        slope = high - low
-                        for k in range(wp.static(ROWS)):
-                            acc[k] = acc[k] + value[r0 + k] * (low + fy[r0 + k] * slope)
-                    else:
-                        for k in range(wp.static(ROWS)):
-                            node = cells[c, row_cell[y + r0 + k] * cells_x + column, i, j]
-                            acc[k] = acc[k] + value[r0 + k] * bilinear(node, fy[r0 + k], fx)
+                    for k in range(wp.static(ROWS)):
+                        nodes = (channel + row_cell[y + r0 + k] * cells_x + column) * wp.static(size * size)
+                        node = load_node(cells, nodes + i * size + j)
+                        acc[k] = acc[k] + value[r0 + k] * bilinear(node, fy[r0 + k], fx)
         height = out.shape[2]
         for k in range(ROWS):
             if y + k < height:
@@ -252,30 +305,34 @@ def psf_kernels(size: int) -> PsfKernels:
         s = group * ROWS
         fx = col_frac[t]
         column = col_cell[t]
+        pitch = padded_grad.shape[2]
+        corner = (bc * padded_grad.shape[1] + s) * pitch + t  # padded_grad[bc, s, t]
+        channel = c * cells.shape[1]
         fy = wp.vector(length=ROWS, dtype=padded_grad.dtype)
-        cell = wp.vector(length=ROWS, dtype=wp.int32)
+        nodes = wp.vector(length=ROWS, dtype=wp.int32)  # cells[c, cell of source s + k, 0, 0]
         for k in range(ROWS):
             fy[k] = row_frac[s + k]
-            cell[k] = row_cell[s + k] * cells_x + column
+            nodes[k] = (channel + row_cell[s + k] * cells_x + column) * wp.static(size * size)
         acc = wp.vector(length=ROWS, dtype=padded_grad.dtype)
         # source s + k gathers padded_grad[s + k + i, t + j] under tap (i, j): window row i + k of column t + j
         grad = wp.vector(length=wp.static(window), dtype=padded_grad.dtype)
-        if cell[0] == cell[ROWS - 1]:
+        if nodes[0] == nodes[ROWS - 1]:
             for j in range(cells.shape[2]):
                 for r in range(wp.static(window)):
-                    grad[r] = padded_grad[bc, s + r, t + j]
+                    grad[r] = load(padded_grad, corner + j + r * pitch)
                 for i in range(wp.static(size)):
-                    low, high = along_x(cells[c, cell[0], i, j], fx)
+                    low, high = along_x(load_node(cells, nodes[0] + i * size + j), fx)
                     slope = high - low
                     for k in range(wp.static(ROWS)):
                         acc[k] = acc[k] + grad[i + k] * (low + fy[k] * slope)
         else:
             for j in range(cells.shape[2]):
                 for r in range(wp.static(window)):
-                    grad[r] = padded_grad[bc, s + r, t + j]
+                    grad[r] = load(padded_grad, corner + j + r * pitch)
                 for i in range(wp.static(size)):
                     for k in range(wp.static(ROWS)):
-                        acc[k] = acc[k] + grad[i + k] * bilinear(cells[c, cell[k], i, j], fy[k], fx)
+                        node = load_node(cells, nodes[k] + i * size + j)
+                        acc[k] = acc[k] + grad[i + k] * bilinear(node, fy[k], fx)
         rows = grad_source.shape[1]
         for k in range(ROWS):
             if s + k < rows:

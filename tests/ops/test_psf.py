@@ -293,3 +293,27 @@ def test_forward_parts_fill_the_device():
     assert _forward_parts(3 * 24 * 640, 15, cuda) == 3  # one 192 x 640 frame
     assert _forward_parts(10, 15, cuda) == 15
     assert _forward_parts(10, 15, torch.device("cpu")) == 1
+
+
+def test_exception_too_large_for_int32_offsets():
+    """The kernels address their padded planes by int32 element offsets: an image past 2**31 padded elements is a
+    clear error naming the shape, before anything is allocated (a meta tensor here)."""
+    from warpsense.ops.psf import _check_offsets
+
+    _check_offsets(torch.empty(16, 3, 352, 480, device="meta"), 7)  # the recipe's batch
+    with pytest.raises(ValueError, match=r"psf_conv: image \(64, 3, 4000, 3000\) .* int32 offsets"):
+        _check_offsets(torch.empty(64, 3, 4000, 3000, device="meta"), 7)
+
+
+def test_cells_start_on_a_16_byte_boundary():
+    """The kernels load a cell's four node values in one 16-byte load on CUDA: a view that starts elsewhere is
+    copied (same values), an aligned tensor passed as it is."""
+    from warpsense.ops.psf import _nodes
+
+    storage = torch.rand(1 + 3 * 4 * 5 * 5 * 4)
+    view = storage[1:].view(3, 4, 5, 5, 4)
+    assert view.data_ptr() % 16 == 4
+    nodes = _nodes(view).tensor
+    assert nodes.data_ptr() % 16 == 0 and torch.equal(nodes, view)
+    aligned = torch.rand(3, 4, 5, 5, 4)
+    assert _nodes(aligned).tensor is aligned

@@ -106,6 +106,25 @@ def _padded_gradient(grad_out: torch.Tensor, radius: int, dtype: torch.dtype) ->
     return padded.reshape(batch * channels, *padded.shape[-2:])
 
 
+def _nodes(cells: torch.Tensor) -> Vectors:
+    """The cells as the kernels' 4-vectors: they load a 4-vector by its flat offset, in one 16-byte load on CUDA,
+    so the tensor must start on a 16-byte boundary (a copy when a view does not)."""
+    if cells.data_ptr() % 16:
+        cells = cells.clone()
+    return Vectors(cells)
+
+
+def _check_offsets(image: torch.Tensor, radius: int) -> None:
+    """The kernels address their planes by int32 element offsets: the largest (the image adjoint's zero-padded
+    gradient) must stay below 2**31 elements."""
+    batch, channels, height, width = image.shape
+    elements = batch * channels * (height + 4 * radius + kernels.ROWS - 1) * (width + 4 * radius + kernels.TAPS - 1)
+    if elements >= 2**31:
+        raise ValueError(f"psf_conv: image {tuple(image.shape)} with a {2 * radius + 1}-tap PSF is too large for "
+                         f"the kernels' int32 offsets ({elements} padded elements, at most 2**31 - 1); split the "
+                         "batch")
+
+
 def _fold_padding(grad_source: torch.Tensor, radius: int) -> torch.Tensor:
     """Adjoint of edge-replicate padding: [N, H + 2r, W + 2r] -> [N, H, W], each border pixel collecting the
     gradient of its copies (slices and sums: deterministic)."""
@@ -131,7 +150,7 @@ def _psf_backward_image(grad_out: torch.Tensor, cells: torch.Tensor, grid_y: int
     grad_source = padded_grad.new_empty(batch * channels, height + 2 * radius, width + 2 * radius)
     launch(kernels.psf_kernels(cells.shape[2]).backward_source,
            (batch * channels, -(-(height + 2 * radius) // kernels.ROWS), width + 2 * radius),
-           [padded_grad, Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1], grad_source],
+           [padded_grad, _nodes(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1], grad_source],
            grad_out.device)
     return _fold_padding(grad_source, radius).view(batch, channels, height, width)
 
@@ -180,6 +199,7 @@ def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_
     batch, channels, height, width = image.shape
     size = cells.shape[2]
     radius = size // 2
+    _check_offsets(image, radius)
     rows, cols = _source_tables(image, grid_y, grid_x, radius)
     threads = batch * channels * -(-height // kernels.ROWS) * width
     parts = _forward_parts(threads, size, image.device)
@@ -187,7 +207,7 @@ def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_
     parts = -(-size // taps)
     out = image.new_empty(parts, batch, channels, height, width)
     launch(kernels.psf_kernels(size).forward, (parts, batch * channels, -(-height // kernels.ROWS), width),
-           [_padded_source(image, radius), Vectors(cells), max(grid_x - 1, 1), rows[0], rows[1], rows[2], cols[0],
+           [_padded_source(image, radius), _nodes(cells), max(grid_x - 1, 1), rows[0], rows[1], rows[2], cols[0],
             cols[1], taps, out.view(parts, batch * channels, height, width)], image.device)
     return out[0] if parts == 1 else out.sum(dim=0)
 

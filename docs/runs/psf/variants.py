@@ -1,6 +1,6 @@
 """The PSF convolution's kernels at the camera's training shape, with their layout constants changed.
 
-    python docs/runs/psf/variants.py [--rows 4,8,16] [--taps 8,16] [--json OUT.json]
+    python docs/runs/psf/variants.py [--rows 4,8,16] [--taps 8,16] [--json OUT.json] [--against REFERENCE.pt]
 
 Each variant runs in a process of its own (the kernels take ROWS and TAPS when their module is built): the
 forward alone and the forward + gradient to the PSF grid (as the camera trains it), 16 x 3 x 352 x 480, 5 x 5 grid,
@@ -52,6 +52,8 @@ def main() -> None:
     parser.add_argument("--rows", default="4,8,16")
     parser.add_argument("--taps", default="8,16")
     parser.add_argument("--json")
+    parser.add_argument("--against", help="compare every variant with this reference (a first run's "
+                        "/tmp/psf_reference.pt, e.g. of other kernels), rather than with the first variant")
     parser.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -67,7 +69,7 @@ def main() -> None:
                [(8, t) for t in map(int, args.taps.split(",")) if t != 8] + [(8, 8)]
     records = []
     for index, (rows, taps) in enumerate(variants):
-        reference = "-" if index == 0 else "/tmp/psf_reference.pt"
+        reference = args.against or ("-" if index == 0 else "/tmp/psf_reference.pt")
         # a kernel cache of its own: the layout constants must not meet another variant's compiled module
         cache = {**os.environ, "WARP_CACHE_PATH": f"/tmp/warp-cache-psf-{rows}-{taps}"}
         done = subprocess.run([sys.executable, __file__, "--child", str(rows), str(taps), reference],
