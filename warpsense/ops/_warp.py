@@ -295,9 +295,12 @@ def _array_ctype(tensor):
                          strides=tuple(stride * item for stride in tensor.stride()))
 
 
-def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.device, block_dim: int = 0) -> None:
+def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.device, block_dim: int = 0,
+           threads_per_block: int = 256) -> None:
     """Launch a Warp kernel on ``device`` (torch's current stream on CUDA); ``block_dim`` > 0: a tiled launch
-    (`wp.launch_tiled`: ``dim`` blocks of ``block_dim`` threads, the tile functions' block).
+    (`wp.launch_tiled`: ``dim`` blocks of ``block_dim`` threads, the tile functions' block); otherwise ``dim``
+    threads in blocks of ``threads_per_block`` (Warp's default 256; fewer lets a kernel of many registers a thread
+    keep more warps on each multiprocessor).
 
     The first launch for a (kernel, device, dim, argument types) signature goes through `wp.launch` (overload
     resolution, from_torch wrapping) and is recorded; later ones replay the recorded launch with the new tensors'
@@ -310,7 +313,7 @@ def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.dev
         return
     signature = tuple((x.dtype, x.dim()) if isinstance(x, torch.Tensor) else
                       x.signature if isinstance(x, Vectors) else type(x) for x in inputs)
-    key = (kernel, device, dim, signature, block_dim)
+    key = (kernel, device, dim, signature, block_dim, threads_per_block)
     recorded = _LAUNCH_CACHE.get(key)
     if recorded is None:
         arguments = [to_warp(x) if isinstance(x, (torch.Tensor, Vectors)) else x for x in inputs]
@@ -319,7 +322,7 @@ def launch(kernel, dim: int | Sequence[int], inputs: Sequence, device: torch.dev
                                       block_dim=block_dim, record_cmd=True)
         else:
             command = wp.launch(kernel, dim=dim, inputs=arguments, device=wp.device_from_torch(device),
-                                record_cmd=True)
+                                block_dim=threads_per_block, record_cmd=True)
         command.fwd_args = None  # drop the first call's arrays: a cached launch must not keep tensors alive
         recorded = _LAUNCH_CACHE[key] = _Recorded(command, [None] * len(inputs))
         if len(_LAUNCH_CACHE) > _LAUNCH_CACHE_SIZE:

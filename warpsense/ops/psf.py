@@ -106,6 +106,12 @@ def _padded_gradient(grad_out: torch.Tensor, radius: int, dtype: torch.dtype) ->
     return padded.reshape(batch * channels, *padded.shape[-2:])
 
 
+FORWARD_BLOCK = 256
+"""Threads per block of the forward and image-adjoint launches."""
+CELLS_BLOCK = 256
+"""Threads per block of the PSF-adjoint launch."""
+
+
 def _nodes(cells: torch.Tensor) -> Vectors:
     """The cells as the kernels' 4-vectors: they load a 4-vector by its flat offset, in one 16-byte load on CUDA,
     so the tensor must start on a 16-byte boundary (a copy when a view does not)."""
@@ -151,7 +157,7 @@ def _psf_backward_image(grad_out: torch.Tensor, cells: torch.Tensor, grid_y: int
     launch(kernels.psf_kernels(cells.shape[2]).backward_source,
            (batch * channels, -(-(height + 2 * radius) // kernels.ROWS), width + 2 * radius),
            [padded_grad, _nodes(cells), max(grid_x - 1, 1), rows[0], rows[1], cols[0], cols[1], grad_source],
-           grad_out.device)
+           grad_out.device, threads_per_block=FORWARD_BLOCK)
     return _fold_padding(grad_source, radius).view(batch, channels, height, width)
 
 
@@ -181,7 +187,7 @@ def _psf_backward_cells(image: torch.Tensor, grad_out: torch.Tensor, cells: torc
     launch(kernels.psf_backward_cells, (lanes * row_chunks * col_chunks, tap_groups),
            [_padded_source(image, radius), _padded_gradient(grad_out, radius, image.dtype), rows[2], rows[1],
             cols[2], cols[1], size, channels, cells_y, cells_x, row_chunks, col_chunks, Vectors(partials)],
-           image.device)
+           image.device, threads_per_block=CELLS_BLOCK)
     return partials.sum(dim=0).view_as(cells)
 
 
@@ -208,7 +214,8 @@ def _psf_conv_cells(image: torch.Tensor, cells: torch.Tensor, grid_y: int, grid_
     out = image.new_empty(parts, batch, channels, height, width)
     launch(kernels.psf_kernels(size).forward, (parts, batch * channels, -(-height // kernels.ROWS), width),
            [_padded_source(image, radius), _nodes(cells), max(grid_x - 1, 1), rows[0], rows[1], rows[2], cols[0],
-            cols[1], taps, out.view(parts, batch * channels, height, width)], image.device)
+            cols[1], taps, out.view(parts, batch * channels, height, width)], image.device,
+           threads_per_block=FORWARD_BLOCK)
     return out[0] if parts == 1 else out.sum(dim=0)
 
 

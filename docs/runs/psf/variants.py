@@ -20,14 +20,18 @@ from pathlib import Path
 SHAPE, GRID, SIZE = (16, 3, 352, 480), (5, 5), 15
 
 
-def measure(rows: int, taps: int, reference: str | None) -> dict:
+def measure(rows: int, taps: int, reference: str | None, blocks: tuple[int, int] | None = None) -> dict:
     import torch
 
     from warpsense.bench.timing import time_cuda_graph
     from warpsense.kernels import psf as kernels
 
     kernels.ROWS, kernels.TAPS = rows, taps  # before the kernels' modules are built
+    from warpsense.ops import psf as psf_module
     from warpsense.ops import psf_conv
+
+    if blocks:  # threads per block of the forward (and image adjoint) and of the PSF adjoint
+        psf_module.FORWARD_BLOCK, psf_module.CELLS_BLOCK = blocks
 
     torch.manual_seed(0)
     image = torch.rand(*SHAPE, device="cuda")
@@ -36,7 +40,7 @@ def measure(rows: int, taps: int, reference: str | None) -> dict:
     both = time_cuda_graph(lambda: torch.autograd.grad(psf_conv(image, psf, "direct").sum(), psf))
     out = psf_conv(image, psf, "direct")
     grad = torch.autograd.grad((out * torch.linspace(0, 1, SHAPE[-1], device="cuda")).sum(), psf)[0]
-    record = {"rows": rows, "taps": taps, "forward_ms": forward["median_ms"], "forward_iqr_ms": forward["iqr_ms"],
+    record = {"rows": rows, "taps": taps, "blocks": blocks, "forward_ms": forward["median_ms"], "forward_iqr_ms": forward["iqr_ms"],
               "forward_psf_grad_ms": both["median_ms"], "forward_psf_grad_iqr_ms": both["iqr_ms"]}
     if reference:
         saved = torch.load(reference)
@@ -54,28 +58,32 @@ def main() -> None:
     parser.add_argument("--json")
     parser.add_argument("--against", help="compare every variant with this reference (a first run's "
                         "/tmp/psf_reference.pt, e.g. of other kernels), rather than with the first variant")
-    parser.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument("--blocks", default="", help="threads per block, forward/PSF adjoint pairs to time at the "
+                        "shipped layout, e.g. 128/256,64/128 (with the ops' FORWARD_BLOCK and CELLS_BLOCK)")
+    parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         import torch
 
         rows, taps, reference = int(args.child[0]), int(args.child[1]), args.child[2]
-        record = measure(rows, taps, None if reference == "-" else reference)
+        blocks = tuple(map(int, args.child[3].split("/"))) if args.child[3] != "-" else None
+        record = measure(rows, taps, None if reference == "-" else reference, blocks)
         if "_save" in record:
             torch.save(record.pop("_save"), "/tmp/psf_reference.pt")
         print(json.dumps(record), flush=True)
         return
-    variants = [(8, 8)] + [(r, 8) for r in map(int, args.rows.split(",")) if r != 8] + \
-               [(8, t) for t in map(int, args.taps.split(",")) if t != 8] + [(8, 8)]
+    variants = [(8, 8, "-")] + [(r, 8, "-") for r in map(int, args.rows.split(",")) if r != 8] + \
+               [(8, t, "-") for t in map(int, args.taps.split(",")) if t != 8] + \
+               [(8, 8, b) for b in args.blocks.split(",") if b] + [(8, 8, "-")]
     records = []
-    for index, (rows, taps) in enumerate(variants):
+    for index, (rows, taps, blocks) in enumerate(variants):
         reference = args.against or ("-" if index == 0 else "/tmp/psf_reference.pt")
         # a kernel cache of its own: the layout constants must not meet another variant's compiled module
         cache = {**os.environ, "WARP_CACHE_PATH": f"/tmp/warp-cache-psf-{rows}-{taps}"}
-        done = subprocess.run([sys.executable, __file__, "--child", str(rows), str(taps), reference],
+        done = subprocess.run([sys.executable, __file__, "--child", str(rows), str(taps), reference, blocks],
                               capture_output=True, text=True, env=cache)
         if done.returncode != 0:
-            print(f"rows {rows} taps {taps}: failed: {done.stderr.strip().splitlines()[-1:]}", flush=True)
+            print(f"rows {rows} taps {taps} blocks {blocks}: failed: {done.stderr.strip().splitlines()[-1:]}", flush=True)
             continue
         record = json.loads(done.stdout.strip().splitlines()[-1])
         records.append(record)
