@@ -57,6 +57,14 @@ def load(a: wp.array3d(dtype=wp.float32), i: int) -> wp.float32: ...
 def load(a: wp.array3d(dtype=wp.float64), i: int) -> wp.float64: ...  # noqa: F811 (an overload)
 
 
+@wp.func_native(_LOAD)
+def load(a: wp.array(dtype=wp.float32), i: int) -> wp.float32: ...  # noqa: F811 (an overload)
+
+
+@wp.func_native(_LOAD)
+def load(a: wp.array(dtype=wp.float64), i: int) -> wp.float64: ...  # noqa: F811 (an overload)
+
+
 @wp.func_native(_LOAD_VEC4F)
 def load_node(a: wp.array4d(dtype=wp.vec4f), i: int) -> wp.vec4f: ...
 
@@ -149,7 +157,7 @@ def psf_backward_cells(
             window[TAPS - 1] = load(padded_grad, grads + t + TAPS - 1)
             value = load(source, sources + t)
             total += window * value  # fused multiply-adds: upper takes the value weighted by fx first
-            upper += window * (value * col_frac[t])
+            upper += window * (value * load(col_frac, t))
         fy = row_frac[s]
         lower = total - upper
         s00 += (one - fy) * lower
