@@ -110,8 +110,10 @@ def psf_backward_cells(
     of the output s reached under tap d, times s's bilinear corner weights.
 
     Thread (lane, tap group): the tap group enumerates (c, i, TAPS consecutive j); the lane (b, cell, chunk of the
-    cell's source rows, chunk of its columns). Neighbouring threads share a source row, so its loads are broadcast. Along the row the
-    gradients of the TAPS outputs slide through registers (one load per source); the weights are separable, so
+    cell's source rows, chunk of its columns). Neighbouring threads share a source row, so its loads are broadcast.
+    Along the row the gradients of the TAPS outputs slide through registers (one load per source), TAPS sources a
+    block with every load of a block issued before its arithmetic (the kernel waited on its loads one source at a
+    time: docs/benchmarks.md, PSF convolution); the weights are separable, so
     each row keeps two sums per tap (sum v and sum fx * v, v = g x) and folds them into the four corners with its
     fy. Each thread writes its own partials[(b, row chunk, column chunk), c, cell, tap] (summed over batch and
     chunks by the caller): no atomics.
@@ -143,21 +145,41 @@ def psf_backward_cells(
     s01 = wp.vector(length=TAPS, dtype=source.dtype)
     s10 = wp.vector(length=TAPS, dtype=source.dtype)
     s11 = wp.vector(length=TAPS, dtype=source.dtype)
-    window = wp.vector(length=TAPS, dtype=source.dtype)
+    # the gradients along the row: before source t is taken, window[0 .. TAPS - 2] hold padded_grad at t + j0 + 0 ..
+    # TAPS - 2 (relative to the row's `grads`); a block of TAPS sources loads the next TAPS into window[TAPS - 1 ..],
+    # so source t + u reads window[u .. u + TAPS - 1] by constant indices, and its loads are all in flight at once
+    window = wp.vector(length=wp.static(2 * TAPS - 1), dtype=source.dtype)
+    values = wp.vector(length=TAPS, dtype=source.dtype)
+    weighted = wp.vector(length=TAPS, dtype=source.dtype)
+    blocks = (t_end - t_first) / TAPS
     for s in range(s_start, s_stop):
         grads = (bc * padded_grad.shape[1] + s + i) * padded_grad.shape[2] + j0  # padded_grad[bc, s + i, j0 + 0]
         sources = (bc * source.shape[1] + s) * source.shape[2]  # source[bc, s, 0]
         for m in range(TAPS - 1):
-            window[m + 1] = load(padded_grad, grads + t_first + m)
+            window[m] = load(padded_grad, grads + t_first + m)
         total = wp.vector(length=TAPS, dtype=source.dtype)
         upper = wp.vector(length=TAPS, dtype=source.dtype)
-        for t in range(t_first, t_end):
+        for block in range(blocks):
+            t = t_first + block * TAPS
+            for u in range(TAPS):
+                window[TAPS - 1 + u] = load(padded_grad, grads + t + TAPS - 1 + u)
+                values[u] = load(source, sources + t + u)
+                weighted[u] = values[u] * load(col_frac, t + u)  # upper takes the value weighted by fx
+            for u in range(TAPS):
+                for m in range(TAPS):
+                    total[m] = total[m] + window[u + m] * values[u]
+                    upper[m] = upper[m] + window[u + m] * weighted[u]
             for m in range(TAPS - 1):
-                window[m] = window[m + 1]
+                window[m] = window[TAPS + m]
+        for t in range(t_first + blocks * TAPS, t_end):  # the last sources, one at a time
             window[TAPS - 1] = load(padded_grad, grads + t + TAPS - 1)
             value = load(source, sources + t)
-            total += window * value  # fused multiply-adds: upper takes the value weighted by fx first
-            upper += window * (value * load(col_frac, t))
+            fraction = load(col_frac, t)
+            for m in range(TAPS):
+                total[m] = total[m] + window[m] * value
+                upper[m] = upper[m] + window[m] * (value * fraction)
+            for m in range(TAPS - 1):
+                window[m] = window[m + 1]
         fy = row_frac[s]
         lower = total - upper
         s00 += (one - fy) * lower
