@@ -30,8 +30,11 @@ def measure(rows: int, taps: int, reference: str | None, blocks: tuple[int, int]
     from warpsense.ops import psf as psf_module
     from warpsense.ops import psf_conv
 
-    if blocks:  # threads per block of the forward (and image adjoint) and of the PSF adjoint
-        psf_module.FORWARD_BLOCK, psf_module.CELLS_BLOCK = blocks
+    if blocks:  # threads per block of the forward (and image adjoint) and of the PSF adjoint[, the forward's
+        # minimum blocks a multiprocessor: its launch bounds, which cap its registers]
+        psf_module.FORWARD_BLOCK, psf_module.CELLS_BLOCK = blocks[:2]
+        if len(blocks) > 2:
+            kernels.FORWARD_BOUNDS = (blocks[0], blocks[2])
 
     torch.manual_seed(0)
     image = torch.rand(*SHAPE, device="cuda")
@@ -59,7 +62,8 @@ def main() -> None:
     parser.add_argument("--against", help="compare every variant with this reference (a first run's "
                         "/tmp/psf_reference.pt, e.g. of other kernels), rather than with the first variant")
     parser.add_argument("--blocks", default="", help="threads per block, forward/PSF adjoint pairs to time at the "
-                        "shipped layout, e.g. 128/256,64/128 (with the ops' FORWARD_BLOCK and CELLS_BLOCK)")
+                        "shipped layout, e.g. 128/256,64/128 (with the ops' FORWARD_BLOCK and CELLS_BLOCK); a third figure sets the "
+                        "forward's launch bounds (FORWARD_BLOCK, N blocks a multiprocessor), e.g. 128/128/4")
     parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -79,7 +83,7 @@ def main() -> None:
     for index, (rows, taps, blocks) in enumerate(variants):
         reference = args.against or ("-" if index == 0 else "/tmp/psf_reference.pt")
         # a kernel cache of its own: the layout constants must not meet another variant's compiled module
-        cache = {**os.environ, "WARP_CACHE_PATH": f"/tmp/warp-cache-psf-{rows}-{taps}"}
+        cache = {**os.environ, "WARP_CACHE_PATH": f"/tmp/warp-cache-psf-{rows}-{taps}-{blocks.replace('/', '-')}"}
         done = subprocess.run([sys.executable, __file__, "--child", str(rows), str(taps), reference, blocks],
                               capture_output=True, text=True, env=cache)
         if done.returncode != 0:
