@@ -78,9 +78,10 @@ def load_node(a: wp.array4d(dtype=wp.vec4f), i: int) -> wp.vec4f: ...
 def load_node(a: wp.array4d(dtype=wp.vec4d), i: int) -> wp.vec4d: ...  # noqa: F811 (an overload)
 
 
-FORWARD_BOUNDS = None
-"""CUDA launch bounds of the forward and image-adjoint kernels (maxThreadsPerBlock, minBlocksPerMultiprocessor), or
-None: the compiler's register budget a thread."""
+FORWARD_BOUNDS = (128, 5)
+"""CUDA launch bounds of the forward and image-adjoint kernels (maxThreadsPerBlock, minBlocksPerMultiprocessor): blocks
+of 128 threads, five a multiprocessor, which caps a thread at ~100 registers (146 uncapped, three blocks): the forward
+0.457-0.467 -> 0.430 ms on an H100 (docs/benchmarks.md, PSF convolution). The op layer launches blocks of the first."""
 
 ROWS = 8  # output rows per thread in the forward and image-adjoint kernels
 TAPS = 8  # PSF taps (consecutive j) per thread in the PSF-adjoint kernel (8 beat 4 on an H100)

@@ -106,10 +106,10 @@ def _padded_gradient(grad_out: torch.Tensor, radius: int, dtype: torch.dtype) ->
     return padded.reshape(batch * channels, *padded.shape[-2:])
 
 
-FORWARD_BLOCK = 128
-"""Threads per block of the forward and image-adjoint launches: their ~150 registers a thread fit one block of 256
-on a multiprocessor (8 warps) but three of 128 (12 warps); the forward 0.54 -> 0.46 ms on an H100
-(docs/benchmarks.md, PSF convolution)."""
+FORWARD_BLOCK = kernels.FORWARD_BOUNDS[0]
+"""Threads per block of the forward and image-adjoint launches (their kernels' launch bounds): blocks of 128 keep
+more warps a multiprocessor than Warp's 256 for a kernel of many registers a thread (docs/benchmarks.md, PSF
+convolution)."""
 CELLS_BLOCK = 128
 """Threads per block of the PSF-adjoint launch (96 registers a thread: 20 warps a multiprocessor against 16)."""
 
