@@ -28,7 +28,7 @@ row. Every kernel is a gather with one writer per output element: no atomics, de
 
 The planes, tables and cells are contiguous (the op layer builds them) and are read by flat element offset
 (`load`, `load_node`), so an inner loop's loads are an address and a constant; offsets are int32 (the op layer
-refuses larger images). On an H100 the forward runs at 24% of the FP32 peak and the forward + PSF gradient at 25%
+refuses larger images). On an H100 the forward runs at 25% of the FP32 peak and the forward + PSF gradient at 26%
 (docs/benchmarks.md, PSF convolution, with the profile of what bounds them).
 """
 

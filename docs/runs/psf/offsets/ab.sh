@@ -1,4 +1,8 @@
-# the shipped PSF kernels (flat offsets, blocks of 128) against 764fa66's, alternating; camera; cuda tests; profile
+# The PSF kernels of /tmp/src (44d3f99), /tmp/src_prev (c42ae22) and /tmp/src_old (764fa66: before flat offsets),
+# each `git archive` of those commits unpacked there after the device kit's install (tools/device/README.md),
+# alternating twice: docs/runs/psf/variants.py's forward and forward + PSF gradient, the whole codesign camera
+# (warpsense.bench.train_suite.camera_pass), then the cuda tests of the PSF op, custom ops, optics and camera, and the
+# Nsight Compute profile (docs/runs/psf/profile.sh). Run with tools/device/background.sh start.
 set -u
 R=/tmp/res7; mkdir -p $R
 nvidia-smi --query-gpu=name --format=csv,noheader > $R/gpu.txt

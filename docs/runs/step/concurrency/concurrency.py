@@ -1,6 +1,6 @@
 """Several training runs on one GPU: the ways of issue 55, measured on the recipe's own training step.
 
-    python docs/runs/step/concurrency.py --json OUT.json [--copies 2,3] [--steps 60]
+    python docs/runs/step/concurrency/concurrency.py --json OUT.json [--copies 2,3] [--steps 60]
 
 The step is the camvid_codesign preset's (codesign camera, the recipe's network, full loss, joint phase, bf16,
 replayed as one CUDA graph, fused AdamW), batch 16 at the training crop 352 x 480, each copy with its own
