@@ -63,38 +63,69 @@ def bf16_pair(low: float, high: float) -> wp.int32:
     ...
 
 
+# Element (r, c) of the contiguous rows [R, C] (or [R, C / 2] words) at r * width + c, in 64 bits: Warp's x[r, c]
+# also wraps negative indices and multiplies a 64-bit stride per axis on every access, more instructions than the
+# arithmetic here (the PSF kernels measured it: docs/benchmarks.md, PSF convolution).
+_AT = "return a.data[(long long)r * a.shape[1] + c];"
+_PUT = "a.data[(long long)r * a.shape[1] + c] = v;"
+
+
+@wp.func_native(_AT)
+def at(a: wp.array2d(dtype=wp.int32), r: int, c: int) -> wp.int32: ...
+
+
+@wp.func_native(_AT)
+def at(a: wp.array2d(dtype=wp.float32), r: int, c: int) -> wp.float32: ...  # noqa: F811 (overloads by dtype)
+
+
+@wp.func_native(_AT)
+def at(a: wp.array2d(dtype=wp.float64), r: int, c: int) -> wp.float64: ...  # noqa: F811
+
+
+@wp.func_native(_PUT)
+def put(a: wp.array2d(dtype=wp.int32), r: int, c: int, v: wp.int32): ...
+
+
+@wp.func_native(_PUT)
+def put(a: wp.array2d(dtype=wp.float32), r: int, c: int, v: wp.float32): ...  # noqa: F811
+
+
+@wp.func_native(_PUT)
+def put(a: wp.array2d(dtype=wp.float64), r: int, c: int, v: wp.float64): ...  # noqa: F811
+
+
 @wp.func
 def load_pair(x: wp.array2d(dtype=wp.int32), r: int, p: int):
     """Channels 2p and 2p + 1 of row r, in the arithmetic type."""
-    word = x[r, p]
+    word = at(x, r, p)
     return wp.vec2f(bf16_low(word), bf16_high(word))
 
 
 @wp.func
 def load_pair(x: wp.array2d(dtype=wp.float32), r: int, p: int):  # noqa: F811  - overloads by the array's dtype
-    return wp.vec2f(x[r, 2 * p], x[r, 2 * p + 1])
+    return wp.vec2f(at(x, r, 2 * p), at(x, r, 2 * p + 1))
 
 
 @wp.func
 def load_pair(x: wp.array2d(dtype=wp.float64), r: int, p: int):  # noqa: F811
-    return wp.vec2d(x[r, 2 * p], x[r, 2 * p + 1])
+    return wp.vec2d(at(x, r, 2 * p), at(x, r, 2 * p + 1))
 
 
 @wp.func
 def store_pair(y: wp.array2d(dtype=wp.int32), r: int, p: int, value: wp.vec2f):
-    y[r, p] = bf16_pair(value[0], value[1])
+    put(y, r, p, bf16_pair(value[0], value[1]))
 
 
 @wp.func
 def store_pair(y: wp.array2d(dtype=wp.float32), r: int, p: int, value: wp.vec2f):  # noqa: F811
-    y[r, 2 * p] = value[0]
-    y[r, 2 * p + 1] = value[1]
+    put(y, r, 2 * p, value[0])
+    put(y, r, 2 * p + 1, value[1])
 
 
 @wp.func
 def store_pair(y: wp.array2d(dtype=wp.float64), r: int, p: int, value: wp.vec2d):  # noqa: F811
-    y[r, 2 * p] = value[0]
-    y[r, 2 * p + 1] = value[1]
+    put(y, r, 2 * p, value[0])
+    put(y, r, 2 * p + 1, value[1])
 
 
 @wp.func
