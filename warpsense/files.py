@@ -55,6 +55,25 @@ def check_output_file(path: str | Path | None, what: str) -> None:
         raise ValueError(f"{what} {path}: folder {parent} is not writable")
 
 
+def check_plot_file(path: str | Path | None, what: str) -> None:
+    """`check_output_file` for a figure, whose suffix names its format: one matplotlib writes (png, pdf, svg, ...),
+    refused before any work otherwise (matplotlib would fail only once the figure is drawn)."""
+    check_output_file(path, what)
+    if not path:
+        return
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if Path(path).suffix.lower().lstrip(".") not in formats:
+        raise ValueError(f"{what} {path}: the file's suffix names the image format, one of "
+                         f"{', '.join('.' + name for name in sorted(formats))}")
+
+
+def plot_format(path: str | Path) -> str:
+    """The image format a figure path's suffix names (`check_plot_file` checked it), for a save to another name."""
+    return Path(path).suffix.lower().lstrip(".")
+
+
 def check_output_folder(path: str | Path, what: str) -> None:
     """Refuse an output folder that is a file or sits under a non-writable folder (it may not exist yet)."""
     path = Path(path)

@@ -140,3 +140,28 @@ def test_training_on_it_predicts_the_tables_classes(tmp_path):
     with safe_open(str(checkpoint), framework="pt") as handle:
         state = json.loads(handle.metadata()["warpsense"])["state"]
     assert state["num_classes"] == 2 and state["class_names"] == ["road", "car"]
+
+
+def test_eval_finds_the_class_table_in_the_dataset_folder_from_anywhere(tmp_path, monkeypatch, capsys):
+    """A run trained with a class table named relative to where it trained (data.classes_file = "classes.toml")
+    is evaluated from another folder: eval finds the table under --data-root (the checkpoint's data.root); with no
+    table there it is one line naming the field."""
+    from warpsense.cli import main
+    from warpsense.train import engine
+
+    make_folder(tmp_path / "data")
+    monkeypatch.chdir(tmp_path / "data")
+    tiny = ["data.batch_size=2", "data.crop_height=8", "data.crop_width=8", "model.width=4", "train.epochs=1",
+            "train.warmup_epochs=0", "train.max_steps_per_epoch=1", "train.plots=false", "train.amp=false"]
+    config = load_config(None, [*tiny, "data.dataset=folder", "data.root=.", "data.classes_file=classes.toml",
+                                f"run.output_dir={tmp_path / 'runs'}", "run.name=mine"])
+    checkpoint = next(engine.train(config, progress=False).rglob("checkpoint_best.safetensors"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["eval", "--checkpoint", str(checkpoint), "--data-root", str(tmp_path / "data"), "--device", "cpu",
+                 "--no-progress"]) == 0
+    assert "miou" in capsys.readouterr().out.lower()
+    (tmp_path / "data" / "classes.toml").unlink()
+    assert main(["eval", "--checkpoint", str(checkpoint), "--data-root", str(tmp_path / "data"), "--device",
+                 "cpu"]) == 2
+    error = capsys.readouterr().err
+    assert "data.classes_file 'classes.toml'" in error and len(error.strip().splitlines()) == 1

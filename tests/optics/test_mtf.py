@@ -88,3 +88,19 @@ def test_lens_plot_to_a_missing_folder_is_a_one_line_error_before_any_work(tmp_p
     assert main(["lens", "phone_80deg", "--plot", str(tmp_path / "nowhere" / "lens.png")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--plot" in err and "does not exist" in err
+
+
+def test_lens_plot_suffix_names_its_format_and_an_unknown_one_is_refused_before_any_work(tmp_path, capsys,
+                                                                                       monkeypatch):
+    """--plot lens.pdf writes a PDF (it wrote PNG bytes under any name); a suffix matplotlib does not write is one
+    line naming the formats, before the lens is rendered."""
+    for name in ("lens.foo", "lens"):
+        with monkeypatch.context() as patched:
+            patched.setattr("warpsense.optics.lens.Lens.from_json", lambda *a, **k: pytest.fail("rendered the lens"))
+            assert main(["lens", "phone_80deg", "--plot", str(tmp_path / name)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "--plot" in err and ".pdf" in err and ".png" in err
+        assert not (tmp_path / name).exists()
+    out = tmp_path / "lens.pdf"
+    assert main(["lens", "phone_80deg", "--plot", str(out)]) == 0
+    assert out.read_bytes().startswith(b"%PDF")

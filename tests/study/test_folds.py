@@ -97,7 +97,8 @@ def test_camvid_cameras_plan_lists_a_cell_per_drive_and_seed(shared_data, capsys
     ('folds = "loo"\n', [], "study.folds: 'loo' is not a protocol; valid: none, sequence"),
     ('sequences = ["train0"]\n', [], "study.sequences: held-out sequences need folds = \"sequence\""),
     ('folds = "sequence"\n', ["data.holdout_prefix=train"], "data.holdout_sequence and data.holdout_prefix both"),
-    ("", ["study.folds=sequence", "data.dataset=camvid", "data.root=ROOT"], "study.folds: "),
+    ("", ["study.folds=sequence", "data.dataset=camvid", "data.root=ROOT"], 'study.folds = "sequence" lists'),
+    ("", ["study.folds=sequence", "train.epoch=3"], "train.epoch: unknown key"),  # the key named, not study.folds
 ])
 def test_bad_fold_plans_are_one_line_errors_with_nothing_written(tmp_path, study, overrides, message, capsys):
     plan = _plan_file(tmp_path, study=study)
@@ -115,6 +116,8 @@ def test_bad_fold_plans_are_one_line_errors_with_nothing_written(tmp_path, study
     assert len(error.splitlines()) == 1 and str(plan) in error and message in error
     if "data.dataset=camvid" in overrides:
         assert "a.png: no sequence prefix in the file name" in error
+    if "train.epoch=3" in overrides:
+        assert "study.folds" not in error
     assert not out.exists()
 
 

@@ -188,7 +188,8 @@ def test_the_config_of_the_first_epochs_is_never_overwritten(run, monkeypatch, c
 
 def test_a_change_that_is_not_of_task_still_continues(run, capsys):
     assert main(["train", "--resume-dir", str(run), "--extend", "1", "--set", "train.lr=0.001", "--no-progress"]) == 0
-    capsys.readouterr()
+    out = capsys.readouterr().out  # allowed by --extend, but said: each key, old -> new
+    assert "config changes:" in out and "train.lr: 0.002 -> 0.001" in out and "train.epochs: 1 -> 2" in out
     assert json.loads((run / "config.json").read_text())["train"]["lr"] == 0.001
     assert json.loads((run / "config.epoch1.json").read_text())["train"]["lr"] == 0.002
     assert json.loads((run / "checkpoint_last.json").read_text())["state"]["epoch"] == 1

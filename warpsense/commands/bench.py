@@ -6,8 +6,8 @@ import argparse
 
 from warpsense.bench import BENCH_SUITES
 from warpsense.choices import DEVICES, MPS_MODES
-from warpsense.commands.options import count, parse_gpus
-from warpsense.files import check_output_file
+from warpsense.commands.options import check_local_gpus, count, parse_gpus
+from warpsense.files import check_output_file, check_plot_file
 
 STUDY_OPTIONS = ("plan", "out", "cells", "per_gpu", "gpus", "mps")
 """The study suite's own options (refused with another suite)."""
@@ -98,7 +98,7 @@ def run_bench_command(device: str, suite: str, quick: bool, json_out: str | None
     from warpsense.bench.runner import run_bench
 
     check_output_file(json_out, "--json")
-    check_output_file(plot_out, "--plot")
+    check_plot_file(plot_out, "--plot")
     if overrides:  # a bad key or value, before minutes of other suites
         from warpsense.bench.train_suite import PRESET
         from warpsense.config import load_config
@@ -122,7 +122,9 @@ def run_study_suite_command(plan: str | None, out: str | None, cells: int, per_g
     if not plan or not out:
         raise ValueError("--suite study needs --plan (a study plan) and --out (the suite's folder)")
     check_output_file(json_out, "--json")
-    record = run_study_suite(plan, out, cells, parse_gpus(gpus), per_gpu, mps, overrides)
+    devices = parse_gpus(gpus)
+    check_local_gpus(devices)
+    record = run_study_suite(plan, out, cells, devices, per_gpu, mps, overrides)
     print(format_study_suite(record))
     if json_out:
         write_json(json_out, record)

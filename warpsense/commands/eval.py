@@ -10,7 +10,7 @@ from pathlib import Path
 from warpsense.bench import parse_size
 from warpsense.choices import DATASETS, DEVICES
 from warpsense.commands.options import count, show_progress
-from warpsense.files import check_output_file, write_json
+from warpsense.files import check_output_file, check_plot_file, write_json
 
 
 def register(commands: argparse._SubParsersAction, name: str) -> None:
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     if args.plot and not args.sweep:
         raise ValueError("--plot draws the sweeps: add --sweep")
     check_output_file(args.json, "--json")
-    check_output_file(args.plot, "--plot")
+    check_plot_file(args.plot, "--plot")
     height, width = parse_size(args.latency_size, "--latency-size", "192x640")
     run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
              (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot, args.flip_tta,
@@ -92,6 +92,20 @@ def check_label_space(checkpoint, model, state: dict, dataset, data: str) -> lis
     return names
 
 
+def _class_table(checkpoint: str, classes_file: str, root: str) -> str:
+    """The folder dataset's class table as the checkpoint names it (``data.classes_file``, relative to where it
+    trained), or else that path or its file name under the dataset folder ``root``: a checkpoint evaluated from
+    another folder finds the table kept with its data."""
+    path = Path(classes_file)
+    candidates = [path] if path.is_absolute() else [path, Path(root) / path]
+    candidates.append(Path(root) / path.name)
+    found = next((candidate for candidate in candidates if candidate.is_file()), None)
+    if found is None:
+        raise ValueError(f"{checkpoint}: its data.classes_file {classes_file!r} is not here nor under --data-root "
+                         f"{root or '.'}: put the class table in the dataset folder")
+    return str(found)
+
+
 def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: str, json_out: str | None = None,
              sweep: bool = False, latency: bool = False, latency_size: tuple[int, int] = (192, 640),
              latency_batch: int = 1, device: str = "auto", batch_size: int = 4, limit: int = 0,
@@ -125,6 +139,8 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
               + (f", root {data_root}" if data != "scenes" else ""))
     config.data.dataset = data
     config.data.root = data_root or ""
+    if data == "folder" and config.data.classes_file:
+        config.data.classes_file = _class_table(checkpoint, config.data.classes_file, config.data.root)
     config.data.max_val_images = limit
     if data == "scenes":
         config.data.scenes_val = limit or config.data.scenes_val

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from warpsense.files import check_output_file
+from warpsense.files import check_plot_file
 
 
 def register(commands: argparse._SubParsersAction, name: str) -> None:
@@ -24,7 +24,7 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Check where the plot goes, then `run_lens`; returns the exit code."""
-    check_output_file(args.plot, "--plot")
+    check_plot_file(args.plot, "--plot")
     return run_lens(args.lens, args.json, plot=args.plot)
 
 

@@ -4,6 +4,7 @@ progress bars."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 
@@ -52,3 +53,21 @@ def parse_gpus(text: str) -> list[str]:
     if not ids or not all(part.isdigit() for part in ids):
         raise ValueError(f"--gpus must be auto, none or GPU ids like 0,1; got {text!r}")
     return ids
+
+
+def check_local_gpus(ids: list[str]) -> None:
+    """GPU ids a local pool will give its workers (their CUDA_VISIBLE_DEVICES) must name GPUs of this machine: none
+    without CUDA, and below the device count where this process sees them all (its own CUDA_VISIBLE_DEVICES unset;
+    with it set the ids may name GPUs this process does not see)."""
+    if not ids:
+        return
+    import torch
+
+    if not torch.cuda.is_available():
+        raise ValueError(f"--gpus {','.join(ids)}: no CUDA device is visible here; use --gpus none (one process on "
+                         "this machine's device) or auto")
+    count = torch.cuda.device_count()
+    missing = [gpu for gpu in ids if int(gpu) >= count]
+    if missing and "CUDA_VISIBLE_DEVICES" not in os.environ:
+        raise ValueError(f"--gpus {','.join(ids)}: GPU {', '.join(missing)} not found; this machine has {count} "
+                         f"(ids 0-{count - 1})")

@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 
 from warpsense.choices import MPS_MODES
-from warpsense.commands.options import count, parse_gpus
-from warpsense.files import check_output_file, check_output_folder, write_json
+from warpsense.commands.options import check_local_gpus, count, parse_gpus
+from warpsense.files import check_output_file, check_output_folder, check_plot_file, write_json
 
 
 def register(commands: argparse._SubParsersAction, name: str) -> None:
@@ -133,6 +133,8 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     cluster = slurm_options(executor, **(slurm or {}))  # before the plan loads: nothing is read or written
     if cluster is not None and plan_only:
         raise ValueError("--plan-only prints the commands for a scheduler of your own: leave out --executor slurm")
+    if cluster is None and not (plan_only or worker or cell is not None):
+        check_local_gpus(devices)  # the local pool's workers take these GPUs
     check_output_folder(out, "--out")
     check_reuse_dirs(reuse or [])  # here, not only when the cells run: --plan-only and --cell too
     plan = load_plan(plan_name, overrides)
@@ -169,7 +171,7 @@ def report_study(study_dir: str, json_out: str | None = None, plot_out: str | No
     from warpsense.study.report import plot_study, render_text, study_record
 
     check_output_file(json_out, "--json")
-    check_output_file(plot_out, "--plot")
+    check_plot_file(plot_out, "--plot")
     record = study_record(study_dir, resamples, block_frames)
     if split is not None and split not in record["splits"]:
         raise ValueError(f"--split {split!r}: the study's runs were judged on {', '.join(record['splits'])}")

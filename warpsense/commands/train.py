@@ -29,12 +29,14 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
     parser.add_argument("--resume-dir", metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint")
     parser.add_argument("--allow-config-change", action="store_true",
                         help="with --resume/--resume-dir: continue with the given --config/--set even where it "
-                             "differs from the run's saved config (refused otherwise)")
+                             "differs from the run's saved config (refused otherwise; --extend implies it); the "
+                             "changes are printed")
     parser.add_argument("--extend", type=count(1), metavar="N",
                         help="with --resume/--resume-dir: train N more epochs after the last checkpoint, finished run "
                              "or not (train.epochs becomes the epochs trained + N, any time budget is dropped; the "
                              "cosine learning rate is laid over the new total, so it rises again and decays to 0 at "
-                             "the new end; the previous config.json is kept as config.epoch<E>.json)")
+                             "the new end; the previous config.json is kept as config.epoch<E>.json; --set changes "
+                             "are allowed with it, as with --allow-config-change, and printed)")
     parser.add_argument("--no-progress", action="store_true",
                         help="hide the progress bars (they are drawn only when stderr is a terminal)")
     parser.add_argument("--print-config", action="store_true",

@@ -64,7 +64,7 @@ def plot_lens(lens, out_path: str | Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from warpsense.files import atomic_write
+    from warpsense.files import atomic_write, plot_format
 
     grid = lens.psf_grid().detach().cpu().numpy()
     _, grid_y, grid_x, size, _ = grid.shape
@@ -100,6 +100,6 @@ def plot_lens(lens, out_path: str | Path) -> Path:
     bottom.axes[0].legend(ncol=3, fontsize=8)
     out_path = Path(out_path)
     with atomic_write(out_path) as temporary:
-        figure.savefig(temporary, dpi=110, format="png")
+        figure.savefig(temporary, dpi=110, format=plot_format(out_path))  # the temporary name has no suffix
     plt.close(figure)
     return out_path

@@ -471,13 +471,16 @@ def _fold_sequences(plan: Plan, wanted: list) -> tuple[str, ...]:
     """The held-out sequences of a ``folds = "sequence"`` plan: ``wanted`` (study.sequences) or every sequence of
     the base config's labelled splits (train_split + val_split), checked against the frames."""
     where = f"{plan.source}: study.folds"
-    try:
+    try:  # the config's own errors (a bad --set, a missing data root) name their key or file, not study.folds
         unfilled = Cell("", "", 0, "")  # the base config's data keys, with any placeholder left empty
         overrides = [fill_placeholders(text, unfilled) for text in [*plan.set, *cell_overrides(plan.overrides)]]
         config = load_config([plan.base] if plan.base else None, overrides)
         names = sequence_names(config.data)
-    except (ConfigError, DatasetError) as error:
-        raise PlanError(f"{where}: {error}") from None
+    except ConfigError as error:
+        raise PlanError(f"{plan.source}: {error}") from None
+    except DatasetError as error:
+        raise PlanError(f"{plan.source}: data: {error} (study.folds = \"sequence\" lists the labelled splits' "
+                        "sequences)") from None
     if len(names) < 2:
         raise PlanError(f"{where}: the labelled splits ({config.data.train_split}, {config.data.val_split}) hold "
                         f"{len(names)} sequence(s) ({', '.join(names)}): a fold needs others to train on")

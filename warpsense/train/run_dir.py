@@ -69,7 +69,8 @@ def task_changes(saved: Config, requested: Config) -> list[str]:
 def resumed_config(run_dir: Path, requested: Config | None, allow_change: bool = False) -> Config:
     """The config a resumed run trains with: its own config.json. A ``requested`` config that differs from it (other
     than `RELOCATABLE_KEYS`) is refused with the differing keys named, unless ``allow_change``; then it is used. A
-    change of task (`task_changes`) is refused either way: that is a new run. Reads only; writes nothing."""
+    change of task (`task_changes`) is refused either way: that is a new run. An allowed change is printed (the keys,
+    old -> new). Reads only; writes nothing."""
     path = run_dir / "config.json"
     try:
         saved = config_from_dict(json.loads(path.read_text()), str(path))
@@ -91,6 +92,7 @@ def resumed_config(run_dir: Path, requested: Config | None, allow_change: bool =
     if not changes:
         saved.run.device = requested.run.device  # the device may change; where the run lives stays the run's
         return saved
+    print(f"resuming {run_dir} with config changes: {'; '.join(changes)}")  # allowed, but never silent
     return requested
 
 
