@@ -87,7 +87,7 @@ def test_unavailable_device_and_missing_capture_are_one_line_errors(tmp_path, ca
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert_clean_failure(capsys, ["train", "--set", "run.device=cuda", "--set", f"run.output_dir={tmp_path}"],
-                         ("device cuda", "--device cpu"))
+                         ("device cuda", "use cpu or auto", "run.device"))
     assert_clean_failure(capsys, ["predict", "checkpoints/camvid_codesign.safetensors", str(tmp_path / "no.dng"),
                                   "--out", str(tmp_path / "p.png"), "--device", "cpu"], ("no.dng", "no such file"),
                          watched=tmp_path)

@@ -140,7 +140,7 @@ def test_device_choices_resolve_as_the_config_documents(monkeypatch):
         if available:
             assert resolve_device("cuda") == torch.device("cuda")
         else:
-            with pytest.raises(ValueError, match="device cuda: .*use --device cpu or auto"):
+            with pytest.raises(ValueError, match="device cuda: .*use cpu or auto"):
                 resolve_device("cuda")
 
 

@@ -10,7 +10,7 @@ from warpsense.config import load_config, with_overrides
 from warpsense.data import build_dataset
 from warpsense.models import count_parameters
 from warpsense.system import build_system
-from warpsense.system.checkpoint import read_checkpoint, restore, save_checkpoint
+from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore, save_checkpoint
 from warpsense.train.engine import train
 from warpsense.train.losses import segmentation_loss
 
@@ -229,6 +229,11 @@ def test_checkpoint_round_trip(tmp_path):
         assert torch.equal(a, b), name
     assert meta["config"]["optics"]["learnable"] is True
     assert not list(tmp_path.glob("*.tmp"))
+    # a run folder or the readable .json copy named instead of the checkpoint: said so, with the file to name
+    with pytest.raises(FileNotFoundError, match="is a folder; name its checkpoint file"):
+        read_checkpoint(tmp_path)
+    with pytest.raises(CheckpointError, match=r"c.json: the readable copy of a checkpoint; name .*c.safetensors"):
+        read_checkpoint(tmp_path / "c.json")
 
 
 def test_distillation_from_an_rgb_teacher(tmp_path):

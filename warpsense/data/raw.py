@@ -287,7 +287,8 @@ def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True)
             failures.append((path, reason))
             tqdm.write(f"warpsense convert: skipped {reason}", file=sys.stderr)
     failed = f"; {len(failures)} failed" if failures else ""
-    print(f"converted {len(outputs)} of {len(paths)} file(s) into {out_dir}{failed}")
+    where = f" into {out_dir}" if outputs else ""  # nothing written: no folder to name
+    print(f"converted {len(outputs)} of {len(paths)} file(s){where}{failed}")
     return failures
 
 

@@ -49,8 +49,13 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict,
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
     """(tensors, {"config": ..., "state": ...}); every failure is a one-line `CheckpointError` naming the file."""
     path = Path(path)
+    if path.is_dir():
+        raise FileNotFoundError(f"{path}: is a folder; name its checkpoint file (e.g. {path}/checkpoint_best"
+                                ".safetensors)")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: checkpoint not found")
+    if path.suffix.lower() == ".json" and path.with_suffix(".safetensors").is_file():
+        raise CheckpointError(f"{path}: the readable copy of a checkpoint; name {path.with_suffix('.safetensors')}")
     try:
         with safe_open(str(path), framework="pt") as handle:
             metadata = handle.metadata() or {}

@@ -10,6 +10,6 @@ def resolve_device(choice: str) -> torch.device:
     otherwise cpu. Asking for "cuda" where torch sees none is a one-line ValueError."""
     if choice == "cuda" and not torch.cuda.is_available():
         build = "this torch build has no CUDA" if torch.version.cuda is None else "torch sees no CUDA GPU"
-        raise ValueError(f"device cuda: {build} (torch {torch.__version__}); use --device cpu or auto "
-                         "(run.device=cpu or auto)")
+        raise ValueError(f"device cuda: {build} (torch {torch.__version__}); use cpu or auto (--device, or "
+                         "--set run.device=... for train and study)")
     return torch.device("cuda" if choice == "cuda" or (choice == "auto" and torch.cuda.is_available()) else "cpu")
