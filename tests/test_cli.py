@@ -297,3 +297,18 @@ def test_commands_load_torch_with_openmp_threads_that_sleep_when_idle(inherited,
     if "GOMP_SPINCOUNT" not in result.stderr:
         pytest.skip("torch's OpenMP runtime here is not libgomp (no GOMP_SPINCOUNT in its OMP_DISPLAY_ENV)")
     assert f"OMP_WAIT_POLICY = '{policy}'" in result.stderr and f"GOMP_SPINCOUNT = '{spins}'" in result.stderr
+
+
+def test_load_system_takes_a_device_name_and_refuses_cuda_without_it_in_one_line(monkeypatch):
+    """The Python API's load_system(path, "cuda") on a machine without CUDA said only torch's bare
+    "AssertionError: Torch not compiled with CUDA enabled"; a device name is resolved as the commands do."""
+    import torch
+
+    from warpsense.system import load_system
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for device in ("cuda", torch.device("cuda")):
+        with pytest.raises(ValueError, match="device cuda: .* use cpu or auto"):
+            load_system("checkpoints/camvid_codesign.safetensors", device)
+    model, _, _ = load_system("checkpoints/camvid_codesign.safetensors", "auto")
+    assert next(model.parameters()).device.type == "cpu"

@@ -9,9 +9,11 @@ import torch
 from warpsense.camera import Camera
 from warpsense.camera.camera import STAGES
 from warpsense.camera.isp import FixedISP
+from warpsense.choices import DEVICES
 from warpsense.config import ConfigError, config_from_dict
 from warpsense.models import network_from_config
 from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore
+from warpsense.system.device import resolve_device
 from warpsense.system.model import SensingModel
 
 
@@ -59,7 +61,12 @@ def load_teacher(checkpoint: str | Path, num_classes: int, device) -> SensingMod
 
 
 def load_system(checkpoint: str | Path, device) -> tuple[torch.nn.Module, object, dict]:
-    """(model in eval mode, config, training state) from a checkpoint written by `warpsense train`."""
+    """(model in eval mode, config, training state) from a checkpoint written by `warpsense train`, on ``device`` (a
+    torch.device, or a name: "cpu", "cuda" or "auto"; cuda where torch has none is a one-line ValueError)."""
+    if isinstance(device, str) and device in DEVICES:
+        device = resolve_device(device)
+    elif torch.device(device).type == "cuda":
+        resolve_device("cuda")  # torch's own error for a missing CUDA is a bare assertion deep in .to()
     tensors, meta = read_checkpoint(checkpoint)
     config = config_from_dict(meta["config"], source=f"{checkpoint} config")
     check_config(config, f"{checkpoint} config")
