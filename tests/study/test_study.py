@@ -459,3 +459,24 @@ def test_gpu_busy_reads_nvidia_smi_and_tolerates_its_absence(monkeypatch):
 
     monkeypatch.setattr(subprocess, "run", missing)
     assert runner.gpu_busy(["0"]) is None
+
+
+def test_a_failed_cell_with_a_resume_point_says_how_to_start_it_again(tmp_path, monkeypatch, capsys):
+    """A cell that fails while resuming (e.g. a corrupt checkpoint_last) would fail the same way on every retry: the
+    summary names its run folder and says to delete it to train the cell from the start."""
+    from warpsense.study import runner
+    from warpsense.train.run_dir import LAST
+
+    plan = load_plan("smoke", FAST)
+    cell = plan.cells()[0]
+    folder = runner.run_dir(tmp_path, cell)
+    folder.mkdir(parents=True)
+    (folder / LAST).write_bytes(b"not a checkpoint")
+
+    def corrupt(*args, **kwargs):
+        raise ValueError(f"{folder / LAST}: not a readable safetensors checkpoint")
+
+    monkeypatch.setattr(runner, "train_cell", corrupt)
+    assert run_cells(plan, tmp_path, [cell]) == 1
+    err = capsys.readouterr().err
+    assert f"A retry resumes {folder} from its last checkpoint" in err and "delete that folder" in err

@@ -291,8 +291,11 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
     if failed is None:
         return 130
     if failed:
+        resumed = [str(run_dir(out, cell)) for cell in failed if cell_state(out, cell) == "partial"]
+        again = (f" A retry resumes {', '.join(resumed)} from its last checkpoint: if it fails the same way, delete "
+                 "that folder to train the cell from the start.") if resumed else ""
         print(f"study: {len(failed)} of {total} cells failed: {', '.join(c.id for c in failed)}; the others are "
-              f"done. Run the same command again to retry them.", file=sys.stderr)
+              f"done. Run the same command again to retry them.{again}", file=sys.stderr)
         return 1
     return 0
 
