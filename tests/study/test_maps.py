@@ -161,7 +161,10 @@ def test_the_map_statistics_and_paths_by_hand(tmp_path):
     text = render_text(record)
     assert "map of sweep 'map' at night" in text and f"*{mean:.4f} [{mean - half:.4f}, {mean + half:.4f}]" in text
     assert "inside the best point's interval" in text and "optics.f_number 4 -> 2.2" in text
-    assert "cost: grid 4 points, 16 runs, 480 s; learned learned 4 runs, 120 s" in text
+    assert "cost: grid 4 points, 16 runs, 480 s; learned design 'learned' 4 runs, 120 s" in text
+    # sequence folds: the means are over (fold, seed) cells; the learned camera is named once, as a design
+    assert "map of sweep 'map' at night: mIoU mean over (fold, seed) [95% interval]" in text
+    assert "learned design 'learned' (learns optics.f_number): " in text and "learned learned" not in text
     assert plot_maps(record, tmp_path / "map.png") and (tmp_path / "map.png").stat().st_size > 10_000
 
     # a learned design outside the best's interval
@@ -187,22 +190,29 @@ def test_a_trajectory_needs_recorded_epochs(tmp_path):
 
 
 def test_the_smoke_map_runs_and_reports_its_map(tmp_path, capsys):
+    """The mechanics only (one seed, 2 epochs: too short to learn); tests/test_tutorial.py runs the plan as shipped
+    and checks that its map is not flat."""
     out = tmp_path / "study"
     assert main(["study", "run", "smoke_map", "--out", str(out), "--set", "study.seeds=[0]", "--set",
-                 "train.epochs=2", "--set", "train.eval_every=2", "--set", "data.scenes_train=16"]) == 0
+                 "train.epochs=2", "--set", "train.eval_every=2", "--set", "data.scenes_train=16", "--set",
+                 "data.scenes_val=4"]) == 0
     report, plot = tmp_path / "report.json", tmp_path / "report.png"
     assert main(["study", "report", str(out), "--json", str(report), "--plot", str(plot), "--resamples", "20"]) == 0
     printed = capsys.readouterr().out
     assert f"wrote {tmp_path / 'report_map.png'}" in printed and "map of sweep 'map' at night" in printed
+    # no folds: the means are over seeds; one run is "1 run"
+    assert "map of sweep 'map' at night: mIoU mean over seeds [95% interval]" in printed
+    assert "; learned design 'learned' 1 run, " in printed and "learned learned" not in printed
     assert (tmp_path / "report_map.png").stat().st_size > 10_000
     [entry] = json.loads(report.read_text())["maps"]
     assert entry["parameters"] == ["optics.f_number", "optics.exposure_ms"]
-    assert [point["camera"] for point in entry["grid"]] == ["map_f2_t5", "map_f2_t20", "map_f4_t5", "map_f4_t20"]
+    assert [point["camera"] for point in entry["grid"]] == ["map_f1p4_t2", "map_f1p4_t20", "map_f5p6_t2",
+                                                             "map_f5p6_t20"]
     assert all(point["miou"]["n"] == 1 for point in entry["grid"])
     [learned] = entry["learned"]
     assert learned["learns"] == ["optics.f_number", "optics.exposure_ms"]
     [run] = learned["runs"]
-    assert run["epochs"] == [None, 0, 1] and run["path"][0] == [4.0, 5.0]
+    assert run["epochs"] == [None, 0, 1] and run["path"][0] == [5.6, 2.0]
     assert all(1.4 <= f <= 8.0 and 1.0 <= t <= 30.0 for f, t in run["path"])
 
 
@@ -230,19 +240,61 @@ def test_a_one_key_sweep_is_a_curve_with_the_learned_path_at_its_score(tmp_path)
     assert plot_maps(record, tmp_path / "curve.png") and (tmp_path / "curve.png").stat().st_size > 10_000
 
 
-def test_a_flat_map_names_no_best_point(tmp_path):
-    """Every point at the same mean (runs too short to learn, as in a smoke run): the report says they tie instead of
-    starring whichever came first."""
-    body = '\n[[sweep]]\nname = "t"\ngrid = { "optics.exposure_ms" = [3.0, 10.0, 30.0] }\n'
+def _plot_texts(record: dict, path: Path, monkeypatch) -> list[tuple[str, list[str]]]:
+    """`plot_maps`'s figure as written: per map axis, its title and legend entries."""
+    import matplotlib.figure
+
+    texts, save = [], matplotlib.figure.Figure.savefig
+
+    def saving(figure, *args, **kwargs):
+        for axis in figure.axes:
+            if axis.get_title():
+                legend = axis.get_legend()
+                texts.append((axis.get_title(), [t.get_text() for t in legend.get_texts()] if legend else []))
+        return save(figure, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", saving)
+    assert plot_maps(record, path) and path.stat().st_size > 10_000
+    return texts
+
+
+def test_a_flat_map_names_no_best_point(tmp_path, monkeypatch):
+    """Every point at the same mean (runs too short to learn, as in a smoke run): the report, the plot's title and
+    its legend say that the points tie and that no point is best, instead of starring whichever came first (or
+    titling "best None")."""
+    body = ('\n[[sweep]]\nname = "t"\ngrid = { "optics.exposure_ms" = [3.0, 10.0, 30.0] }\n'
+            '\n[[camera]]\nname = "learned"\nset = ["optics.exposure_learnable=true"]\n')
     plan = load_plan(_plan(tmp_path, body, reference="t_exposure_ms3"))
     keys = [("", 0), ("", 1)]
     flat = {("", 0): 0.0005, ("", 1): 0.0005}
-    _fabricate(tmp_path / "study", plan, {"t_exposure_ms3": flat, "t_exposure_ms10": flat,
+    _fabricate(tmp_path / "study", plan, {"t_exposure_ms3": flat, "t_exposure_ms10": flat, "learned": flat,
                                           "t_exposure_ms30": {("", 0): 0.0004, ("", 1): 0.0005}},
                {key: [12.0, 14.0] for key in keys})
+    for seed in (0, 1):
+        (tmp_path / "study" / "runs" / f"learned.night.seed{seed}" / "metrics.jsonl").write_text(
+            '{"epoch": 0, "exposure_ms": 10.0}\n{"epoch": 1, "exposure_ms": 10.0}\n')
     record = study_record(tmp_path / "study", resamples=20, block=2)
     [entry] = record["maps"]
     assert entry["best"]["tied"] == ["t_exposure_ms3", "t_exposure_ms10"]
+    [learned] = entry["learned"]
+    assert learned["inside_best_interval"] is None  # no best point, so no best point's interval to be inside
     text = render_text(record)
     assert "best: none, 2 points tie at 0.0005 (t_exposure_ms3, t_exposure_ms10)" in text and ": *0." not in text
-    assert plot_maps(record, tmp_path / "flat.png")
+    assert ("learned design 'learned' (learns optics.exposure_ms): 0.0005 [0.0005, 0.0005], +0.0000 to the tied "
+            "points; no point is best: the grid ties") in text
+    assert "map of sweep 't' at night: mIoU mean over seeds [95% interval]" in text  # a plan without folds
+    [(title, legend)] = _plot_texts(record, tmp_path / "flat.png", monkeypatch)
+    assert title == "t at night (heldout): no best point, 2 points tie at 0.001" and "None" not in title
+    assert legend == ["learned: 0.001 (no point is best: the grid ties)"]
+
+
+def test_the_plot_names_the_best_point_and_the_learned_designs_place(tmp_path, monkeypatch):
+    plan = load_plan(_plan(tmp_path))
+    keys = [("", 0), ("", 1)]
+    base = {"map_f1p4_t3": 0.40, "map_f1p4_t30": 0.50, "map_f4_t3": 0.30, "map_f4_t30": 0.45, "learned": 0.20}
+    scores = {camera: {("", 0): value, ("", 1): value + 0.02} for camera, value in base.items()}
+    _fabricate(tmp_path / "study", plan, scores, {key: [4.0, 3.0, 2.5] for key in keys})
+    record = study_record(tmp_path / "study", resamples=20, block=2)
+    [(title, legend)] = _plot_texts(record, tmp_path / "map.png", monkeypatch)
+    assert title == "map at night (heldout): best map_f1p4_t30 0.510"
+    assert legend == ["learned: 0.210 (outside the best point's interval)"]

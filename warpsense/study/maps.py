@@ -1,6 +1,7 @@
 """The camera designer's map: per ``[[sweep]]`` of a study plan, light level and split, the score of every grid point
-(mean over (fold, seed) cells with the groups' interval, `warpsense.study.statistics.fold_interval`), the best point,
-and each learned design's path through the same parameters over its epochs, with its final score beside the grid's.
+(mean over (fold, seed) cells, over seeds in a plan without folds, with the groups' interval,
+`warpsense.study.statistics.fold_interval`), the best point (none where the best mean is tied), and each learned
+design's path through the same parameters over its epochs, with its final score beside the grid's.
 
 A camera is drawn on a sweep's map when its config learns at least one of the swept keys (`LEARNED_KEYS`); a swept
 key it does not learn stays at its config value along the path. The path starts at the config's value and then
@@ -110,10 +111,11 @@ def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: di
 
     Returns:
         Per map: split, sweep, light, parameters (the swept keys), labels, values (per key), grid (per point: camera,
-        values, miou interval or None, cells), best (the grid point of highest mean), learned (per learned camera:
-        its learned keys, miou interval, difference to the best point's mean, whether its mean lies inside the best
-        point's interval (None without one), and per run its trajectory and final score) and cost (runs and
-        seconds of the grid and of each learned camera).
+        values, miou interval or None, cells), best (the grid point of highest mean; ``tied``: the points that share
+        that mean where more than one does, and then no point is the best), learned (per learned camera: its learned
+        keys, miou interval, difference to the best mean, whether its mean lies inside the best point's interval
+        (None without one, or where the points tie), and per run its trajectory and final score), cost (runs and
+        seconds of the grid and of each learned camera) and folds (the plan's: "sequence" or "none").
     """
     study_dir, plan_spec = Path(study_dir), Plan.from_dict(plan)
     swept = {camera for sweep in plan_spec.sweeps for camera, _ in sweep.points}
@@ -137,6 +139,7 @@ def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: di
                 best = max(scored, key=lambda point: point["miou"]["mean"])
                 # points at the best mean (a flat map, e.g. runs too short to learn): none of them is "the best"
                 tied = [point["camera"] for point in scored if point["miou"]["mean"] == best["miou"]["mean"]]
+                tied = tied if len(tied) > 1 else []
                 learned = []
                 for camera in plan_spec.cameras:
                     config = configs.get(camera.name)
@@ -155,15 +158,17 @@ def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: di
                     score = groups[camera.name]["miou"]
                     learned.append({"camera": camera.name, "learns": keys, "miou": score,
                                     "difference_to_best": score["mean"] - best["miou"]["mean"],
-                                    "inside_best_interval": _inside(best["miou"], score["mean"]), "runs": runs,
+                                    "inside_best_interval": None if tied else _inside(best["miou"], score["mean"]),
+                                    "runs": runs,
                                     "cost": _cost([groups[camera.name]])})
                 maps.append({"split": split, "sweep": sweep.name, "light": light.name,
                              "parameters": list(sweep.parameters), "labels": list(sweep.labels),
                              "values": [list(v) for v in sweep.values], "grid": grid,
                              "best": {"camera": best["camera"], "values": best["values"], "miou": best["miou"],
-                                      "tied": tied if len(tied) > 1 else []},
+                                      "tied": tied},
                              "learned": learned,
-                             "cost": {"points": len(grid), **_cost([groups[p["camera"]] for p in scored])}})
+                             "cost": {"points": len(grid), **_cost([groups[p["camera"]] for p in scored])},
+                             "folds": plan.get("folds", "none")})
     return maps
 
 
@@ -176,6 +181,23 @@ def _seconds(cost: dict) -> str:
     return "" if cost["run_s"] is None else f", {cost['run_s']:.0f} s"
 
 
+def _runs(count: int) -> str:
+    return f"{count} run" if count == 1 else f"{count} runs"
+
+
+def _over(entry: dict) -> str:
+    """What a map's means are over: (fold, seed) cells with sequence folds, seeds without."""
+    return "(fold, seed)" if entry.get("folds") == "sequence" else "seeds"
+
+
+def _comparison(learned: dict, tied: list) -> str:
+    """Where a learned design's mean lies against the best point's interval, in words."""
+    if tied:
+        return "no point is best: the grid ties"
+    return {True: "inside the best point's interval", False: "outside the best point's interval",
+            None: "the best point has no interval"}[learned["inside_best_interval"]]
+
+
 def map_lines(maps: list[dict], level: str = "95%") -> list[str]:
     """The console text of the report's ``maps``: the grid (a table for two keys), the best point, each learned
     design's path (start -> end per run) and score beside the best point's, and what each cost."""
@@ -183,7 +205,7 @@ def map_lines(maps: list[dict], level: str = "95%") -> list[str]:
     for entry in maps:
         parameters, grid = entry["parameters"], entry["grid"]
         lines.append(f"\n[{entry['split']}] map of sweep {entry['sweep']!r} at {entry['light']}: mIoU mean over "
-                     f"(fold, seed) [{level} interval] per point of {' x '.join(parameters)}; * the best")
+                     f"{_over(entry)} [{level} interval] per point of {' x '.join(parameters)}; * the best")
         tied = entry["best"].get("tied", [])
         cells = {tuple(map(repr, p["values"])): ("*" if p["camera"] == entry["best"]["camera"] and not tied else "") +
                  interval_text(p["miou"]) for p in grid}
@@ -210,20 +232,19 @@ def map_lines(maps: list[dict], level: str = "95%") -> list[str]:
             lines.append(f"  best: {best['camera']} ({_point(parameters, best['values'])}): "
                          f"{interval_text(best['miou'])}")
         for learned in entry["learned"]:
-            inside = {True: "inside", False: "outside", None: "not comparable with"}[learned["inside_best_interval"]]
-            lines.append(f"  learned {learned['camera']} (learns {', '.join(learned['learns'])}): "
-                         f"{interval_text(learned['miou'])}, {learned['difference_to_best']:+.4f} to the best; {inside} the "
-                         "best point's interval")
+            lines.append(f"  learned design {learned['camera']!r} (learns {', '.join(learned['learns'])}): "
+                         f"{interval_text(learned['miou'])}, {learned['difference_to_best']:+.4f} to the "
+                         f"{'tied points' if tied else 'best'}; {_comparison(learned, tied)}")
             for run in learned["runs"]:
                 moves = ", ".join(f"{key} {start:.3g} -> {end:.3g}" for key, start, end in
                                   zip(parameters, run["path"][0], run["path"][-1]))
                 score = "-" if run["miou"] is None else f"{run['miou']:.4f}"
                 lines.append(f"    {run['cell']}: {moves} ({len(run['path']) - 1} epochs); mIoU {score}")
         cost = entry["cost"]
-        learned_cost = "; ".join(f"{x['camera']} {x['cost']['runs']} runs{_seconds(x['cost'])}"
+        learned_cost = "; ".join(f"learned design {x['camera']!r} {_runs(x['cost']['runs'])}{_seconds(x['cost'])}"
                                  for x in entry["learned"])
-        lines.append(f"  cost: grid {cost['points']} points, {cost['runs']} runs{_seconds(cost)}"
-                     + (f"; learned {learned_cost}" if learned_cost else ""))
+        lines.append(f"  cost: grid {cost['points']} points, {_runs(cost['runs'])}{_seconds(cost)}"
+                     + (f"; {learned_cost}" if learned_cost else ""))
     return lines
 
 
@@ -271,7 +292,8 @@ def plot_maps(record: dict, path: str | Path, split: str | None = None) -> bool:
     for axis, entry in zip(axes[0], maps):
         values, labels, grid = entry["values"], entry["labels"], entry["grid"]
         places = [_positions(v) for v in values]
-        best = None if entry["best"].get("tied") else entry["best"]["camera"]  # a flat map outlines no point
+        tied = entry["best"].get("tied", [])
+        best = None if tied else entry["best"]["camera"]  # a flat map outlines no point
         if len(values) == 2:
             means = np.full((len(values[1]), len(values[0])), np.nan)
             scores = [p["miou"]["mean"] for p in grid if p["miou"] is not None]
@@ -287,7 +309,7 @@ def plot_maps(record: dict, path: str | Path, split: str | None = None) -> bool:
                 if point["camera"] == best:
                     axis.add_patch(plt.Rectangle((i - 0.5, j - 0.5), 1, 1, fill=False, edgecolor="red", linewidth=2.5))
             image = axis.imshow(means, origin="lower", cmap="viridis", aspect="auto")
-            figure.colorbar(image, ax=axis, label=f"{entry['split']} mIoU (mean over (fold, seed))")
+            figure.colorbar(image, ax=axis, label=f"{entry['split']} mIoU (mean over {_over(entry)})")
             axis.set_xticks(range(len(values[0])), [_tick(labels[0], v) for v in values[0]])
             axis.set_yticks(range(len(values[1])), [_tick(labels[1], v) for v in values[1]])
             axis.set_ylabel(entry["parameters"][1])
@@ -300,13 +322,12 @@ def plot_maps(record: dict, path: str | Path, split: str | None = None) -> bool:
                 axis.errorbar(i, miou["mean"], yerr=error, fmt="s", capsize=4,
                               color="red" if point["camera"] == best else "tab:blue")
             axis.set_xticks(range(len(values[0])), [_tick(labels[0], v) for v in values[0]])
-            axis.set_ylabel(f"{entry['split']} mIoU (mean over (fold, seed), interval)")
+            axis.set_ylabel(f"{entry['split']} mIoU (mean over {_over(entry)}, interval)")
             axis.grid(alpha=0.3)
         axis.set_xlabel(entry["parameters"][0])
         for n, learned in enumerate(entry["learned"]):
             colour = colours[n % len(colours)]
-            inside = {True: "inside", False: "outside", None: "n/a"}[learned["inside_best_interval"]]
-            label = f"{learned['camera']}: {learned['miou']['mean']:.3f} ({inside} best's interval)"
+            label = f"{learned['camera']}: {learned['miou']['mean']:.3f} ({_comparison(learned, tied)})"
             for k, run in enumerate(learned["runs"]):
                 if any(place is None for place in places):
                     continue
@@ -317,8 +338,10 @@ def plot_maps(record: dict, path: str | Path, split: str | None = None) -> bool:
                 axis.plot(xs[-1], ys[-1], "*", color=colour, markersize=13, markeredgecolor="black")
         if entry["learned"]:
             axis.legend(fontsize=7, loc="best")
-        axis.set_title(f"{entry['sweep']} at {entry['light']} ({entry['split']}): best {best} "
-                       f"{entry['best']['miou']['mean']:.3f}", fontsize=9)
+        mean = entry["best"]["miou"]["mean"]
+        axis.set_title(f"{entry['sweep']} at {entry['light']} ({entry['split']}): "
+                       + (f"no best point, {len(tied)} points tie at {mean:.3f}" if tied else f"best {best} {mean:.3f}"),
+                       fontsize=9)
     figure.suptitle(f"study {record['study']}: design map (o start, * end of each learned run)", fontsize=10)
     figure.tight_layout()
     figure.savefig(path, dpi=110)
