@@ -44,6 +44,9 @@ CFA_FILTERS = "RGBCY"
 BAYER_LAYOUTS = tuple(name for name, rows in CFA_LAYOUTS.items() if set("".join(rows)) <= set("RGB"))
 """The layouts with red, green and blue filters only: those a DNG's CFA pattern can be."""
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
+"""sRGB image files (scenes `warpsense simulate` captures; not raw captures)."""
+
 CFA_MODES = ("softmax", "gumbel", "free", "fixed")
 """How the CFA responses are parametrised (`warpsense.camera.cfa.CFA`)."""
 

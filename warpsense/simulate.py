@@ -26,9 +26,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from warpsense.choices import BAYER_LAYOUTS
+from warpsense.choices import BAYER_LAYOUTS, IMAGE_SUFFIXES
 
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".webp"}
 LINEAR_SUFFIXES = {".tif", ".tiff", ".png"}
 DNG_BITS_WITHOUT_QUANTIZER = 16
 """Bit depth of the DNG codes when the camera has no ADC stage (its RAW is continuous)."""

@@ -98,3 +98,16 @@ def test_predict_names_a_folder_given_as_the_capture(tmp_path, capsys):
     out = tmp_path / "p.png"
     assert_clean_failure(capsys, ["predict", str(CHECKPOINT), str(folder), "--out", str(out), "--device", "cpu"],
                          (f"{folder}: is a folder, expected a raw file",), watched=tmp_path)
+
+
+def test_predict_points_an_srgb_image_to_simulate(tmp_path, capsys):
+    """An sRGB PNG given as the capture was "LibRaw cannot read it" alone; it is a scene, which `warpsense
+    simulate` turns into a capture."""
+    import numpy as np
+    from PIL import Image
+
+    scene = tmp_path / "street.png"
+    Image.fromarray(np.zeros((8, 8, 3), dtype=np.uint8)).save(scene)
+    out = tmp_path / "p.png"
+    assert_clean_failure(capsys, ["predict", str(CHECKPOINT), str(scene), "--out", str(out), "--device", "cpu"],
+                         (f"{scene}: LibRaw cannot read it", "warpsense simulate"), watched=tmp_path)

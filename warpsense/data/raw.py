@@ -23,7 +23,7 @@ from safetensors.torch import save_file
 from torch.nn import functional as F
 from tqdm import tqdm
 
-from warpsense.choices import BAYER_LAYOUTS
+from warpsense.choices import BAYER_LAYOUTS, IMAGE_SUFFIXES
 from warpsense.errors import first_line
 from warpsense.files import atomic_write
 
@@ -85,7 +85,9 @@ def read_raw_file(path: str | Path) -> tuple[np.ndarray, dict]:
     try:
         raw = rawpy.imread(str(path))
     except (rawpy.LibRawError, OSError) as error:
-        raise RawFileError(f"{path}: LibRaw cannot read it ({type(error).__name__}: {error})") from None
+        hint = ("; an sRGB image is a scene, not a capture: `warpsense simulate` makes a camera's capture of it"
+                if path.suffix.lower() in IMAGE_SUFFIXES else "")
+        raise RawFileError(f"{path}: LibRaw cannot read it ({type(error).__name__}: {error}){hint}") from None
     try:
         with raw:
             return _decode(raw, path, rawpy)
