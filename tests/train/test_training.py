@@ -376,3 +376,26 @@ def test_validation_takes_train_eval_batch_size(tmp_path, monkeypatch, eval_batc
     evaluation = json.loads((run / "evaluation.json").read_text())
     assert 0 <= evaluation["splits"]["val"]["miou"] <= 1
 
+
+
+def test_a_run_folder_that_cannot_be_created_is_one_line_naming_the_key(tmp_path, monkeypatch, capsys):
+    """A folder the process may not create (under /proc, another user's) was a bare "[Errno 13] ..." naming no
+    key; nothing is left behind."""
+    import errno
+    import pathlib
+
+    from warpsense.cli import main
+
+    real_mkdir = pathlib.Path.mkdir
+
+    def refuse(self, *args, **kwargs):
+        if self.name == "denied":
+            raise PermissionError(errno.EACCES, "Permission denied", str(self))
+        return real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(pathlib.Path, "mkdir", refuse)
+    assert main(["train", "--set", f"run.output_dir={tmp_path / 'out'}", "--set", "run.name=denied",
+                 "--set", "train.epochs=1", "--set", "train.warmup_epochs=0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "run.output_dir" in err and "Permission denied" in err
+    assert not (tmp_path / "out").exists()

@@ -171,7 +171,11 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
     created = next((folder for folder in (*reversed(run_dir.parents), run_dir) if not folder.exists()), None) \
         if context.is_main else None
     if context.is_main:
-        run_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as error:  # e.g. a folder under /proc, or one another user owns: name the key, not errno
+            raise ValueError(f"run.output_dir {config.run.output_dir}: cannot create the run folder {run_dir} "
+                             f"({error.strerror})") from None
         lock.acquire()
     try:
         with deterministic_algorithms(config.run.deterministic):
