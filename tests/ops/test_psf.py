@@ -305,6 +305,19 @@ def test_exception_too_large_for_int32_offsets():
         _check_offsets(torch.empty(64, 3, 4000, 3000, device="meta"), 7)
 
 
+def test_auto_takes_cudnn_alone_for_an_image_past_the_kernels_offsets(monkeypatch):
+    """For one PSF, `auto` times its exact paths once per shape on CUDA; an image past the Warp kernels' int32
+    offsets leaves cuDNN's conv2d alone (timing the Warp paths would raise), without timing anything."""
+    from warpsense.ops import psf as psf_module
+
+    monkeypatch.setattr(psf_module, "_time_path", lambda *a, **k: pytest.fail("timed a path"))
+    monkeypatch.setattr(torch.cuda, "is_current_stream_capturing", lambda: False)
+    # a stand-in for a CUDA image of that shape (nothing of it is read but these attributes)
+    large = type("LargeCudaImage", (), {"shape": torch.Size((64, 3, 4000, 3000)), "dtype": torch.float32,
+                                        "requires_grad": False, "device": torch.device("cuda")})()
+    assert psf_module._fastest_invariant(large, torch.empty(3, 1, 1, 15, 15)) == "conv2d"
+
+
 def test_cells_start_on_a_16_byte_boundary():
     """The kernels load a cell's four node values in one 16-byte load on CUDA: a view that starts elsewhere is
     copied (same values), an aligned tensor passed as it is."""

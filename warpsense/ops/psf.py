@@ -122,15 +122,20 @@ def _nodes(cells: torch.Tensor) -> Vectors:
     return Vectors(cells)
 
 
+def _offsets_fit(shape, radius: int) -> bool:
+    """Whether the kernels' int32 element offsets reach every element for an image of ``shape`` [B, C, H, W]: the
+    largest plane (the image adjoint's zero-padded gradient) below 2**31 elements."""
+    batch, channels, height, width = shape
+    return batch * channels * (height + 4 * radius + kernels.ROWS - 1) * (width + 4 * radius + kernels.TAPS - 1) \
+        < 2**31
+
+
 def _check_offsets(image: torch.Tensor, radius: int) -> None:
-    """The kernels address their planes by int32 element offsets: the largest (the image adjoint's zero-padded
-    gradient) must stay below 2**31 elements."""
-    batch, channels, height, width = image.shape
-    elements = batch * channels * (height + 4 * radius + kernels.ROWS - 1) * (width + 4 * radius + kernels.TAPS - 1)
-    if elements >= 2**31:
+    """`_offsets_fit`, or a one-line ValueError naming the shape (each kernel launcher calls it)."""
+    if not _offsets_fit(image.shape, radius):
         raise ValueError(f"psf_conv: image {tuple(image.shape)} with a {2 * radius + 1}-tap PSF is too large for "
-                         f"the kernels' int32 offsets ({elements} padded elements, at most 2**31 - 1); split the "
-                         "batch")
+                         "the Warp kernels' int32 offsets (2**31 padded elements); split the batch, or use "
+                         "method 'conv2d' or 'fft' for one PSF")
 
 
 def _fold_padding(grad_source: torch.Tensor, radius: int) -> torch.Tensor:
@@ -153,6 +158,7 @@ def _psf_backward_image(grad_out: torch.Tensor, cells: torch.Tensor, grid_y: int
     padding folds back onto the border pixels."""
     batch, channels, height, width = grad_out.shape
     radius = cells.shape[2] // 2
+    _check_offsets(grad_out, radius)
     rows, cols = _source_tables(grad_out, grid_y, grid_x, radius)
     padded_grad = _padded_gradient(grad_out, radius, cells.dtype)
     grad_source = padded_grad.new_empty(batch * channels, height + 2 * radius, width + 2 * radius)
@@ -179,6 +185,7 @@ def _psf_backward_cells(image: torch.Tensor, grad_out: torch.Tensor, cells: torc
     batch, channels, height, width = image.shape
     size = cells.shape[2]
     radius = size // 2
+    _check_offsets(image, radius)
     cells_y, cells_x = max(grid_y - 1, 1), max(grid_x - 1, 1)
     rows, cols = _source_tables(image, grid_y, grid_x, radius)
     tap_groups = channels * size * -(-size // kernels.TAPS)
@@ -324,6 +331,9 @@ def _fastest_invariant(image: torch.Tensor, psf: torch.Tensor) -> str:
             or torch.cuda.is_current_stream_capturing()):
         return _FASTEST.get(key, "conv2d")
     if key not in _FASTEST:
+        if not _offsets_fit(image.shape, psf.shape[-1] // 2):  # too large for the Warp paths: cuDNN's alone
+            _FASTEST[key] = "conv2d"
+            return "conv2d"
         probe = torch.rand_like(image).requires_grad_(needs[0])
         kernel = psf.detach().clone().requires_grad_(needs[1])
         with torch.enable_grad() if any(needs) else torch.no_grad():
