@@ -330,3 +330,17 @@ def test_cells_start_on_a_16_byte_boundary():
     assert nodes.data_ptr() % 16 == 0 and torch.equal(nodes, view)
     aligned = torch.rand(3, 4, 5, 5, 4)
     assert _nodes(aligned).tensor is aligned
+
+
+
+@pytest.mark.parametrize("device", device_params())
+def test_gradients_match_reference_for_channels_last_gradients_of_one_image(device):
+    """The kernels read their planes by flat offset: a channels-last gradient of a batch of one padded and reshaped
+    to a strided view, which they read as contiguous (gradients summed to about half their values). Both
+    gradients against the reference for that layout, the image's too."""
+    image = torch.rand(1, 3, 20, 24, dtype=torch.float64, device=device, requires_grad=True)
+    psf = random_psf(3, 2, 2, 5, device=device).requires_grad_()
+    grad = torch.rand(1, 3, 20, 24, dtype=torch.float64, device=device).to(memory_format=torch.channels_last)
+    assert_matches_reference(psf_conv, psf_conv_reference, (image, psf), grad)
+    channels_last = image.detach().to(memory_format=torch.channels_last).requires_grad_()
+    assert_matches_reference(psf_conv, psf_conv_reference, (channels_last, psf), grad)

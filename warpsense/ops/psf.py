@@ -94,7 +94,8 @@ def _padded_source(image: torch.Tensor, radius: int) -> torch.Tensor:
     borders)."""
     batch, channels = image.shape[:2]
     padded = F.pad(image, (radius, radius, radius, radius + kernels.ROWS - 1), mode="replicate")
-    return padded.reshape(batch * channels, *padded.shape[-2:])
+    # contiguous: the kernels read by flat offset (a channels-last pad of one image reshapes to a strided view)
+    return padded.reshape(batch * channels, *padded.shape[-2:]).contiguous()
 
 
 def _padded_gradient(grad_out: torch.Tensor, radius: int, dtype: torch.dtype) -> torch.Tensor:
@@ -103,7 +104,7 @@ def _padded_gradient(grad_out: torch.Tensor, radius: int, dtype: torch.dtype) ->
     batch, channels = grad_out.shape[:2]
     pad = 2 * radius
     padded = F.pad(grad_out.to(dtype), (pad, pad + kernels.TAPS - 1, pad, pad + kernels.ROWS - 1))
-    return padded.reshape(batch * channels, *padded.shape[-2:])
+    return padded.reshape(batch * channels, *padded.shape[-2:]).contiguous()  # read by flat offset
 
 
 FORWARD_BLOCK = kernels.FORWARD_BOUNDS[0]
@@ -111,12 +112,14 @@ FORWARD_BLOCK = kernels.FORWARD_BOUNDS[0]
 more warps a multiprocessor than Warp's 256 for a kernel of many registers a thread (docs/benchmarks.md, PSF
 convolution)."""
 CELLS_BLOCK = 128
-"""Threads per block of the PSF-adjoint launch (96 registers a thread: 20 warps a multiprocessor against 16)."""
+"""Threads per block of the PSF-adjoint launch (with 128 its forward + PSF gradient ran 1.25 against 1.40 ms at 256
+when the adjoint took 96 registers; at its 114 now both sizes fit 16 warps a multiprocessor)."""
 
 
 def _nodes(cells: torch.Tensor) -> Vectors:
     """The cells as the kernels' 4-vectors: they load a 4-vector by its flat offset, in one 16-byte load on CUDA,
-    so the tensor must start on a 16-byte boundary (a copy when a view does not)."""
+    so the tensor must be contiguous and start on a 16-byte boundary (a copy when a view is not)."""
+    cells = cells.contiguous()
     if cells.data_ptr() % 16:
         cells = cells.clone()
     return Vectors(cells)
