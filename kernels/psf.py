@@ -40,7 +40,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 # Loads by flat element offset from a contiguous array's start. Warp's `array[i, j, k]` computes a 64-bit byte
-# offset per axis and wraps negative indices per axis on every access: in the forward that was two thirds of the
+# offset per axis and wraps negative indices per axis on every access: in the forward that was about half of the
 # instructions (docs/benchmarks.md, PSF convolution). With offsets the compiler folds a constant step into the load
 # (`at + i * size` with i and size constants) and keeps one running offset per loop. On CUDA a 4-vector of float32 is
 # one 16-byte load (the op layer passes 16-byte-aligned cells).
@@ -161,7 +161,7 @@ def psf_backward_cells(
     window = wp.vector(length=wp.static(2 * TAPS - 1), dtype=source.dtype)
     values = wp.vector(length=TAPS, dtype=source.dtype)
     weighted = wp.vector(length=TAPS, dtype=source.dtype)
-    blocks = (t_end - t_first) / TAPS
+    blocks = wp.max(t_end - t_first, 0) / TAPS  # an empty chunk (wide, short cells on a GPU) has none
     for s in range(s_start, s_stop):
         grads = (bc * padded_grad.shape[1] + s + i) * padded_grad.shape[2] + j0  # padded_grad[bc, s + i, j0 + 0]
         sources = (bc * source.shape[1] + s) * source.shape[2]  # source[bc, s, 0]

@@ -64,14 +64,15 @@ def check_plot_file(path: str | Path | None, what: str) -> None:
     from matplotlib.backend_bases import FigureCanvasBase
 
     formats = FigureCanvasBase.get_supported_filetypes()
-    if Path(path).suffix.lower().lstrip(".") not in formats:
+    if Path(path).suffix.lower().lstrip(".") not in formats:  # plot_format's PNG default is for the Python API
         raise ValueError(f"{what} {path}: the file's suffix names the image format, one of "
                          f"{', '.join('.' + name for name in sorted(formats))}")
 
 
 def plot_format(path: str | Path) -> str:
-    """The image format a figure path's suffix names (`check_plot_file` checked it), for a save to another name."""
-    return Path(path).suffix.lower().lstrip(".")
+    """The image format a figure path's suffix names (`check_plot_file` checked it; PNG without a suffix), for a
+    save to another (temporary) name."""
+    return Path(path).suffix.lower().lstrip(".") or "png"
 
 
 def check_output_folder(path: str | Path, what: str) -> None:

@@ -380,7 +380,7 @@ def test_validation_takes_train_eval_batch_size(tmp_path, monkeypatch, eval_batc
 
 def test_a_run_folder_that_cannot_be_created_is_one_line_naming_the_key(tmp_path, monkeypatch, capsys):
     """A folder the process may not create (under /proc, another user's) was a bare "[Errno 13] ..." naming no
-    key; nothing is left behind."""
+    key; the output folders made above it are removed."""
     import errno
     import pathlib
 
@@ -389,7 +389,8 @@ def test_a_run_folder_that_cannot_be_created_is_one_line_naming_the_key(tmp_path
     real_mkdir = pathlib.Path.mkdir
 
     def refuse(self, *args, **kwargs):
-        if self.name == "denied":
+        if self.name == "denied":  # its parents made first (as mkdir(parents=True) does), then the refusal
+            real_mkdir(self.parent, parents=True, exist_ok=True)
             raise PermissionError(errno.EACCES, "Permission denied", str(self))
         return real_mkdir(self, *args, **kwargs)
 

@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
 
 def run_lens(name_or_path: str, as_json: bool = False, plot: str | None = None) -> int:
     """Print the report of `warpsense.optics.report.lens_report` (text, or JSON with ``as_json``); with ``plot``
-    also write `warpsense.optics.mtf.plot_lens`'s PNG there."""
+    also write `warpsense.optics.mtf.plot_lens`'s figure there."""
     from warpsense.optics import report
     from warpsense.optics.lens import Lens
 

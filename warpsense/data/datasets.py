@@ -109,7 +109,8 @@ def read_split_lists(root: Path, split: str, resolve, kind: str) -> list[tuple[P
         listing = root / f"{part}.txt"
         if not listing.is_file():
             raise DatasetError(f"{listing}: {kind} split list not found (expected <root>/{part}.txt with "
-                               "'image label' lines; data.root names the folder, e.g. --set data.root=DIR)")
+                               "'image label' lines; the folder is data.root: --set data.root=DIR, or eval's "
+                               "--data-root, bench's --camvid)")
         pairs += read_pair_list(listing, resolve)
     return pairs
 

@@ -174,6 +174,7 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
         try:
             run_dir.mkdir(parents=True, exist_ok=True)
         except OSError as error:  # e.g. a folder under /proc, or one another user owns: name the key, not errno
+            _discard_unfinished(run_dir, created)  # the output folders made above it
             raise ValueError(f"run.output_dir {config.run.output_dir}: cannot create the run folder {run_dir} "
                              f"({error.strerror})") from None
         lock.acquire()

@@ -33,8 +33,8 @@ def measure(rows: int, taps: int, reference: str | None, blocks: tuple[int, int]
     if blocks:  # threads per block of the forward (and image adjoint) and of the PSF adjoint[, the forward's
         # minimum blocks a multiprocessor: its launch bounds, which cap its registers]
         psf_module.FORWARD_BLOCK, psf_module.CELLS_BLOCK = blocks[:2]
-        if len(blocks) > 2:
-            kernels.FORWARD_BOUNDS = (blocks[0], blocks[2])
+        # the forward's launch bounds must admit its block: the given minimum blocks, or none
+        kernels.FORWARD_BOUNDS = (blocks[0], blocks[2]) if len(blocks) > 2 else None
 
     torch.manual_seed(0)
     image = torch.rand(*SHAPE, device="cuda")
