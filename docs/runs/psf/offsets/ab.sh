@@ -22,6 +22,5 @@ done
 grep -h rows $R/old_*.txt $R/prev_*.txt $R/new_*.txt | cut -c1-150; cat $R/camera.txt
 cd /tmp/src && source tools/device/env.sh
 timeout 400 python -m pytest -q -p no:warnings -m cuda tests/ops/test_psf.py tests/ops/test_custom_ops.py tests/optics tests/camera > $R/cuda_tests.txt 2>&1; echo "cuda tests exit $?"; tail -2 $R/cuda_tests.txt
-sed -i 's/python \/tmp\/p.py > \$OUT/python \/tmp\/p.py > $OUT/' docs/runs/psf/profile.sh
 OUT=$R bash docs/runs/psf/profile.sh > $R/profile_summary.txt 2>&1; grep -E "psf_|Duration|Issue Slots|Registers Per|Achieved Occ" $R/profile_summary.txt
 echo done
