@@ -9,7 +9,6 @@ import re
 from pathlib import Path
 
 from warpsense.config import Config, ConfigError, config_from_dict, flatten_keys
-from warpsense.train.distributed import launch_rank
 
 LAST = "checkpoint_last.safetensors"
 METRICS = "metrics.jsonl"  # one JSON record per epoch
@@ -93,6 +92,8 @@ def resumed_config(run_dir: Path, requested: Config | None, allow_change: bool =
     if not changes:
         saved.run.device = requested.run.device  # the device may change; where the run lives stays the run's
         return saved
+    from warpsense.train.distributed import launch_rank  # here: the command parsers import this module, not torch
+
     if launch_rank() == 0:  # allowed, but never silent; said once under torchrun (no process group yet)
         print(f"resuming {run_dir} with config changes: {'; '.join(changes)}")
     return requested
