@@ -211,13 +211,15 @@ class Camera(nn.Module):
         Args:
             **values: names from `what_if_values` (``noise_scale``: noise levels scaled, shot by its square;
                 ``exact_noise``: true Poisson counts; ``bits``: ADC bit depth); a name no stage of this camera
-                takes is a KeyError.
+                takes is a KeyError, a value its stage cannot run with a ValueError (nothing set).
         """
         owners = {name: (stage, attribute) for _, stage in self.stages() for name, attribute in stage.what_if.items()}
         unknown = set(values) - set(owners)
         if unknown:
             raise KeyError(f"Camera.overridden: {', '.join(sorted(unknown))} not accepted by this camera; accepted: "
                            f"{', '.join(owners) or 'none'}")
+        for name, value in values.items():  # every value checked by its stage before any is set
+            owners[name][0].check_what_if(name, value)
         saved = {name: getattr(*owners[name]) for name in values}
         try:
             for name, value in values.items():

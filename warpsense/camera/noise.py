@@ -24,6 +24,15 @@ class NoisySensor(Stage):
 
     what_if = {"noise_scale": "scale", "exact_noise": "exact"}
 
+    @classmethod
+    def check_what_if(cls, name: str, value) -> None:
+        """noise_scale: a finite number >= 0 (0: no noise); exact_noise: a bool."""
+        if name == "noise_scale" and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                      or not math.isfinite(value) or value < 0):
+            raise ValueError(f"Camera.overridden: noise_scale must be a finite number >= 0, got {value!r}")
+        if name == "exact_noise" and not isinstance(value, bool):
+            raise ValueError(f"Camera.overridden: exact_noise must be True or False, got {value!r}")
+
     def __init__(self, eval_seed: int = 1234):
         super().__init__()
         self.register_buffer("seed_counter", torch.randint(0, 2**30, (1,), dtype=torch.int64))

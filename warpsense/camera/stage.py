@@ -82,6 +82,11 @@ class Stage(nn.Module):
         ``where`` and the key). Checks of single values (types, ranges, choices) belong to the config itself."""
 
     @classmethod
+    def check_what_if(cls, name: str, value) -> None:
+        """Refuse a `what_if` value this stage cannot run with (ValueError naming ``name``), before the camera sets
+        it. The default: any value."""
+
+    @classmethod
     def check_design(cls, config, where: str) -> None:
         """Refuse a whole config in which this stage cannot work with the others (e.g. a stage that replaces
         another needs it off); ValueError naming ``where`` and the keys. The default: nothing to check."""
