@@ -120,8 +120,9 @@ def test_what_if_overrides_go_through_the_camera_and_are_restored():
     assert camera.what_if_values() == {"noise_scale": 1.0, "exact_noise": False, "bits": 10}
     # values a stage cannot run with are refused by that stage before any is set (a negative noise scale ran)
     for values, message in (({"bits": 8, "noise_scale": -1.0}, "noise_scale must be a finite number >= 0"),
-                            ({"noise_scale": float("nan")}, "noise_scale"), ({"bits": 0}, r"bits must be an int in 1..24"),
-                            ({"bits": 8.0}, "bits"), ({"exact_noise": 1}, "exact_noise must be True or False")):
+                            ({"noise_scale": float("nan")}, "noise_scale"),
+                            ({"bits": 0}, r"bits must be an int in 1..24"), ({"bits": 8.0}, "bits"),
+                            ({"exact_noise": 1}, "exact_noise must be True or False")):
         with pytest.raises(ValueError, match=message):
             with camera.overridden(**values):
                 pass

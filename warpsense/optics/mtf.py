@@ -58,7 +58,8 @@ def lens_mtfs(psf_grid: np.ndarray) -> dict[str, list[dict[str, np.ndarray]]]:
 
 def plot_lens(lens, out_path: str | Path) -> Path:
     """Write the PSF grid of ``lens`` per colour (each node's PSF on a square-root scale, nodes laid out as on the
-    sensor) and the MTF of its on-axis and corner PSFs per colour (along x solid, along y dashed), in the format the path's suffix names (PNG without one)."""
+    sensor) and the MTF of its on-axis and corner PSFs per colour (along x solid, along y dashed), in the format the
+    path's suffix names (PNG without one)."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -43,7 +43,8 @@ def measure(rows: int, taps: int, reference: str | None, blocks: tuple[int, int]
     both = time_cuda_graph(lambda: torch.autograd.grad(psf_conv(image, psf, "direct").sum(), psf))
     out = psf_conv(image, psf, "direct")
     grad = torch.autograd.grad((out * torch.linspace(0, 1, SHAPE[-1], device="cuda")).sum(), psf)[0]
-    record = {"rows": rows, "taps": taps, "blocks": blocks, "forward_ms": forward["median_ms"], "forward_iqr_ms": forward["iqr_ms"],
+    record = {"rows": rows, "taps": taps, "blocks": blocks, "forward_ms": forward["median_ms"],
+              "forward_iqr_ms": forward["iqr_ms"],
               "forward_psf_grad_ms": both["median_ms"], "forward_psf_grad_iqr_ms": both["iqr_ms"]}
     if reference:
         saved = torch.load(reference)
@@ -62,8 +63,9 @@ def main() -> None:
     parser.add_argument("--against", help="compare every variant with this reference (a first run's "
                         "/tmp/psf_reference.pt, e.g. of other kernels), rather than with the first variant")
     parser.add_argument("--blocks", default="", help="threads per block, forward/PSF adjoint pairs to time at the "
-                        "shipped layout, e.g. 128/256,64/128 (with the ops' FORWARD_BLOCK and CELLS_BLOCK); a third figure sets the "
-                        "forward's launch bounds (FORWARD_BLOCK, N blocks a multiprocessor), e.g. 128/128/4")
+                        "shipped layout, e.g. 128/256,64/128 (with the ops' FORWARD_BLOCK and CELLS_BLOCK); a "
+                        "third figure sets the forward's launch bounds (FORWARD_BLOCK, N blocks a multiprocessor), "
+                        "e.g. 128/128/4")
     parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -87,7 +89,8 @@ def main() -> None:
         done = subprocess.run([sys.executable, __file__, "--child", str(rows), str(taps), reference, blocks],
                               capture_output=True, text=True, env=cache)
         if done.returncode != 0:
-            print(f"rows {rows} taps {taps} blocks {blocks}: failed: {done.stderr.strip().splitlines()[-1:]}", flush=True)
+            print(f"rows {rows} taps {taps} blocks {blocks}: failed: {done.stderr.strip().splitlines()[-1:]}",
+                  flush=True)
             continue
         record = json.loads(done.stdout.strip().splitlines()[-1])
         records.append(record)
