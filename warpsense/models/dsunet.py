@@ -231,7 +231,11 @@ class DSUNet(nn.Module):
         s1 = self.enc1(norm_relu(norm, convolution(raw)))
         s2 = self.down2(s1)
         if self.tile == 2:
-            s2 = self.mix2(torch.cat([s2, F.pixel_unshuffle(raw, 2)], dim=1))
+            # the tile's sites in the features' dtype and layout: under autocast a float32 mosaic would promote the
+            # join to float32 in NCHW, copied twice more for the convolution (bf16, channels-last); the convolution
+            # casts its input to bf16 anyway, so the values are the same
+            sites = F.pixel_unshuffle(raw, 2).to(s2.dtype).contiguous(memory_format=self.memory_format)
+            s2 = self.mix2(torch.cat([s2, sites], dim=1))
         s2 = self.enc2(s2)
         s3 = self.enc3(s2)
         s4 = self.enc4(s3)

@@ -31,7 +31,9 @@ def _upsample_concat_backward(grad_out: torch.Tensor, channels: int) -> torch.Te
 def _backward(ctx, grad_out):
     channels = ctx.channels
     grad_out = grad_out.contiguous()
-    return _upsample_concat_backward(grad_out, channels), grad_out[..., channels:].contiguous()
+    # the skip's gradient as a view: a skip feeds an encoder stage too, so autograd sums the two gradients and that
+    # sum reads the view in place of a copy
+    return _upsample_concat_backward(grad_out, channels), grad_out[..., channels:]
 
 
 def _setup(ctx, inputs, output):
