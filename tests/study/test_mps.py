@@ -71,3 +71,41 @@ def test_pool_refuses_mps_on_without_the_daemon_before_writing(tmp_path, monkeyp
     with pytest.raises(MPSError):
         runner.run_cells(load_plan("smoke"), out, gpus=["0", "1"], mps="on")
     assert not out.exists()
+
+
+def test_per_gpu_auto_takes_three_cells_a_gpu_under_mps_where_memory_holds_them(fake_control, monkeypatch):
+    from warpsense.study.mps import AUTO_CELLS, RECIPE_PIXELS, auto_cells_per_gpu, cell_memory_gib
+
+    h100 = [79.6] * 4
+    assert auto_cells_per_gpu("auto", h100, RECIPE_PIXELS)[0] == AUTO_CELLS == 3
+    small = [2.2 * cell_memory_gib(RECIPE_PIXELS)]  # holds two with 10% to spare
+    assert auto_cells_per_gpu("auto", small, RECIPE_PIXELS)[0] == 1
+    assert auto_cells_per_gpu("auto", [2.3 * cell_memory_gib(RECIPE_PIXELS)], RECIPE_PIXELS)[0] == 2
+    assert auto_cells_per_gpu("auto", [*h100, 1.0], RECIPE_PIXELS)[0] == 1  # the smallest GPU decides
+    # a cell of four times the pixels a step needs more of the GPU
+    assert cell_memory_gib(4 * RECIPE_PIXELS) > 3 * cell_memory_gib(RECIPE_PIXELS) > cell_memory_gib(0) > 0
+    count, why = auto_cells_per_gpu("off", h100, RECIPE_PIXELS)
+    assert count == 1 and "time-sliced" in why
+    assert auto_cells_per_gpu("auto", None, RECIPE_PIXELS) == (1, "the GPUs' memory could not be read (nvidia-smi)")
+    monkeypatch.setenv("PATH", "/nonexistent")  # no MPS on this machine
+    assert auto_cells_per_gpu("auto", h100, RECIPE_PIXELS)[0] == 1
+
+
+def test_study_run_says_what_per_gpu_auto_chose(fake_control, monkeypatch, capsys):
+    from warpsense.commands.study import pool_cells_per_gpu
+    from warpsense.study import load_plan
+    from warpsense.study.mps import RECIPE_PIXELS
+
+    seen, measure = {}, runner.step_pixels
+
+    def pixels(plan):
+        seen["pixels"] = measure(plan)
+        return RECIPE_PIXELS
+
+    monkeypatch.setattr(runner, "gpu_memory_gib", lambda gpus: [79.6] * len(gpus))
+    monkeypatch.setattr(runner, "step_pixels", pixels)
+    assert pool_cells_per_gpu(load_plan("smoke"), ["0", "1"], "auto") == 3
+    assert "3 cell(s) at once on each GPU (--per-gpu auto: CUDA MPS, 80 GiB a GPU" in capsys.readouterr().out
+    config = load_plan("smoke").config(load_plan("smoke").cells()[0], "runs")
+    assert seen["pixels"] == config.data.batch_size * config.data.crop_height * config.data.crop_width
+    assert pool_cells_per_gpu(load_plan("smoke"), [], "auto") == 1  # no pool: nothing to choose

@@ -154,6 +154,16 @@ def test_the_local_pool_gives_the_same_cells_as_one_process(tmp_path, capsys):
         assert here["splits"] == pool["splits"]
 
 
+def test_fewer_cells_than_slots_spread_over_the_gpus(tmp_path, capsys):
+    """Two cells, two GPUs of two slots each: one cell a GPU (the first GPU's slots start first and took both)."""
+    import re
+
+    plan = load_plan("smoke", FAST)
+    cells = plan.cells()[:2]
+    assert run_cells(plan, tmp_path, cells, gpus=["0", "1"], per_gpu=2) == 0
+    assert sorted(re.findall(r"started on GPU (\d)", capsys.readouterr().out)) == ["0", "1"]
+
+
 def test_the_local_pool_trains_its_cells_on_one_worker_process_per_slot(tmp_path, capsys):
     """One GPU slot, three cells: one worker process trains them all (its pid in each cell's log), so that the
     interpreter, CUDA context and kernel modules are paid once per slot, not once per cell."""

@@ -42,6 +42,19 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
                         "%(default)s)")
 
 
+def per_gpu_count(text: str) -> int | str:
+    """``--per-gpu``: "auto" or an integer >= 1 (argparse type; a wrong value is a usage error naming the option)."""
+    if text == "auto":
+        return text
+    if not text.lstrip("-").isdigit():
+        raise argparse.ArgumentTypeError(f"expected auto or an integer, got {text!r}")
+    return count(1)(text)
+
+
+per_gpu_count.__name__ = "integer"  # argparse and the bad-input corpus (tests/reliability) read it as a count
+per_gpu_count.minimum = 1  # the least valid number
+
+
 def _add_run(subcommands: argparse._SubParsersAction) -> None:
     """``study run``'s parser: the plan, the local pool and the Slurm executor."""
     parser = subcommands.add_parser(
@@ -61,8 +74,9 @@ def _add_run(subcommands: argparse._SubParsersAction) -> None:
     parser.add_argument("--gpus", default="auto",
                         help="GPUs of the local pool: auto (all torch sees), none (this process), or ids 0,1 "
                              "(default: %(default)s)")
-    parser.add_argument("--per-gpu", type=count(1), default=1, metavar="N",
-                        help="cells at once on each GPU (default: %(default)s)")
+    parser.add_argument("--per-gpu", type=per_gpu_count, default="auto", metavar="N|auto",
+                        help="cells at once on each GPU: auto (3 under CUDA MPS where each GPU's memory holds them, "
+                        "fewer where it holds fewer, 1 without MPS) or a number (default: %(default)s)")
     parser.add_argument("--mps", choices=MPS_MODES, default="auto",
                         help="run the pool's workers under a CUDA MPS daemon of the study's own, so that cells "
                         "sharing a GPU run concurrently instead of time-sliced: auto (with --per-gpu > 1 where "
@@ -113,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None = None, plan_only: bool = False,
-              gpus: str = "auto", per_gpu: int = 1, progress: bool = False, worker: bool = False,
+              gpus: str = "auto", per_gpu: int | str = "auto", progress: bool = False, worker: bool = False,
               reuse: list[str] | None = None, executor: str = "local", slurm: dict | None = None,
               mps: str = "auto") -> int:
     """The `warpsense study run` command; returns the exit code. ``worker``: be one of the local pool's worker
@@ -126,8 +140,8 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     from warpsense.study.slurm import slurm_options, submit_study
 
     # every option is checked here, whichever path follows (worker, plan-only, one cell, pool, Slurm)
-    if per_gpu < 1:
-        raise ValueError(f"--per-gpu must be >= 1, got {per_gpu}")
+    if per_gpu != "auto" and (not isinstance(per_gpu, int) or per_gpu < 1):
+        raise ValueError(f"--per-gpu must be auto or a number >= 1, got {per_gpu!r}")
     check_mps_mode(mps)
     devices = parse_gpus(gpus)
     cluster = slurm_options(executor, **(slurm or {}))  # before the plan loads: nothing is read or written
@@ -150,11 +164,26 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         return submit_study(plan, Path(out), cluster, None if cell is None else [plan.cell(cell)], reuse_dirs)
     if cell is not None:
         return run_cells(plan, Path(out), [plan.cell(cell)], progress=progress, record=False, reuse=reuse_dirs)
+    if per_gpu == "auto":
+        per_gpu = pool_cells_per_gpu(plan, devices, mps)
     code = run_cells(plan, Path(out), gpus=devices if len(devices) * per_gpu > 1 else None, per_gpu=per_gpu,
                      progress=progress, sample_gpus=devices, reuse=reuse_dirs, mps=mps)
     if code == 0:
         print(f"study finished; report: warpsense study report {out}")
     return code
+
+
+def pool_cells_per_gpu(plan, devices: list[str], mps: str) -> int:
+    """``--per-gpu auto`` for a local pool on ``devices`` (`warpsense.study.mps.auto_cells_per_gpu`), said in one
+    line; 1 without GPUs."""
+    from warpsense.study.mps import auto_cells_per_gpu
+    from warpsense.study.runner import gpu_memory_gib, step_pixels
+
+    if not devices:
+        return 1
+    count, why = auto_cells_per_gpu(mps, gpu_memory_gib(devices), step_pixels(plan))
+    print(f"study: {count} cell(s) at once on each GPU (--per-gpu auto: {why}; --per-gpu N sets it)", flush=True)
+    return count
 
 
 def status_study(study_dir: str) -> int:

@@ -47,6 +47,44 @@ def wanted(mode: str, per_gpu: int) -> bool:
     return found and (mode == "on" or per_gpu > 1)
 
 
+AUTO_CELLS = 3
+"""Cells a GPU takes under ``--per-gpu auto`` with MPS: 12 cells of the presets' recipe, 3 a GPU, ran at 1.30x the
+cells per GPU-hour of one a GPU by the studies' clocks (1.14x against one a GPU perfectly packed), each cell's score
+within the seeds' spread; two steps on a GPU overlap 1.13x, three 1.18x (docs/benchmarks.md, studies per GPU-hour)."""
+
+CELL_MEMORY_GIB = 14.1
+"""GPU memory a worker of the presets' recipe held at its peak (batch 16 at 352 x 480, CUDA graphs, evaluation; the
+largest of four workers as nvidia-smi counted it, 9.3-14.1 GiB, docs/runs/answers/alone_memory_peaks.json)."""
+
+CELL_FIXED_GIB = 0.8
+"""Of `CELL_MEMORY_GIB`, what does not grow with a step's pixels (the CUDA context, weights, workspaces): torch's peak
+reserved memory was 10.35 GiB at batch 16 and 20.45 at 32 (docs/runs/answers/memory*.json), 0.25 GiB at none."""
+
+RECIPE_PIXELS = 16 * 352 * 480
+"""Pixels a training step of the presets' recipe (batch x crop)."""
+
+
+def cell_memory_gib(pixels: int) -> float:
+    """Estimated GPU memory of one cell whose training step holds ``pixels`` (batch x crop height x width): the
+    recipe's measured footprint scaled in its part that grows with the activations."""
+    return CELL_FIXED_GIB + (CELL_MEMORY_GIB - CELL_FIXED_GIB) * pixels / RECIPE_PIXELS
+
+
+def auto_cells_per_gpu(mode: str, memory_gib: list[float] | None, pixels: int) -> tuple[int, str]:
+    """``--per-gpu auto``: `AUTO_CELLS` cells a GPU where the pool runs under MPS (``mode`` as `wanted` reads it)
+    and the smallest GPU holds them with 10% to spare by `cell_memory_gib`, fewer where it holds fewer, and one
+    without MPS (time-sliced cells were no faster together: docs/benchmarks.md). ``memory_gib``: each GPU's total
+    memory (None: unknown, one cell a GPU). Returns the count and why, in words."""
+    if not wanted(mode, AUTO_CELLS):
+        return 1, "without CUDA MPS cells sharing a GPU are time-sliced"
+    if not memory_gib:
+        return 1, "the GPUs' memory could not be read (nvidia-smi)"
+    need = cell_memory_gib(pixels)
+    fits = int(0.9 * min(memory_gib) // need)
+    count = max(1, min(AUTO_CELLS, fits))
+    return count, f"CUDA MPS, {min(memory_gib):.0f} GiB a GPU, ~{need:.1f} GiB a cell"
+
+
 @contextlib.contextmanager
 def mps_daemon(enabled: bool) -> Iterator[dict[str, str]]:
     """Run an MPS control daemon for the duration of the block; yields the environment variables its clients (the

@@ -8,10 +8,10 @@ of the user's (a Slurm job array, ...) runs the commands `--plan-only` prints; t
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import os
-import queue
 import shlex
 import shutil
 import signal
@@ -46,6 +46,24 @@ def gpu_busy(gpus: list[str]) -> list[float] | None:
         return [float(busy[gpu]) for gpu in gpus]
     except (OSError, subprocess.SubprocessError, ValueError, KeyError):
         return None
+
+
+def gpu_memory_gib(gpus: list[str]) -> list[float] | None:
+    """Total memory of each GPU id in GiB, from nvidia-smi; None where it cannot be read."""
+    try:
+        result = subprocess.run(["nvidia-smi", "--query-gpu=index,memory.total", "--format=csv,noheader,nounits"],
+                                capture_output=True, text=True, timeout=10, check=True)
+        total = dict(line.replace(" ", "").split(",")[:2] for line in result.stdout.strip().splitlines())
+        return [float(total[gpu]) / 1024 for gpu in gpus]
+    except (OSError, subprocess.SubprocessError, ValueError, KeyError):
+        return None
+
+
+def step_pixels(plan: Plan) -> int:
+    """The most pixels a training step of any of the plan's cells holds (batch x crop height x width)."""
+    firsts = {(cell.camera, cell.light): cell for cell in reversed(plan.cells())}  # folds and seeds share a crop
+    configs = (plan.config(cell, "runs") for cell in firsts.values())
+    return max(c.data.batch_size * c.data.crop_height * c.data.crop_width for c in configs)
 
 
 class BusySampler:
@@ -395,15 +413,31 @@ def worker_environment(gpu: str, workers: int, environ=None, cores: int | None =
 
 def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None) -> list[Cell] | None:
     """Cells on ``per_gpu`` worker processes per GPU (`cell_worker`), each taking the next pending cell when it is
-    free; each cell writes its output to <out>/logs/<cell>.log. A worker that dies fails its cell and is replaced for
-    the next. The failed cells, or None after Ctrl-C (every worker is interrupted; a cell's last checkpoint resumes
-    it)."""
-    todo: queue.Queue = queue.Queue()
-    for cell in pending:
-        todo.put(cell)
+    free and its GPU runs no more cells than any other (fewer cells than slots spread over the GPUs instead of
+    filling the first); each cell writes its output to <out>/logs/<cell>.log. A worker that dies fails its cell and
+    is replaced for the next. The failed cells, or None after Ctrl-C (every worker is interrupted; a cell's last
+    checkpoint resumes it)."""
+    todo = collections.deque(pending)
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     failed, running, lock, stopping = [], set(), threading.Lock(), threading.Event()
+    turn = threading.Condition()  # guards `todo` and `active`
+    active = dict.fromkeys(gpus, 0)  # cells running on each GPU
+
+    def take(gpu: str) -> Cell | None:
+        """The next pending cell for a slot of ``gpu`` once no other GPU runs fewer cells; None when none is left."""
+        with turn:
+            while todo and not stopping.is_set() and active[gpu] > min(active.values()):
+                turn.wait(timeout=1.0)
+            if not todo or stopping.is_set():
+                return None
+            active[gpu] += 1
+            return todo.popleft()
+
+    def release(gpu: str) -> None:
+        with turn:
+            active[gpu] -= 1
+            turn.notify_all()
 
     def start(gpu: str) -> subprocess.Popen:
         process = subprocess.Popen(worker_command(plan, out), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
@@ -422,41 +456,44 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None)
 
     def slot(gpu: str) -> None:
         process = None
-        while not stopping.is_set():
+        while (cell := take(gpu)) is not None:
             try:
-                cell = todo.get_nowait()
-            except queue.Empty:
-                break
-            prefix = f"[{numbering[cell]}/{total}] {cell.id}"
-            log = logs / f"{cell.run_name}.log"
-            print(f"{prefix}: started on GPU {gpu} (log {log})", flush=True)
-            started = time.perf_counter()
-            process = process or start(gpu)
-            try:
-                process.stdin.write(cell.id + "\n")
-                process.stdin.flush()
-                answer = process.stdout.readline().strip()
-            except OSError:
-                answer = ""
-            if stopping.is_set():
-                break
-            if answer == f"done {cell.id}" and cell_state(out, cell) == "done":
-                record = read_evaluation(out, cell)
-                print(f"{prefix}: done in {time.perf_counter() - started:.0f} s on GPU {gpu}, {score_line(record)}",
-                      flush=True)
-                continue
-            if not answer:  # the worker died: its exit status, and a fresh worker for the next cell
-                stop(process)
-                answer = f"worker exit {process.returncode}"
-                process = None
-            lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()] \
-                if log.is_file() else []
-            with lock:
-                failed.append(cell)
-            print(f"{prefix}: FAILED ({answer}): {lines[-1] if lines else 'no output'}", file=sys.stderr,
-                  flush=True)
+                process = train(gpu, cell, process)
+            finally:
+                release(gpu)
         if process is not None and not stopping.is_set():
             stop(process)
+
+    def train(gpu: str, cell: Cell, process: subprocess.Popen | None) -> subprocess.Popen | None:
+        """Train ``cell`` on the slot's worker ``process`` (a fresh one when None); the worker for its next cell."""
+        prefix = f"[{numbering[cell]}/{total}] {cell.id}"
+        log = logs / f"{cell.run_name}.log"
+        print(f"{prefix}: started on GPU {gpu} (log {log})", flush=True)
+        started = time.perf_counter()
+        process = process or start(gpu)
+        try:
+            process.stdin.write(cell.id + "\n")
+            process.stdin.flush()
+            answer = process.stdout.readline().strip()
+        except OSError:
+            answer = ""
+        if stopping.is_set():
+            return process
+        if answer == f"done {cell.id}" and cell_state(out, cell) == "done":
+            record = read_evaluation(out, cell)
+            print(f"{prefix}: done in {time.perf_counter() - started:.0f} s on GPU {gpu}, {score_line(record)}",
+                  flush=True)
+            return process
+        if not answer:  # the worker died: its exit status, and a fresh worker for the next cell
+            stop(process)
+            answer = f"worker exit {process.returncode}"
+            process = None
+        lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()] \
+            if log.is_file() else []
+        with lock:
+            failed.append(cell)
+        print(f"{prefix}: FAILED ({answer}): {lines[-1] if lines else 'no output'}", file=sys.stderr, flush=True)
+        return process
 
     threads = [threading.Thread(target=slot, args=(gpu,), daemon=True) for gpu in gpus for _ in range(per_gpu)]
     for thread in threads:
