@@ -1,13 +1,22 @@
 """GPU memory of one training process of the presets' recipe (batch 16 at 352 x 480, CUDA graph), then its evaluation
-of full 360 x 480 frames at batch 16: torch's peak reserved and nvidia-smi's count for this process."""
-import json, os, subprocess, sys
+of full 360 x 480 frames at the same batch: torch's peak reserved and nvidia-smi's count for this process.
+
+    python docs/runs/answers/memory.py BATCH HEIGHT WIDTH   (alone.sh ran 16 352 480 and 32 352 480)
+"""
+import json
+import os
+import subprocess
+import sys
+
 import torch
+
 from warpsense.camera.camera import set_finite_check
 from warpsense.config import load_config
 from warpsense.data.photometric import RadianceJitter
 from warpsense.system.build import build_system
 from warpsense.train.engine import _optimizer
 from warpsense.train.step import TrainingStep
+
 
 def smi():
     out = subprocess.run(["nvidia-smi", "--query-compute-apps=pid,used_memory", "--format=csv,noheader,nounits"],
