@@ -78,12 +78,12 @@ def test_per_gpu_auto_takes_three_cells_a_gpu_under_mps_where_memory_holds_them(
 
     h100 = [79.6] * 4
     assert auto_cells_per_gpu("auto", h100, RECIPE_PIXELS)[0] == AUTO_CELLS == 3
-    small = [2.2 * cell_memory_gib(RECIPE_PIXELS)]  # holds two with 10% to spare
-    assert auto_cells_per_gpu("auto", small, RECIPE_PIXELS)[0] == 1
+    small = [2.2 * cell_memory_gib(RECIPE_PIXELS)]  # two cells, but not with 10% to spare
+    count, why = auto_cells_per_gpu("auto", small, RECIPE_PIXELS)
+    assert count == 1 and "one fits" in why
     assert auto_cells_per_gpu("auto", [2.3 * cell_memory_gib(RECIPE_PIXELS)], RECIPE_PIXELS)[0] == 2
     assert auto_cells_per_gpu("auto", [*h100, 1.0], RECIPE_PIXELS)[0] == 1  # the smallest GPU decides
-    # a cell of four times the pixels a step needs more of the GPU
-    assert cell_memory_gib(4 * RECIPE_PIXELS) > 3 * cell_memory_gib(RECIPE_PIXELS) > cell_memory_gib(0) > 0
+    assert auto_cells_per_gpu("auto", h100, 4 * RECIPE_PIXELS)[0] == 1  # four times the pixels a step: one fits
     count, why = auto_cells_per_gpu("off", h100, RECIPE_PIXELS)
     assert count == 1 and "time-sliced" in why
     assert auto_cells_per_gpu("auto", None, RECIPE_PIXELS) == (1, "the GPUs' memory could not be read (nvidia-smi)")
@@ -109,3 +109,32 @@ def test_study_run_says_what_per_gpu_auto_chose(fake_control, monkeypatch, capsy
     config = load_plan("smoke").config(load_plan("smoke").cells()[0], "runs")
     assert seen["pixels"] == config.data.batch_size * config.data.crop_height * config.data.crop_width
     assert pool_cells_per_gpu(load_plan("smoke"), [], "auto") == 1  # no pool: nothing to choose
+
+
+def test_study_run_passes_its_auto_choice_to_the_pool_and_falls_back_when_mps_fails(tmp_path, monkeypatch, capsys):
+    """`--per-gpu auto`: one GPU at 1 runs in this process, at 3 a pool of three slots; an MPS daemon that cannot
+    start turns the choice into one cell a GPU without MPS (an explicit --per-gpu keeps the error)."""
+    from warpsense.commands import study
+
+    calls = []
+
+    def run_cells(plan, out, gpus=None, per_gpu=1, mps="auto", **kwargs):
+        calls.append((gpus, per_gpu, mps))
+        if per_gpu > 1 and fail:
+            raise MPSError("nvidia-cuda-mps-control -d exited 1: cannot start")
+        return 0
+
+    monkeypatch.setattr(study, "parse_gpus", lambda text: ["0"])
+    monkeypatch.setattr(study, "check_local_gpus", lambda ids: None)
+    monkeypatch.setattr(runner, "run_cells", run_cells)
+    fail = False
+    for chosen, expected in ((1, (None, 1, "auto")), (3, (["0"], 3, "auto"))):
+        monkeypatch.setattr(study, "pool_cells_per_gpu", lambda plan, devices, mps, chosen=chosen: chosen)
+        assert study.run_study("smoke", str(tmp_path / f"out{chosen}"), []) == 0
+        assert calls.pop() == expected
+    fail = True
+    assert study.run_study("smoke", str(tmp_path / "fallback"), []) == 0
+    assert calls == [(["0"], 3, "auto"), (None, 1, "off")]
+    assert "cannot start; one cell at once on each GPU instead" in capsys.readouterr().err
+    with pytest.raises(MPSError):
+        study.run_study("smoke", str(tmp_path / "explicit"), [], per_gpu=3)

@@ -164,6 +164,19 @@ def test_fewer_cells_than_slots_spread_over_the_gpus(tmp_path, capsys):
     assert sorted(re.findall(r"started on GPU (\d)", capsys.readouterr().out)) == ["0", "1"]
 
 
+def test_a_worker_that_cannot_start_fails_its_cells_and_the_pool_goes_on(tmp_path, capsys, monkeypatch):
+    """Every worker fails to start (here: no such program): each cell is reported failed (none lost, exit 1) and no
+    slot waits for a GPU whose slots stopped."""
+    from warpsense.study import runner
+
+    plan = load_plan("smoke", FAST)
+    cells = plan.cells()[:5]
+    monkeypatch.setattr(runner, "worker_command", lambda plan, out: [str(tmp_path / "no-such-worker")])
+    assert run_cells(plan, tmp_path / "study", cells, gpus=["0", "1"], per_gpu=2) == 1
+    err = capsys.readouterr().err
+    assert err.count(": FAILED (") == len(cells) and f"{len(cells)} of {len(cells)} cells failed" in err
+
+
 def test_the_local_pool_trains_its_cells_on_one_worker_process_per_slot(tmp_path, capsys):
     """One GPU slot, three cells: one worker process trains them all (its pid in each cell's log), so that the
     interpreter, CUDA context and kernel modules are paid once per slot, not once per cell."""

@@ -32,7 +32,7 @@ case $what in
   warm|studies)
     started=$(date +%s)
     # shellcheck disable=SC2086  # $SET first: its own kernels (run.deterministic) are warmed too
-    python -m warpsense study run docs/runs/plans/camvid_scaling.toml --out .device/state/scale_warm --gpus 0 \
+    python -m warpsense study run docs/runs/plans/camvid_scaling.toml --out .device/state/scale_warm --gpus 0 --per-gpu 1 \
       --set data.root=.device/camvid ${SET:-} --set train.epochs=2 --set train.warmup_epochs=1 > "$OUT/scale_warm.log" 2>&1
     echo "warm-up (untimed by the studies): exit $?, $(( $(date +%s) - started )) s"
     [ "$what" = studies ] && sides="0 auto" || sides=""
@@ -42,7 +42,7 @@ case $what in
     for side in $sides; do
       name=scale_$([ "$side" = auto ] && echo all || echo 1gpu)
       # shellcheck disable=SC2086  # $SET is a list of arguments
-      python -m warpsense study run docs/runs/plans/camvid_scaling.toml --out ".device/state/$name" --gpus "$side" \
+      python -m warpsense study run docs/runs/plans/camvid_scaling.toml --out ".device/state/$name" --gpus "$side" --per-gpu 1 \
         --set data.root=.device/camvid ${SET:-} > "$OUT/$name.log" 2>&1
       python -m warpsense study report ".device/state/$name" --json "$OUT/$name.json" > "$OUT/$name.txt"
       grep -E "^\[|^study" "$OUT/$name.log" | tail -3; cat ".device/state/$name/throughput.json"

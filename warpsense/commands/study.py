@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from warpsense.choices import MPS_MODES
@@ -60,8 +61,9 @@ def _add_run(subcommands: argparse._SubParsersAction) -> None:
     parser = subcommands.add_parser(
         "run", help="run the plan's cells (resumable; finished cells are never retrained)",
         description="Run every cell of a plan into OUT/runs/<camera>.<light>[.<fold>].seed<N>. Finished cells are "
-        "skipped, interrupted ones resume, failed ones are reported and the others go on. With several GPUs the cells "
-        "run on a local pool of worker processes (--per-gpu on each GPU), each taking the next cell.",
+        "skipped, interrupted ones resume, failed ones are reported and the others go on. With GPUs the cells run "
+        "on a local pool of worker processes (--per-gpu on each GPU), each taking the next cell; one GPU at one cell "
+        "a GPU, and a CPU, run them in this process.",
         epilog="shipped plans: configs/studies/")
     parser.add_argument("plan", help="a study plan TOML file or a shipped plan name (configs/studies/)")
     parser.add_argument("--out", required=True, help="the study directory")
@@ -134,6 +136,7 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     processes (`warpsense.study.runner.cell_worker`, cell ids on stdin). ``executor`` "slurm": submit the cells to
     Slurm (`warpsense.study.slurm.submit_study`) with ``slurm``, the keyword arguments of
     `warpsense.study.slurm.slurm_options` (None: not given)."""
+    from warpsense.study.mps import MPSError
     from warpsense.study.mps import check_mode as check_mps_mode
     from warpsense.study.plan import load_plan
     from warpsense.study.runner import cell_worker, check_reuse_dirs, plan_commands, run_cells
@@ -164,10 +167,19 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         return submit_study(plan, Path(out), cluster, None if cell is None else [plan.cell(cell)], reuse_dirs)
     if cell is not None:
         return run_cells(plan, Path(out), [plan.cell(cell)], progress=progress, record=False, reuse=reuse_dirs)
-    if per_gpu == "auto":
+    chosen = per_gpu == "auto"
+    if chosen:
         per_gpu = pool_cells_per_gpu(plan, devices, mps)
-    code = run_cells(plan, Path(out), gpus=devices if len(devices) * per_gpu > 1 else None, per_gpu=per_gpu,
-                     progress=progress, sample_gpus=devices, reuse=reuse_dirs, mps=mps)
+    try:
+        code = run_cells(plan, Path(out), gpus=devices if len(devices) * per_gpu > 1 else None, per_gpu=per_gpu,
+                         progress=progress, sample_gpus=devices, reuse=reuse_dirs, mps=mps)
+    except MPSError as error:
+        if not (chosen and mps == "auto"):
+            raise
+        # a choice of ours, not the user's: one cell a GPU without MPS rather than no study
+        print(f"study: {error}; one cell at once on each GPU instead", file=sys.stderr, flush=True)
+        code = run_cells(plan, Path(out), gpus=devices if len(devices) > 1 else None, per_gpu=1, progress=progress,
+                         sample_gpus=devices, reuse=reuse_dirs, mps="off")
     if code == 0:
         print(f"study finished; report: warpsense study report {out}")
     return code

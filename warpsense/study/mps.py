@@ -49,16 +49,18 @@ def wanted(mode: str, per_gpu: int) -> bool:
 
 AUTO_CELLS = 3
 """Cells a GPU takes under ``--per-gpu auto`` with MPS: 12 cells of the presets' recipe, 3 a GPU, ran at 1.30x the
-cells per GPU-hour of one a GPU by the studies' clocks (1.14x against one a GPU perfectly packed), each cell's score
-within the seeds' spread; two steps on a GPU overlap 1.13x, three 1.18x (docs/benchmarks.md, studies per GPU-hour)."""
+cells per GPU-hour of one a GPU by the studies' clocks (1.14-1.32x as packed), each cell's score within the seeds'
+spread; two steps on a GPU overlap 1.13x, three 1.18x (docs/benchmarks.md, studies per GPU-hour)."""
 
 CELL_MEMORY_GIB = 14.1
 """GPU memory a worker of the presets' recipe held at its peak (batch 16 at 352 x 480, CUDA graphs, evaluation; the
-largest of four workers as nvidia-smi counted it, 9.3-14.1 GiB, docs/runs/answers/alone_memory_peaks.json)."""
+largest of four workers as nvidia-smi counted it, 9.3-14.1 GiB, the two that trained cells of all three folds ~14,
+docs/runs/answers/alone_memory_peaks.json)."""
 
-CELL_FIXED_GIB = 0.8
-"""Of `CELL_MEMORY_GIB`, what does not grow with a step's pixels (the CUDA context, weights, workspaces): torch's peak
-reserved memory was 10.35 GiB at batch 16 and 20.45 at 32 (docs/runs/answers/memory*.json), 0.25 GiB at none."""
+CELL_FIXED_GIB = 0.9
+"""Of `CELL_MEMORY_GIB`, what does not grow with a step's pixels (the CUDA context, weights, workspaces): one process
+held 8.81 GiB at batch 16 and 16.73 at 32 after training and evaluating (nvidia-smi; docs/runs/answers/memory*.json),
+0.9 GiB at none."""
 
 RECIPE_PIXELS = 16 * 352 * 480
 """Pixels a training step of the presets' recipe (batch x crop)."""
@@ -82,7 +84,8 @@ def auto_cells_per_gpu(mode: str, memory_gib: list[float] | None, pixels: int) -
     need = cell_memory_gib(pixels)
     fits = int(0.9 * min(memory_gib) // need)
     count = max(1, min(AUTO_CELLS, fits))
-    return count, f"CUDA MPS, {min(memory_gib):.0f} GiB a GPU, ~{need:.1f} GiB a cell"
+    held = f"{min(memory_gib):.0f} GiB a GPU, ~{need:.1f} GiB a cell"
+    return count, (f"CUDA MPS, {held}" if count > 1 else f"{held}: one fits with 10% to spare")
 
 
 @contextlib.contextmanager

@@ -432,6 +432,7 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None)
             if not todo or stopping.is_set():
                 return None
             active[gpu] += 1
+            turn.notify_all()  # a slot of another GPU may wait for this one to take its share
             return todo.popleft()
 
     def release(gpu: str) -> None:
@@ -459,6 +460,14 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None)
         while (cell := take(gpu)) is not None:
             try:
                 process = train(gpu, cell, process)
+            except Exception as error:  # e.g. the worker cannot start: the cell fails, the slot goes on
+                if process is not None:
+                    stop(process)
+                process = None
+                with lock:
+                    failed.append(cell)
+                print(f"[{numbering[cell]}/{total}] {cell.id}: FAILED ({first_line(error)})", file=sys.stderr,
+                      flush=True)
             finally:
                 release(gpu)
         if process is not None and not stopping.is_set():
