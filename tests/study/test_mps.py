@@ -105,7 +105,7 @@ def test_study_run_says_what_per_gpu_auto_chose(fake_control, monkeypatch, capsy
     monkeypatch.setattr(runner, "gpu_memory_gib", lambda gpus: [79.6] * len(gpus))
     monkeypatch.setattr(runner, "step_pixels", pixels)
     assert pool_cells_per_gpu(load_plan("smoke"), ["0", "1"], "auto") == 3
-    assert "3 cell(s) at once on each GPU (--per-gpu auto: CUDA MPS, 80 GiB a GPU" in capsys.readouterr().out
+    assert "3 cell(s) at once on each GPU (--per-gpu auto: CUDA MPS, 80 GiB free a GPU" in capsys.readouterr().out
     config = load_plan("smoke").config(load_plan("smoke").cells()[0], "runs")
     assert seen["pixels"] == config.data.batch_size * config.data.crop_height * config.data.crop_width
     assert pool_cells_per_gpu(load_plan("smoke"), [], "auto") == 1  # no pool: nothing to choose

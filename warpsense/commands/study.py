@@ -77,8 +77,8 @@ def _add_run(subcommands: argparse._SubParsersAction) -> None:
                         help="GPUs of the local pool: auto (all torch sees), none (this process), or ids 0,1 "
                              "(default: %(default)s)")
     parser.add_argument("--per-gpu", type=per_gpu_count, default="auto", metavar="N|auto",
-                        help="cells at once on each GPU: auto (3 under CUDA MPS where each GPU's memory holds them, "
-                        "fewer where it holds fewer, 1 without MPS) or a number (default: %(default)s)")
+                        help="cells at once on each GPU: auto (3 under CUDA MPS where each GPU's free memory holds "
+                        "them, fewer where it holds fewer, 1 without MPS) or a number (default: %(default)s)")
     parser.add_argument("--mps", choices=MPS_MODES, default="auto",
                         help="run the pool's workers under a CUDA MPS daemon of the study's own, so that cells "
                         "sharing a GPU run concurrently instead of time-sliced: auto (with --per-gpu > 1 where "

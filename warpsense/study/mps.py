@@ -75,8 +75,8 @@ def cell_memory_gib(pixels: int) -> float:
 def auto_cells_per_gpu(mode: str, memory_gib: list[float] | None, pixels: int) -> tuple[int, str]:
     """``--per-gpu auto``: `AUTO_CELLS` cells a GPU where the pool runs under MPS (``mode`` as `wanted` reads it)
     and the smallest GPU holds them with 10% to spare by `cell_memory_gib`, fewer where it holds fewer, and one
-    without MPS (time-sliced cells were no faster together: docs/benchmarks.md). ``memory_gib``: each GPU's total
-    memory (None: unknown, one cell a GPU). Returns the count and why, in words."""
+    without MPS (time-sliced cells were no faster together: docs/benchmarks.md). ``memory_gib``: each GPU's
+    memory free for the pool (None: unknown, one cell a GPU). Returns the count and why, in words."""
     if not wanted(mode, AUTO_CELLS):
         return 1, "without CUDA MPS cells sharing a GPU are time-sliced"
     if not memory_gib:
@@ -84,7 +84,7 @@ def auto_cells_per_gpu(mode: str, memory_gib: list[float] | None, pixels: int) -
     need = cell_memory_gib(pixels)
     fits = int(0.9 * min(memory_gib) // need)
     count = max(1, min(AUTO_CELLS, fits))
-    held = f"{min(memory_gib):.0f} GiB a GPU, ~{need:.1f} GiB a cell"
+    held = f"{min(memory_gib):.0f} GiB free a GPU, ~{need:.1f} GiB a cell"
     return count, (f"CUDA MPS, {held}" if count > 1 else f"{held}: one fits with 10% to spare")
 
 

@@ -49,9 +49,10 @@ def gpu_busy(gpus: list[str]) -> list[float] | None:
 
 
 def gpu_memory_gib(gpus: list[str]) -> list[float] | None:
-    """Total memory of each GPU id in GiB, from nvidia-smi; None where it cannot be read."""
+    """Free memory of each GPU id in GiB now (before the pool's workers start: what its cells can have, less what
+    other users' processes hold), from nvidia-smi; None where it cannot be read."""
     try:
-        result = subprocess.run(["nvidia-smi", "--query-gpu=index,memory.total", "--format=csv,noheader,nounits"],
+        result = subprocess.run(["nvidia-smi", "--query-gpu=index,memory.free", "--format=csv,noheader,nounits"],
                                 capture_output=True, text=True, timeout=10, check=True)
         total = dict(line.replace(" ", "").split(",")[:2] for line in result.stdout.strip().splitlines())
         return [float(total[gpu]) / 1024 for gpu in gpus]
