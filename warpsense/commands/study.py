@@ -167,19 +167,19 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         return submit_study(plan, Path(out), cluster, None if cell is None else [plan.cell(cell)], reuse_dirs)
     if cell is not None:
         return run_cells(plan, Path(out), [plan.cell(cell)], progress=progress, record=False, reuse=reuse_dirs)
-    chosen = per_gpu == "auto"
-    if chosen:
-        per_gpu = pool_cells_per_gpu(plan, devices, mps)
-    try:
-        code = run_cells(plan, Path(out), gpus=devices if len(devices) * per_gpu > 1 else None, per_gpu=per_gpu,
+    def run_pool(per_gpu: int, mps: str) -> int:  # in this process where that is one cell at a time
+        return run_cells(plan, Path(out), gpus=devices if len(devices) * per_gpu > 1 else None, per_gpu=per_gpu,
                          progress=progress, sample_gpus=devices, reuse=reuse_dirs, mps=mps)
+
+    chosen = per_gpu == "auto"
+    try:
+        code = run_pool(pool_cells_per_gpu(plan, devices, mps) if chosen else per_gpu, mps)
     except MPSError as error:
         if not (chosen and mps == "auto"):
             raise
         # a choice of ours, not the user's: one cell a GPU without MPS rather than no study
         print(f"study: {error}; one cell at once on each GPU instead", file=sys.stderr, flush=True)
-        code = run_cells(plan, Path(out), gpus=devices if len(devices) > 1 else None, per_gpu=1, progress=progress,
-                         sample_gpus=devices, reuse=reuse_dirs, mps="off")
+        code = run_pool(1, "off")
     if code == 0:
         print(f"study finished; report: warpsense study report {out}")
     return code

@@ -37,27 +37,27 @@ THROUGHPUT = "throughput.json"
 concurrency and the GPUs' busy fraction (sampled from nvidia-smi while it ran; absent without nvidia-smi)."""
 
 
-def gpu_busy(gpus: list[str]) -> list[float] | None:
-    """Busy percentage (0-100) of each GPU id now, from nvidia-smi; None where it cannot be read."""
+def _query_gpus(field: str, gpus: list[str]) -> list[float] | None:
+    """nvidia-smi's ``field`` (a --query-gpu name) of each GPU id now; None where it cannot be read."""
     try:
-        result = subprocess.run(["nvidia-smi", "--query-gpu=index,utilization.gpu", "--format=csv,noheader,nounits"],
+        result = subprocess.run(["nvidia-smi", f"--query-gpu=index,{field}", "--format=csv,noheader,nounits"],
                                 capture_output=True, text=True, timeout=10, check=True)
-        busy = dict(line.replace(" ", "").split(",")[:2] for line in result.stdout.strip().splitlines())
-        return [float(busy[gpu]) for gpu in gpus]
+        values = dict(line.replace(" ", "").split(",")[:2] for line in result.stdout.strip().splitlines())
+        return [float(values[gpu]) for gpu in gpus]
     except (OSError, subprocess.SubprocessError, ValueError, KeyError):
         return None
+
+
+def gpu_busy(gpus: list[str]) -> list[float] | None:
+    """Busy percentage (0-100) of each GPU id now, from nvidia-smi; None where it cannot be read."""
+    return _query_gpus("utilization.gpu", gpus)
 
 
 def gpu_memory_gib(gpus: list[str]) -> list[float] | None:
     """Free memory of each GPU id in GiB now (before the pool's workers start: what its cells can have, less what
     other users' processes hold), from nvidia-smi; None where it cannot be read."""
-    try:
-        result = subprocess.run(["nvidia-smi", "--query-gpu=index,memory.free", "--format=csv,noheader,nounits"],
-                                capture_output=True, text=True, timeout=10, check=True)
-        total = dict(line.replace(" ", "").split(",")[:2] for line in result.stdout.strip().splitlines())
-        return [float(total[gpu]) / 1024 for gpu in gpus]
-    except (OSError, subprocess.SubprocessError, ValueError, KeyError):
-        return None
+    free = _query_gpus("memory.free", gpus)  # MiB
+    return None if free is None else [mib / 1024 for mib in free]
 
 
 def step_pixels(plan: Plan) -> int:
@@ -465,10 +465,7 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None)
                 if process is not None:
                     stop(process)
                 process = None
-                with lock:
-                    failed.append(cell)
-                print(f"[{numbering[cell]}/{total}] {cell.id}: FAILED ({first_line(error)})", file=sys.stderr,
-                      flush=True)
+                fail(cell, first_line(error))
             finally:
                 release(gpu)
         if process is not None and not stopping.is_set():
@@ -500,10 +497,15 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None)
             process = None
         lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()] \
             if log.is_file() else []
+        fail(cell, answer, lines[-1] if lines else "no output")
+        return process
+
+    def fail(cell: Cell, why: str, detail: str | None = None) -> None:
+        """Record ``cell`` as failed and say so: "FAILED (why)", then ": detail" where given."""
         with lock:
             failed.append(cell)
-        print(f"{prefix}: FAILED ({answer}): {lines[-1] if lines else 'no output'}", file=sys.stderr, flush=True)
-        return process
+        print(f"[{numbering[cell]}/{total}] {cell.id}: FAILED ({why})" + (f": {detail}" if detail else ""),
+              file=sys.stderr, flush=True)
 
     threads = [threading.Thread(target=slot, args=(gpu,), daemon=True) for gpu in gpus for _ in range(per_gpu)]
     for thread in threads:
