@@ -7,15 +7,12 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import torch
 
-from warpsense.camera.camera import set_finite_check
-from warpsense.config import load_config
-from warpsense.data.photometric import RadianceJitter
-from warpsense.system.build import build_system
-from warpsense.train.engine import _optimizer
-from warpsense.train.step import TrainingStep
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "step"))
+from step_profile import recipe_step  # noqa: E402
 
 
 def smi():
@@ -24,15 +21,7 @@ def smi():
     return {int(p): float(m) for p, m in (line.split(",") for line in out.strip().splitlines())}.get(os.getpid())
 
 batch, height, width = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
-torch.manual_seed(0)
-config = load_config("camvid_codesign", [])
-model = build_system(config, 11).cuda().train()
-set_finite_check(model, False)
-optimizer = _optimizer(config, model, torch.device("cuda"))
-step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), 1000, True,
-                    config.train.camera_grad_clip, "off", True, radiance_jitter=RadianceJitter.from_config(config.data))
-images = torch.randint(0, 256, (batch, 3, height, width), dtype=torch.uint8, device="cuda")
-labels = torch.randint(0, 11, (batch, height, width), device="cuda")
+model, step, images, labels = recipe_step(batch, height, width, cuda_graph=True)
 for i in range(12):
     step(model, images, labels, i, joint=i >= 6)
 torch.cuda.synchronize()

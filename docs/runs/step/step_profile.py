@@ -18,17 +18,25 @@ from warpsense.train.engine import _optimizer
 from warpsense.train.step import TrainingStep
 
 
-def main(mode: str, out: str) -> None:
+def recipe_step(batch: int = 16, height: int = 352, width: int = 480, cuda_graph: bool = False):
+    """The presets' system (seed 0, on the GPU, training mode), its training step (``cuda_graph``: replayed as one
+    graph per phase) and a batch of random frames and labels: (model, step, images, labels). Also used by
+    docs/runs/step/copies/trace.py and docs/runs/answers/memory.py."""
     torch.manual_seed(0)
     config = load_config("camvid_codesign", [])
     model = build_system(config, 11).cuda().train()
     set_finite_check(model, False)  # as in training: no host read per step
     optimizer = _optimizer(config, model, torch.device("cuda"))
     step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), 1000, True,
-                        config.train.camera_grad_clip, "off", False,
+                        config.train.camera_grad_clip, "off", cuda_graph,
                         radiance_jitter=RadianceJitter.from_config(config.data))
-    images = torch.randint(0, 256, (16, 3, 352, 480), dtype=torch.uint8, device="cuda")
-    labels = torch.randint(0, 11, (16, 352, 480), device="cuda")
+    images = torch.randint(0, 256, (batch, 3, height, width), dtype=torch.uint8, device="cuda")
+    labels = torch.randint(0, 11, (batch, height, width), device="cuda")
+    return model, step, images, labels
+
+
+def main(mode: str, out: str) -> None:
+    model, step, images, labels = recipe_step()
     for index in range(8):
         step(model, images, labels, index, joint=True)
     torch.cuda.synchronize()
