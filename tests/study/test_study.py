@@ -465,17 +465,72 @@ def test_throughput_is_recorded_with_the_sampled_gpu_busy_fraction(tmp_path, mon
     assert "2 GPU(s) x 1" in render_text(record) and "GPU busy 80%, 40%" in render_text(record)
 
 
-def test_gpu_busy_reads_nvidia_smi_and_tolerates_its_absence(monkeypatch):
+SMI_ROWS = [  # nvidia-smi's rows, in its (PCI bus) order: UUID, free MiB, busy %
+    ("GPU-11111111-aaaa-bbbb-cccc-000000000001", 81000.0, 5.0),
+    ("GPU-22222222-aaaa-bbbb-cccc-000000000002", 20480.0, 97.0),
+]
+
+
+def _fake_gpus(rows=SMI_ROWS, cuda_order=(1, 0), lookup_works=True, calls=None):
+    """A fake subprocess.run for nvidia-smi over ``rows`` and for the UUID lookup's child process, in which CUDA's
+    device i (as CUDA_VISIBLE_DEVICES counts, FASTEST_FIRST by default) is nvidia-smi's row ``cuda_order[i]``."""
     import subprocess
 
-    from warpsense.study import runner
+    def run(command, env=None, **kwargs):
+        if command[0] == "nvidia-smi":
+            columns = {"index": lambda i: str(i), "uuid": lambda i: rows[i][0],
+                       "memory.free": lambda i: str(rows[i][1]), "utilization.gpu": lambda i: str(rows[i][2])}
+            fields = command[1].split("=", 1)[1].split(",")
+            stdout = "".join(", ".join(columns[f](i) for f in fields) + "\n" for i in range(len(rows)))
+        else:  # python -c: the UUIDs of the devices CUDA_VISIBLE_DEVICES names, as torch prints them
+            (calls if calls is not None else []).append((command, env["CUDA_VISIBLE_DEVICES"]))
+            if not lookup_works:
+                raise subprocess.CalledProcessError(1, command)
+            ids = [int(gpu) for gpu in env["CUDA_VISIBLE_DEVICES"].split(",")]
+            visible = [cuda_order[i] for i in ids[:next((n for n, i in enumerate(ids) if i >= len(rows)), None)]]
+            stdout = "".join(rows[i][0].removeprefix("GPU-") + "\n" for i in visible)
+        return subprocess.CompletedProcess(command, 0, stdout, "")
 
-    class Result:
-        stdout = "0, 97\n1, 3\n"
+    return run
 
-    monkeypatch.setattr(subprocess, "run", lambda *args, **kwargs: Result())
-    assert runner.gpu_busy(["1", "0"]) == [3.0, 97.0]
-    assert runner.gpu_busy(["2"]) is None
+
+@pytest.fixture
+def uuid_cache():
+    runner.cuda_uuids.cache_clear()
+    yield
+    runner.cuda_uuids.cache_clear()
+
+
+def test_gpu_readings_are_the_cuda_ids_gpus_not_nvidia_smis_rows_of_the_same_number(monkeypatch, uuid_cache):
+    """The pool's ids are CUDA's; nvidia-smi numbers its rows in PCI bus order, which CUDA's default order
+    (FASTEST_FIRST) need not follow: each id's reading is the row of its GPU's UUID, looked up once in a child
+    process (no CUDA context in the study's own process)."""
+    import subprocess
+    import sys
+
+    calls = []
+    monkeypatch.setattr(subprocess, "run", _fake_gpus(calls=calls))
+    assert runner.gpu_memory_gib(["0", "1"]) == [20.0, pytest.approx(81000 / 1024)]
+    assert runner.gpu_busy(["1", "0"]) == [5.0, 97.0]
+    assert runner.gpu_busy(["0", "1"]) == [97.0, 5.0]
+    # one lookup per set of ids (cached: the busy sampler reads every 2 s), by this interpreter's torch
+    assert [visible for _, visible in calls] == ["0,1", "1,0"]
+    assert calls[0][0][:2] == [sys.executable, "-c"] and "uuid" in calls[0][0][2]
+    monkeypatch.setattr(subprocess, "run", _fake_gpus(cuda_order=(0, 1)))  # CUDA_DEVICE_ORDER=PCI_BUS_ID
+    runner.cuda_uuids.cache_clear()
+    assert runner.gpu_busy(["0", "1"]) == [5.0, 97.0]
+    assert runner.gpu_busy(["2"]) is None  # no such GPU
+
+
+def test_gpu_readings_unknown_where_the_ids_cannot_be_matched(monkeypatch, uuid_cache):
+    """Without the UUIDs (no torch with CUDA in a child, an old torch) a reading of several GPUs is None, which
+    --per-gpu auto takes as unknown (one cell a GPU); one GPU is CUDA's 0 whatever the order; no nvidia-smi, None."""
+    import subprocess
+
+    monkeypatch.setattr(subprocess, "run", _fake_gpus(lookup_works=False))
+    assert runner.gpu_memory_gib(["0", "1"]) is None and runner.gpu_busy(["0"]) is None
+    monkeypatch.setattr(subprocess, "run", _fake_gpus(rows=SMI_ROWS[1:], cuda_order=(0,), lookup_works=False))
+    assert runner.gpu_memory_gib(["0"]) == [20.0] and runner.gpu_busy(["1"]) is None
 
     def missing(*args, **kwargs):
         raise FileNotFoundError("nvidia-smi")

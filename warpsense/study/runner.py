@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import json
 import os
+import re
 import shlex
 import shutil
 import signal
@@ -37,14 +39,46 @@ THROUGHPUT = "throughput.json"
 concurrency and the GPUs' busy fraction (sampled from nvidia-smi while it ran; absent without nvidia-smi)."""
 
 
-def _query_gpus(field: str, gpus: list[str]) -> list[float] | None:
-    """nvidia-smi's ``field`` (a --query-gpu name) of each GPU id now; None where it cannot be read."""
+_CUDA_UUIDS = "import torch\nfor i in range(torch.cuda.device_count()): print(torch.cuda.get_device_properties(i).uuid)"
+_UUID = re.compile(r"[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}")
+
+
+@functools.lru_cache(maxsize=None)
+def cuda_uuids(gpus: tuple[str, ...]) -> tuple[str, ...] | None:
+    """The UUID of the GPU each pool id names (lower-case hex, no "GPU-"), None where it cannot be read.
+
+    A pool id is CUDA's (a worker's CUDA_VISIBLE_DEVICES), counted in CUDA_DEVICE_ORDER's order (FASTEST_FIRST by
+    default), whereas nvidia-smi's index is its PCI bus order: the two agree only by chance, so `_query_gpus` matches
+    the rows by UUID. A short child process with CUDA_VISIBLE_DEVICES set to the ids, as the workers' own, reads them
+    through torch, so that this long-lived process holds no CUDA context (~0.5 GB on each GPU for the whole study).
+    Cached: the sampler asks every 2 s."""
+    environment = {**os.environ, "CUDA_VISIBLE_DEVICES": ",".join(gpus)}
     try:
-        result = subprocess.run(["nvidia-smi", f"--query-gpu=index,{field}", "--format=csv,noheader,nounits"],
+        result = subprocess.run([sys.executable, "-c", _CUDA_UUIDS], env=environment, capture_output=True, text=True,
+                                timeout=120, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    uuids = tuple(_UUID.findall(result.stdout.lower()))
+    return uuids if len(uuids) == len(gpus) else None
+
+
+def _query_gpus(field: str, gpus: list[str]) -> list[float] | None:
+    """nvidia-smi's ``field`` (a --query-gpu name) of each GPU id now; None where it cannot be read. The rows are
+    matched to the ids by UUID (`cuda_uuids`); by position only where nvidia-smi lists one GPU and the id is 0."""
+    try:
+        result = subprocess.run(["nvidia-smi", f"--query-gpu=uuid,{field}", "--format=csv,noheader,nounits"],
                                 capture_output=True, text=True, timeout=10, check=True)
-        values = dict(line.replace(" ", "").split(",")[:2] for line in result.stdout.strip().splitlines())
-        return [float(values[gpu]) for gpu in gpus]
-    except (OSError, subprocess.SubprocessError, ValueError, KeyError):
+        rows = [line.replace(" ", "").lower().split(",")[:2] for line in result.stdout.strip().splitlines()]
+        if len(rows) == 1 and set(gpus) == {"0"}:  # one GPU: CUDA's 0 is it whatever the order
+            return [float(rows[0][1])] * len(gpus)
+        unique = tuple(dict.fromkeys(gpus))
+        uuids = cuda_uuids(unique)
+        if uuids is None:
+            return None
+        values = {_UUID.search(uuid).group(): float(value) for uuid, value in rows}
+        by_id = {gpu: values[uuid] for gpu, uuid in zip(unique, uuids)}
+        return [by_id[gpu] for gpu in gpus]
+    except (OSError, subprocess.SubprocessError, ValueError, KeyError, AttributeError):
         return None
 
 
