@@ -171,7 +171,7 @@ def test_a_worker_that_cannot_start_fails_its_cells_and_the_pool_goes_on(tmp_pat
 
     plan = load_plan("smoke", FAST)
     cells = plan.cells()[:5]
-    monkeypatch.setattr(runner, "worker_command", lambda plan, out: [str(tmp_path / "no-such-worker")])
+    monkeypatch.setattr(runner, "worker_command", lambda plan, out, progress=False: [str(tmp_path / "no-such-worker")])
     assert run_cells(plan, tmp_path / "study", cells, gpus=["0", "1"], per_gpu=2) == 1
     err = capsys.readouterr().err
     assert err.count(": FAILED (") == len(cells) and f"{len(cells)} of {len(cells)} cells failed" in err
@@ -189,6 +189,20 @@ def test_the_local_pool_trains_its_cells_on_one_worker_process_per_slot(tmp_path
             for cell in cells}
     assert len(pids) == 1 and str(os.getpid()) not in pids
     assert all((tmp_path / "runs" / cell.run_name / "evaluation.json").is_file() for cell in cells)
+
+
+def test_progress_reaches_the_pool_workers_as_bars_in_each_cells_log(tmp_path, capsys):
+    """`study run --progress` with a pool: each worker draws its cell's progress bars into the cell's log (one
+    terminal would interleave several workers' bars), and the command says where they are."""
+    import re
+
+    plan = load_plan("smoke", FAST)
+    cell = plan.cells()[0]
+    assert run_cells(plan, tmp_path, [cell], gpus=["0"], per_gpu=1, progress=True) == 0
+    log = (tmp_path / "logs" / f"{cell.run_name}.log").read_text()
+    assert re.search(r"epoch 1/2 \(\w+\): +\d+%\|", log)  # a tqdm bar of the first epoch
+    assert "--progress: each cell's progress bars go to its log" in capsys.readouterr().out
+    assert "--progress" not in runner.worker_command(plan, tmp_path)
 
 
 def test_a_pool_worker_sees_its_gpu_and_its_share_of_the_cores():
@@ -211,7 +225,7 @@ def test_a_worker_that_dies_fails_its_cell_and_a_fresh_one_takes_the_next(tmp_pa
 
     started = []
 
-    def dying_worker(plan, out):
+    def dying_worker(plan, out, progress=False):
         started.append(1)
         return [sys.executable, "-c", "import sys; sys.stdin.readline(); sys.exit(3)"]
 

@@ -83,7 +83,8 @@ def _add_run(subcommands: argparse._SubParsersAction) -> None:
                         help="run the pool's workers under a CUDA MPS daemon of the study's own, so that cells "
                         "sharing a GPU run concurrently instead of time-sliced: auto (with --per-gpu > 1 where "
                         "nvidia-cuda-mps-control is on the PATH), on, off (default: %(default)s)")
-    parser.add_argument("--progress", action="store_true", help="show each cell's progress bars")
+    parser.add_argument("--progress", action="store_true", help="show each cell's progress bars (with a local pool: in its log, "
+                        "OUT/logs/<cell>.log)")
     parser.add_argument("--reuse", action="append", default=[], metavar="STUDY_DIR",
                         help="copy in another study's finished runs for the cells whose config they trained "
                         "(all but run.name and run.output_dir equal; repeatable)")
@@ -158,7 +159,7 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     if cell is not None:
         plan.cell(cell)  # an unknown --cell is refused on every path, --plan-only and --worker included
     if worker:
-        return cell_worker(plan, Path(out))
+        return cell_worker(plan, Path(out), progress)
     reuse_dirs = [Path(path) for path in reuse or []]
     if plan_only:
         print("\n".join(plan_commands(plan, Path(out), reuse_dirs)))

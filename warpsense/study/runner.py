@@ -304,6 +304,8 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
 
     Args:
         cells: the cells to run (default: all of the plan).
+        progress: each cell's progress bars: on this process's output where the cells run here, in each cell's log
+            with a pool (several workers' bars would overwrite each other on one terminal).
         gpus: device ids for a local pool of worker processes (CUDA_VISIBLE_DEVICES of each), ``per_gpu`` on each,
             each training its cells one after another; None or empty: the cells run one after another here.
         record: append this invocation's throughput to <out>/`THROUGHPUT` (a one-cell invocation does not).
@@ -334,8 +336,11 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
     sampled = list(sample_gpus if sample_gpus is not None else gpus or []) if record else []
     with BusySampler(sampled) as sampler:
         if gpus:
+            if progress:
+                print(f"study: --progress: each cell's progress bars go to its log ({out / 'logs'}/<cell>.log)",
+                      flush=True)
             with mps_daemon(shared) as environment:
-                failed = _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment)
+                failed = _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment, progress)
         else:
             failed = _in_process(plan, out, pending, numbering, total, progress)
     if record:
@@ -376,9 +381,9 @@ def _in_process(plan, out, pending, numbering, total, progress) -> list[Cell] | 
     return failed
 
 
-def worker_command(plan: Plan, out: Path) -> list[str]:
-    """The command of one of the local pool's worker processes (`cell_worker`)."""
-    return [sys.executable, "-m", *_run_command(plan, out, "--worker")]
+def worker_command(plan: Plan, out: Path, progress: bool = False) -> list[str]:
+    """The command of one of the local pool's worker processes (`cell_worker`), with ``progress`` bars."""
+    return [sys.executable, "-m", *_run_command(plan, out, "--worker", *(["--progress"] if progress else []))]
 
 
 @contextlib.contextmanager
@@ -402,12 +407,13 @@ def _output_to(handle) -> Iterator[None]:
         os.close(saved[1])
 
 
-def cell_worker(plan: Plan, out: Path) -> int:
+def cell_worker(plan: Plan, out: Path, progress: bool = False) -> int:
     """One process of the local pool: trains the cells whose ids arrive on stdin (one a line), one after another in
-    this process, each one's output appended to <out>/logs/<cell>.log, and answers each on stdout with one line,
-    ``done <id>`` or ``failed <id> <reason>``. One process per GPU slot rather than one per cell: the interpreter,
-    CUDA context, Warp modules and the data on the device are paid once per worker (2 x H100, docs/history.md:
-    a process per 10-epoch cell took 60 s against 18 s in one process). Returns 0 at the end of stdin, 130 on Ctrl-C."""
+    this process, each one's output (with ``progress``: its progress bars too) appended to <out>/logs/<cell>.log,
+    and answers each on stdout with one line, ``done <id>`` or ``failed <id> <reason>``. One process per GPU slot
+    rather than one per cell: the interpreter, CUDA context, Warp modules and the data on the device are paid once
+    per worker (2 x H100, docs/history.md: a process per 10-epoch cell took 60 s against 18 s in one process).
+    Returns 0 at the end of stdin, 130 on Ctrl-C."""
     from warpsense.train.engine import TrainingInterrupted
 
     out = Path(out)
@@ -420,7 +426,7 @@ def cell_worker(plan: Plan, out: Path) -> int:
             try:
                 print(f"{cell.id}: {'resuming' if cell_state(out, cell) == 'partial' else 'training'} in worker "
                       f"process {os.getpid()}", flush=True)
-                train_cell(plan, out, cell)
+                train_cell(plan, out, cell, progress)
                 answer = f"done {cell.id}"
             except TrainingInterrupted:
                 return 130
@@ -446,7 +452,7 @@ def worker_environment(gpu: str, workers: int, environ=None, cores: int | None =
     return environment
 
 
-def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None) -> list[Cell] | None:
+def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None, progress=False) -> list[Cell] | None:
     """Cells on ``per_gpu`` worker processes per GPU (`cell_worker`), each taking the next pending cell when it is
     free and its GPU runs no more cells than any other (fewer cells than slots spread over the GPUs instead of
     filling the first); each cell writes its output to <out>/logs/<cell>.log. A worker that dies fails its cell and
@@ -476,7 +482,7 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None)
             turn.notify_all()
 
     def start(gpu: str) -> subprocess.Popen:
-        process = subprocess.Popen(worker_command(plan, out), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+        process = subprocess.Popen(worker_command(plan, out, progress), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                    text=True, bufsize=1, env=worker_environment(gpu, len(gpus) * per_gpu,
                                                                           extra=environment))
         with lock:
