@@ -12,6 +12,7 @@ from warpsense.config import (
     RETIRED_VALUES,
     Config,
     ConfigError,
+    check_value,
     config_from_dict,
     load_config,
     parse_override,
@@ -51,6 +52,23 @@ def test_preset_base_chain_and_overrides():
     assert config.data.dataset == "camvid"  # from the base preset
     assert config.optics.enabled is False  # the ablation's own change
     assert config.train.epochs == 3 and config.data.hflip is False and config.optics.lens == "phone_80deg"
+
+
+
+@pytest.mark.parametrize("key, value", [("quantize.bits", 0), ("quantize.bits", 25), ("quantize.bits", 8.0),
+                                        ("quantize.bits", True), ("quantize.mode", "peak"), ("noise.shot", -1.0),
+                                        ("noise.shot", "high"), ("quantize.bitz", 8), ("quantiz.bits", 8)])
+def test_check_value_is_the_loaders_check_of_one_key(key, value):
+    """`check_value`, the one check of a single value (the camera's what-if overrides call it), raises exactly the
+    loader's one-line error for the same value, and returns a good value as the config holds it."""
+    text = f"{key}={json.dumps(value)}"
+    with pytest.raises(ConfigError) as loaded:
+        load_config(None, [text])
+    with pytest.raises(ConfigError) as checked:
+        check_value(key, value, f"--set {text}")
+    assert str(checked.value) == str(loaded.value) and "\n" not in str(checked.value)
+    assert check_value("quantize.bits", 12) == 12 and check_value("noise.shot", 1) == 1.0
+    assert isinstance(check_value("noise.shot", 1), float)
 
 
 def test_unknown_keys_and_types_are_errors(tmp_path):

@@ -383,10 +383,8 @@ def _apply(config: Config, overrides: dict, source: str, saved: bool = False) ->
         if not isinstance(values, dict):
             raise ConfigError(f"{source}: [{section_name}] must be a table")
         section = getattr(config, section_name)
-        fields = {f.name: f for f in dataclasses.fields(section)}
         for key, value in values.items():
             dotted = f"{section_name}.{key}"
-            where = f"{source}: {dotted}"
             retired = RETIRED.get(dotted)
             if retired is not None:
                 if saved and retired.remaining in (EVERY_VALUE, value):
@@ -394,16 +392,30 @@ def _apply(config: Config, overrides: dict, source: str, saved: bool = False) ->
                 raise _retired_error(f"{dotted} = {value!r}" if saved else dotted, retired, source, saved)
             if isinstance(value, str) and (dotted, value) in RETIRED_VALUES:
                 raise _retired_error(f"{dotted} = {value!r}", RETIRED_VALUES[dotted, value], source, saved)
-            if key not in fields:
-                raise ConfigError(f"{where}: unknown key; valid keys of [{section_name}]: {', '.join(fields)}")
-            spec = fields[key]
-            expected = {"str": str, "int": int, "float": float, "bool": bool}[spec.type]
-            value = _check_type(value, expected, where)
-            choices = spec.metadata.get("choices")
-            if choices and value not in choices:
-                raise ConfigError(f"{where}: {value!r} is not one of {', '.join(choices)}")
-            _check_range(value, spec, where)
-            setattr(section, key, value)
+            setattr(section, key, check_value(dotted, value, source))
+
+
+def check_value(key: str, value: Any, source: str = "config") -> Any:
+    """One value of the config key ``key`` ("section.key") checked as a config file or --set line giving it is: the
+    key known, the value's type, choices and range; returns it as the config holds it (an int given for a float key
+    as a float), else raises the loader's one-line ConfigError, "<source>: <key>: ...". The one check of single
+    values: the loader and the camera's what-if overrides (`warpsense.camera.stage.Stage.check_what_if`) call it."""
+    section_name, _, name = key.partition(".")
+    sections = {f.name: f.default_factory for f in dataclasses.fields(Config)}
+    if section_name not in sections:
+        raise ConfigError(f"{source}: unknown section [{section_name}]; valid sections: {', '.join(sections)}")
+    fields = {f.name: f for f in dataclasses.fields(sections[section_name])}
+    where = f"{source}: {key}"
+    if name not in fields:
+        raise ConfigError(f"{where}: unknown key; valid keys of [{section_name}]: {', '.join(fields)}")
+    spec = fields[name]
+    expected = {"str": str, "int": int, "float": float, "bool": bool}[spec.type]
+    value = _check_type(value, expected, where)
+    choices = spec.metadata.get("choices")
+    if choices and value not in choices:
+        raise ConfigError(f"{where}: {value!r} is not one of {', '.join(choices)}")
+    _check_range(value, spec, where)
+    return value
 
 
 def read_toml(path: Path, label: str) -> dict:

@@ -4,6 +4,7 @@ fused (placed before the noise, it folds into the responses) or not (after the n
 fusing off instead of being skipped)."""
 
 import dataclasses
+import re
 from dataclasses import dataclass, field
 
 import pytest
@@ -13,7 +14,7 @@ from torch import nn
 from warpsense.camera import Camera
 from warpsense.camera import camera as camera_module
 from warpsense.camera.stage import SensorArguments, Stage
-from warpsense.config import Config, load_config
+from warpsense.config import Config, ConfigError, load_config
 from warpsense.ops import cfa_mosaic, poisson_gaussian, quantize_ste
 
 
@@ -119,11 +120,20 @@ def test_what_if_overrides_go_through_the_camera_and_are_restored():
             pass
     assert camera.what_if_values() == {"noise_scale": 1.0, "exact_noise": False, "bits": 10}
     # values a stage cannot run with are refused by that stage before any is set (a negative noise scale ran)
-    for values, message in (({"bits": 8, "noise_scale": -1.0}, "noise_scale must be a finite number >= 0"),
-                            ({"noise_scale": float("nan")}, "noise_scale"),
-                            ({"bits": 0}, r"bits must be an int in 1..24"), ({"bits": 8.0}, "bits"),
-                            ({"exact_noise": 1}, "exact_noise must be True or False")):
-        with pytest.raises(ValueError, match=message):
+    # bits is the config's quantize.bits: the config checks it, with its own message (warpsense.config.check_value)
+    for values, message in (({"bits": 8, "noise_scale": -1.0}, "noise_scale: must be a finite number >= 0, got -1.0"),
+                            ({"noise_scale": float("nan")}, "noise_scale: must be a finite number >= 0, got nan"),
+                            ({"bits": 0}, "quantize.bits: must be >= 1, got 0"),
+                            ({"bits": 25}, "quantize.bits: must be <= 24, got 25"),
+                            ({"bits": 8.0}, "quantize.bits: expected int, got float 8.0"),
+                            ({"exact_noise": 1}, "exact_noise: expected bool, got int 1")):
+        with pytest.raises(ValueError, match=rf"^Camera\.overridden: {re.escape(message)}$"):
             with camera.overridden(**values):
                 pass
         assert camera.what_if_values() == {"noise_scale": 1.0, "exact_noise": False, "bits": 10}
+    with pytest.raises(ConfigError) as refused:
+        with camera.overridden(bits=30):
+            pass
+    with pytest.raises(ConfigError) as loaded:
+        load_config(None, ["quantize.bits=30"])
+    assert str(refused.value).split(": ", 1)[1] == str(loaded.value).split(": ", 1)[1]  # the loader's words

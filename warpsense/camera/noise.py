@@ -7,7 +7,7 @@ import math
 import torch
 from torch import nn
 
-from warpsense.camera.stage import SensorArguments, Stage
+from warpsense.camera.stage import WHAT_IF_SOURCE, SensorArguments, Stage
 from warpsense.ops.noise import poisson_gaussian, poisson_gaussian_exact
 
 
@@ -26,12 +26,14 @@ class NoisySensor(Stage):
 
     @classmethod
     def check_what_if(cls, name: str, value) -> None:
-        """noise_scale: a finite number >= 0 (0: no noise); exact_noise: a bool."""
+        """noise_scale: a finite number >= 0 (0: no noise); exact_noise: a bool. No config key holds either, so the
+        checks are here, worded as the config's (`warpsense.config.check_value`)."""
+        where = f"{WHAT_IF_SOURCE}: {name}"
         if name == "noise_scale" and (isinstance(value, bool) or not isinstance(value, (int, float))
                                       or not math.isfinite(value) or value < 0):
-            raise ValueError(f"Camera.overridden: noise_scale must be a finite number >= 0, got {value!r}")
+            raise ValueError(f"{where}: must be a finite number >= 0, got {value!r}")
         if name == "exact_noise" and not isinstance(value, bool):
-            raise ValueError(f"Camera.overridden: exact_noise must be True or False, got {value!r}")
+            raise ValueError(f"{where}: expected bool, got {type(value).__name__} {value!r}")
 
     def __init__(self, eval_seed: int = 1234):
         super().__init__()

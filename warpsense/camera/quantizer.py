@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import fields
-
-from warpsense.camera.stage import SensorArguments, Stage
+from warpsense.camera.stage import WHAT_IF_SOURCE, SensorArguments, Stage
 from warpsense.choices import QUANTIZE_MODES
-from warpsense.config import QuantizeConfig
+from warpsense.config import check_value
 from warpsense.ops.quantize import quantize_ste
 
 
@@ -18,10 +16,8 @@ class Quantizer(Stage):
 
     @classmethod
     def check_what_if(cls, name: str, value) -> None:
-        """bits: an int in the config's range (quantize.bits)."""
-        low, high, _ = next(f for f in fields(QuantizeConfig) if f.name == "bits").metadata["range"]
-        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-            raise ValueError(f"Camera.overridden: bits must be an int in {low}..{high}, got {value!r}")
+        """bits: as the config checks quantize.bits (one check, the config's message)."""
+        check_value(f"{cls.config_section}.{name}", value, WHAT_IF_SOURCE)
 
     def __init__(self, bits: int = 10, white_level: float = 1.0, mode: str = "full_well"):
         super().__init__()

@@ -10,6 +10,9 @@ from typing import Any, Callable, ClassVar
 import torch
 from torch import nn
 
+WHAT_IF_SOURCE = "Camera.overridden"
+"""Where a refused what-if value came from, the first words of its error (`Stage.check_what_if`)."""
+
 
 @dataclass
 class SensorArguments:
@@ -83,8 +86,9 @@ class Stage(nn.Module):
 
     @classmethod
     def check_what_if(cls, name: str, value) -> None:
-        """Refuse a `what_if` value this stage cannot run with (ValueError naming ``name``), before the camera sets
-        it. The default: any value."""
+        """Refuse a `what_if` value this stage cannot run with, before the camera sets it: a one-line ValueError
+        "`WHAT_IF_SOURCE`: <key>: ...". An override of a config key's value is checked by the config itself
+        (`warpsense.config.check_value`, e.g. quantize.bits), not again here. The default: any value."""
 
     @classmethod
     def check_design(cls, config, where: str) -> None:
