@@ -216,6 +216,76 @@ def test_a_pool_worker_sees_its_gpu_and_its_share_of_the_cores():
     assert worker_environment("0", 2, {"OMP_NUM_THREADS": "3"}, cores=16)["OMP_NUM_THREADS"] == "3"
 
 
+def test_pool_ids_count_within_the_parents_cuda_visible_devices(monkeypatch):
+    """A pool id is an index into this process's CUDA_VISIBLE_DEVICES, as torch's cuda:N: with 2,3 (a Slurm
+    allocation) the workers of ids 0 and 1 get "2" and "3", not the machine's GPUs 0 and 1; UUIDs are passed on
+    as they are; unset, the id itself. Under the pool's MPS daemon the id stays bare (the daemon renumbers)."""
+    from warpsense.study.runner import worker_environment
+
+    def device(gpu, extra=None):
+        return worker_environment(gpu, 2, cores=4, extra=extra)["CUDA_VISIBLE_DEVICES"]
+
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
+    assert [device("0"), device("1")] == ["2", "3"]
+    assert device("1", extra={"CUDA_MPS_PIPE_DIRECTORY": "/tmp/pipe"}) == "1"
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "GPU-aaa, GPU-bbb")
+    assert [device("0"), device("1")] == ["GPU-aaa", "GPU-bbb"]
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "MIG-0f1e2d3c-aaaa-bbbb-cccc-000000000001")
+    assert device("0") == "MIG-0f1e2d3c-aaaa-bbbb-cccc-000000000001"
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    assert [device("0"), device("1")] == ["0", "1"]
+
+
+@pytest.mark.parametrize("visible, shown", [("2,3", "CUDA_VISIBLE_DEVICES=2,3"), ("", "CUDA_VISIBLE_DEVICES=(empty")])
+def test_a_pool_id_past_the_visible_devices_is_one_error_naming_gpus(monkeypatch, visible, shown):
+    from warpsense.study.runner import worker_environment
+
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", visible)
+    for extra in (None, {"CUDA_MPS_PIPE_DIRECTORY": "/tmp/pipe"}):
+        with pytest.raises(ValueError) as error:
+            worker_environment("2", 2, cores=4, extra=extra)
+        message = str(error.value)
+        assert message.startswith("--gpus 2: ") and shown in message and "\n" not in message
+
+
+def test_the_gpu_reading_child_sees_the_workers_gpus(monkeypatch, uuid_cache):
+    """cuda_uuids's child process gets the same devices as the workers (ids mapped through CUDA_VISIBLE_DEVICES),
+    so the memory and busy readings are of the GPUs the pool really uses."""
+    import subprocess
+
+    seen = []
+
+    def run(command, env=None, **kwargs):
+        seen.append(env["CUDA_VISIBLE_DEVICES"])
+        uuids = [f"{n:08x}-aaaa-bbbb-cccc-000000000000" for n in range(len(env["CUDA_VISIBLE_DEVICES"].split(",")))]
+        return subprocess.CompletedProcess(command, 0, "\n".join(uuids) + "\n", "")
+
+    monkeypatch.setattr(subprocess, "run", run)
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
+    assert runner.cuda_uuids(("1", "0")) is not None and seen == ["3,2"]
+    assert runner.cuda_uuids(("2",)) is None and seen == ["3,2"]  # past the visible devices: nothing to read
+
+
+def test_explicit_gpu_ids_are_checked_against_the_visible_devices(monkeypatch):
+    """--gpus ids past torch's device count are refused also where CUDA_VISIBLE_DEVICES is set (they count within
+    it), in one line naming --gpus and the visible devices."""
+    import torch
+
+    from warpsense.commands.options import check_local_gpus
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
+    check_local_gpus(["0", "1"])
+    with pytest.raises(ValueError) as error:
+        check_local_gpus(["0", "2"])
+    assert str(error.value) == ("--gpus 0,2: GPU 2 not found; CUDA_VISIBLE_DEVICES=2,3 makes 2 visible, counted "
+                                "from 0 as in PyTorch (ids 0-1)")
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    with pytest.raises(ValueError, match=r"^--gpus 3: GPU 3 not found; this machine has 2 \(ids 0-1\)$"):
+        check_local_gpus(["3"])
+
+
 def test_a_worker_that_dies_fails_its_cell_and_a_fresh_one_takes_the_next(tmp_path, monkeypatch, capsys):
     """A worker process that exits without answering (a crash) fails the cell it held, with its exit status, and the
     slot starts a new worker for the next cell; the study reports both failures and exits 1."""

@@ -65,7 +65,8 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
     study.add_argument("--per-gpu", type=count(2), default=None, metavar="N",
                        help="cells at once on each GPU in the shared invocation (default: 3)")
     study.add_argument("--gpus", default=None,
-                       help="GPUs of the local pool: auto, none (this process), or ids 0,1 (default: auto)")
+                       help="GPUs of the local pool: auto, none (this process), or ids 0,1 counted "
+                            "within CUDA_VISIBLE_DEVICES as torch's cuda:N (default: auto)")
     study.add_argument("--mps", choices=MPS_MODES, default=None,
                        help="the shared invocation's CUDA MPS daemon (default: auto); the alone one runs without")
     parser.add_argument("--set", dest="overrides", action="append", default=None, metavar="SECTION.KEY=VALUE",

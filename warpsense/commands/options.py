@@ -4,7 +4,6 @@ progress bars."""
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
 
@@ -56,18 +55,22 @@ def parse_gpus(text: str) -> list[str]:
 
 
 def check_local_gpus(ids: list[str]) -> None:
-    """GPU ids a local pool will give its workers (their CUDA_VISIBLE_DEVICES) must name GPUs of this machine: none
-    without CUDA, and below the device count where this process sees them all (its own CUDA_VISIBLE_DEVICES unset;
-    with it set the ids may name GPUs this process does not see)."""
+    """GPU ids a local pool will give its workers must name GPUs this process sees: none without CUDA, and below
+    torch's device count, which counts within this process's CUDA_VISIBLE_DEVICES (the ids do too, as torch's
+    ``cuda:N``; the workers get the entries they name: `warpsense.study.runner.cuda_device`)."""
     if not ids:
         return
     import torch
+
+    from warpsense.study.runner import visible_devices
 
     if not torch.cuda.is_available():
         raise ValueError(f"--gpus {','.join(ids)}: no CUDA device is visible here; use --gpus none (one process on "
                          "this machine's device) or auto")
     count = torch.cuda.device_count()
     missing = [gpu for gpu in ids if int(gpu) >= count]
-    if missing and "CUDA_VISIBLE_DEVICES" not in os.environ:
-        raise ValueError(f"--gpus {','.join(ids)}: GPU {', '.join(missing)} not found; this machine has {count} "
-                         f"(ids 0-{count - 1})")
+    if missing:
+        visible = visible_devices()
+        seen = (f"this machine has {count}" if visible is None else
+                f"CUDA_VISIBLE_DEVICES={','.join(visible)} makes {count} visible, counted from 0 as in PyTorch")
+        raise ValueError(f"--gpus {','.join(ids)}: GPU {', '.join(missing)} not found; {seen} (ids 0-{count - 1})")

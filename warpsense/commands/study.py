@@ -75,7 +75,7 @@ def _add_run(subcommands: argparse._SubParsersAction) -> None:
                         help="print one command per cell, for a scheduler (a Slurm job array, ...), and exit")
     parser.add_argument("--gpus", default="auto",
                         help="GPUs of the local pool: auto (all torch sees), none (this process), or ids 0,1 "
-                             "(default: %(default)s)")
+                             "counted within CUDA_VISIBLE_DEVICES as torch's cuda:N (default: %(default)s)")
     parser.add_argument("--per-gpu", type=per_gpu_count, default="auto", metavar="N|auto",
                         help="cells at once on each GPU: auto (3 under CUDA MPS where each GPU's free memory holds "
                         "them, fewer where it holds fewer, 1 without MPS) or a number (default: %(default)s)")

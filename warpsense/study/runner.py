@@ -39,6 +39,28 @@ THROUGHPUT = "throughput.json"
 concurrency and the GPUs' busy fraction (sampled from nvidia-smi while it ran; absent without nvidia-smi)."""
 
 
+def visible_devices(environ=None) -> list[str] | None:
+    """The entries of this process's ``CUDA_VISIBLE_DEVICES`` (indices, GPU-... or MIG-... UUIDs; an empty value:
+    none), or None where it is unset (every GPU of the machine is visible)."""
+    value = (os.environ if environ is None else environ).get("CUDA_VISIBLE_DEVICES")
+    return None if value is None else [entry.strip() for entry in value.split(",") if entry.strip()]
+
+
+def cuda_device(gpu: str, environ=None) -> str:
+    """The ``CUDA_VISIBLE_DEVICES`` value of a child process that is to use pool id ``gpu``. Pool ids (``--gpus``)
+    count within this process's visible devices, as torch's ``cuda:N`` does: with CUDA_VISIBLE_DEVICES=2,3 (a
+    Slurm allocation, a shared node) id 0 is entry "2", whereas a bare "0" in the child would name the machine's
+    GPU 0, someone else's. Unset: the id itself. ValueError naming --gpus for an id past the visible entries."""
+    visible = visible_devices(environ)
+    if visible is None:
+        return gpu
+    if int(gpu) >= len(visible):
+        shown = ",".join(visible) or "(empty: no GPU)"
+        raise ValueError(f"--gpus {gpu}: no such GPU; ids count within CUDA_VISIBLE_DEVICES={shown} as in PyTorch "
+                         f"({len(visible)} visible{f', ids 0-{len(visible) - 1}' if visible else ''})")
+    return visible[int(gpu)]
+
+
 _CUDA_UUIDS = "import torch\nfor i in range(torch.cuda.device_count()): print(torch.cuda.get_device_properties(i).uuid)"
 _UUID = re.compile(r"[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}")
 
@@ -49,10 +71,13 @@ def cuda_uuids(gpus: tuple[str, ...]) -> tuple[str, ...] | None:
 
     A pool id is CUDA's (a worker's CUDA_VISIBLE_DEVICES), counted in CUDA_DEVICE_ORDER's order (FASTEST_FIRST by
     default), whereas nvidia-smi's index is its PCI bus order: the two agree only by chance, so `_query_gpus` matches
-    the rows by UUID. A short child process with CUDA_VISIBLE_DEVICES set to the ids, as the workers' own, reads them
-    through torch, so that this long-lived process holds no CUDA context (~0.5 GB on each GPU for the whole study).
-    Cached: the sampler asks every 2 s."""
-    environment = {**os.environ, "CUDA_VISIBLE_DEVICES": ",".join(gpus)}
+    the rows by UUID. A short child process with CUDA_VISIBLE_DEVICES set to the ids' devices (`cuda_device`, as
+    the workers' own), reads them through torch, so that this long-lived process holds no CUDA context (~0.5 GB on
+    each GPU for the whole study). Cached: the sampler asks every 2 s."""
+    try:
+        environment = {**os.environ, "CUDA_VISIBLE_DEVICES": ",".join(cuda_device(gpu) for gpu in gpus)}
+    except ValueError:  # an id past CUDA_VISIBLE_DEVICES: no GPU to read
+        return None
     try:
         result = subprocess.run([sys.executable, "-c", _CUDA_UUIDS], env=environment, capture_output=True, text=True,
                                 timeout=120, check=True)
@@ -306,8 +331,9 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
         cells: the cells to run (default: all of the plan).
         progress: each cell's progress bars: on this process's output where the cells run here, in each cell's log
             with a pool (several workers' bars would overwrite each other on one terminal).
-        gpus: device ids for a local pool of worker processes (CUDA_VISIBLE_DEVICES of each), ``per_gpu`` on each,
-            each training its cells one after another; None or empty: the cells run one after another here.
+        gpus: device ids for a local pool of worker processes (indices into CUDA_VISIBLE_DEVICES: `cuda_device`),
+            ``per_gpu`` on each, each training its cells one after another; None or empty: the cells run one after
+            another here.
         record: append this invocation's throughput to <out>/`THROUGHPUT` (a one-cell invocation does not).
         sample_gpus: GPU ids whose busy fraction is sampled meanwhile (default: ``gpus``; the command passes the
             visible GPUs also when the cells run in this process on one GPU).
@@ -443,9 +469,15 @@ def worker_environment(gpu: str, workers: int, environ=None, cores: int | None =
     as OpenMP threads (``OMP_NUM_THREADS`` = cores // workers, at least 1; kept where the caller set it), as
     torchrun limits its ranks: every worker running an OpenMP pool of all the cores oversubscribes the CPU, and on
     2 H100s with 16 cores each cell's set-up (the data onto the GPU, its copy-paste classes) took 5-8 s instead of
-    1 s (docs/history.md)."""
+    1 s (docs/history.md).
+
+    The GPU is ``gpu``'s entry of the caller's CUDA_VISIBLE_DEVICES (`cuda_device`). Under the pool's MPS daemon
+    (``extra`` names its pipe directory) it stays the bare id: the daemon, started with the caller's environment,
+    renumbers the devices it sees from 0, and a client naming one by its outer index fails (NVIDIA's MPS guide,
+    CUDA_VISIBLE_DEVICES)."""
     environment = dict(os.environ if environ is None else environ)
-    environment["CUDA_VISIBLE_DEVICES"] = gpu
+    device = cuda_device(gpu, environment)  # an id past the visible devices is refused either way
+    environment["CUDA_VISIBLE_DEVICES"] = gpu if "CUDA_MPS_PIPE_DIRECTORY" in (extra or {}) else device
     cores = cores or os.cpu_count() or 1
     environment.setdefault("OMP_NUM_THREADS", str(max(1, cores // max(workers, 1))))
     environment.update(extra or {})  # the pool's MPS daemon (warpsense.study.mps)
