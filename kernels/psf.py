@@ -84,6 +84,8 @@ of 128 threads, five a multiprocessor, which caps a thread at ~100 registers (14
 0.457-0.467 -> 0.430 ms on an H100 (docs/benchmarks.md, PSF convolution). The op layer launches blocks of the first."""
 
 ROWS = 8  # output rows per thread in the forward and image-adjoint kernels
+CELLS_BOUNDS = None
+"""CUDA launch bounds of the PSF-adjoint kernel (None: none)."""
 TAPS = 8  # PSF taps (consecutive j) per thread in the PSF-adjoint kernel (8 beat 4 on an H100)
 
 
@@ -100,115 +102,256 @@ def bilinear(corners: Any, fy: Any, fx: Any):
     return top + fy * (bottom - top)
 
 
-@wp.kernel
-def psf_backward_cells(
-    source: wp.array3d(dtype=Any),
-    padded_grad: wp.array3d(dtype=Any),
-    row_bounds: wp.array(dtype=wp.int32),
-    row_frac: wp.array(dtype=Any),
-    col_bounds: wp.array(dtype=wp.int32),
-    col_frac: wp.array(dtype=Any),
-    size: int,
-    channels: int,
-    cells_y: int,
-    cells_x: int,
-    row_chunks: int,
-    col_chunks: int,
-    partials: wp.array4d(dtype=Any),
-):
-    """dL/dcell_n(d) for the four corners of each cell: sum over the cell's sources s of x(s) times the gradient
-    of the output s reached under tap d, times s's bilinear corner weights.
+@functools.lru_cache(maxsize=None)
+def psf_cells_kernel() -> wp.Kernel:
+    """The PSF-adjoint kernel (float32 and float64 overloads, in a Warp module of its own, built with the launch
+    bounds `CELLS_BOUNDS`)."""
 
-    Thread (lane, tap group): the tap group enumerates (c, i, TAPS consecutive j); the lane (b, cell, chunk of the
-    cell's source rows, chunk of its columns). Neighbouring threads share a source row, so its loads are broadcast.
-    Along the row the gradients of the TAPS outputs slide through registers (one load per source), TAPS sources a
-    block with every load of a block issued before its arithmetic (the kernel waited on its loads one source at a
-    time: docs/benchmarks.md, PSF convolution); the weights are separable, so
-    each row keeps two sums per tap (sum v and sum fx * v, v = g x) and folds them into the four corners with its
-    fy. Each thread writes its own partials[(b, row chunk, column chunk), c, cell, tap] (summed over batch and
-    chunks by the caller): no atomics.
-    """
-    lane, group = wp.tid()
-    groups = (size + TAPS - 1) / TAPS
-    j0 = (group % groups) * TAPS
-    i = (group / groups) % size
-    c = group / (groups * size)
-    chunks = row_chunks * col_chunks
-    chunk = lane % chunks
-    row_chunk = chunk / col_chunks
-    col_chunk = chunk % col_chunks
-    cell = (lane / chunks) % (cells_y * cells_x)
-    b = lane / (chunks * cells_y * cells_x)
-    cy = cell / cells_x
-    cx = cell % cells_x
-    bc = b * channels + c
-    rows = row_bounds[cy + 1] - row_bounds[cy]
-    per_chunk = (rows + row_chunks - 1) / row_chunks
-    s_start = row_bounds[cy] + row_chunk * per_chunk
-    s_stop = wp.min(s_start + per_chunk, row_bounds[cy + 1])
-    cols = col_bounds[cx + 1] - col_bounds[cx]
-    per_chunk = (cols + col_chunks - 1) / col_chunks
-    t_first = col_bounds[cx] + col_chunk * per_chunk
-    t_end = wp.min(t_first + per_chunk, col_bounds[cx + 1])
-    one = source.dtype(1.0)
-    s00 = wp.vector(length=TAPS, dtype=source.dtype)
-    s01 = wp.vector(length=TAPS, dtype=source.dtype)
-    s10 = wp.vector(length=TAPS, dtype=source.dtype)
-    s11 = wp.vector(length=TAPS, dtype=source.dtype)
-    # the gradients along the row: before source t is taken, window[0 .. TAPS - 2] hold padded_grad at t + j0 + 0 ..
-    # TAPS - 2 (relative to the row's `grads`); a block of TAPS sources loads the next TAPS into window[TAPS - 1 ..],
-    # so source t + u reads window[u .. u + TAPS - 1] by constant indices, and its loads are all in flight at once
-    window = wp.vector(length=wp.static(2 * TAPS - 1), dtype=source.dtype)
-    values = wp.vector(length=TAPS, dtype=source.dtype)
-    weighted = wp.vector(length=TAPS, dtype=source.dtype)
-    blocks = wp.max(t_end - t_first, 0) / TAPS  # an empty chunk (wide, short cells on a GPU) has none
-    for s in range(s_start, s_stop):
-        grads = (bc * padded_grad.shape[1] + s + i) * padded_grad.shape[2] + j0  # padded_grad[bc, s + i, j0 + 0]
-        sources = (bc * source.shape[1] + s) * source.shape[2]  # source[bc, s, 0]
-        for m in range(TAPS - 1):
-            window[m] = load(padded_grad, grads + t_first + m)
-        total = wp.vector(length=TAPS, dtype=source.dtype)
-        upper = wp.vector(length=TAPS, dtype=source.dtype)
-        for block in range(blocks):
-            t = t_first + block * TAPS
-            for u in range(TAPS):
-                window[TAPS - 1 + u] = load(padded_grad, grads + t + TAPS - 1 + u)
-                values[u] = load(source, sources + t + u)
-                weighted[u] = values[u] * load(col_frac, t + u)  # upper takes the value weighted by fx
-            for u in range(TAPS):
+    @wp.kernel(module="unique", enable_backward=False, launch_bounds=CELLS_BOUNDS)
+    def psf_backward_cells(
+        source: wp.array3d(dtype=Any),
+        padded_grad: wp.array3d(dtype=Any),
+        row_bounds: wp.array(dtype=wp.int32),
+        row_frac: wp.array(dtype=Any),
+        col_bounds: wp.array(dtype=wp.int32),
+        col_frac: wp.array(dtype=Any),
+        size: int,
+        channels: int,
+        cells_y: int,
+        cells_x: int,
+        row_chunks: int,
+        col_chunks: int,
+        partials: wp.array4d(dtype=Any),
+    ):
+        """dL/dcell_n(d) for the four corners of each cell: sum over the cell's sources s of x(s) times the gradient
+        of the output s reached under tap d, times s's bilinear corner weights.
+
+        Thread (lane, tap group): the tap group enumerates (c, i, TAPS consecutive j); the lane (b, cell, chunk of the
+        cell's source rows, chunk of its columns). Neighbouring threads share a source row, so its loads are broadcast.
+        Along the row the gradients of the TAPS outputs slide through registers (one load per source), TAPS sources a
+        block with every load of a block issued before its arithmetic (the kernel waited on its loads one source at a
+        time: docs/benchmarks.md, PSF convolution); the weights are separable, so
+        each row keeps two sums per tap (sum v and sum fx * v, v = g x) and folds them into the four corners with its
+        fy. Each thread writes its own partials[(b, row chunk, column chunk), c, cell, tap] (summed over batch and
+        chunks by the caller): no atomics.
+        """
+        lane, group = wp.tid()
+        groups = (size + TAPS - 1) / TAPS
+        j0 = (group % groups) * TAPS
+        i = (group / groups) % size
+        c = group / (groups * size)
+        chunks = row_chunks * col_chunks
+        chunk = lane % chunks
+        row_chunk = chunk / col_chunks
+        col_chunk = chunk % col_chunks
+        cell = (lane / chunks) % (cells_y * cells_x)
+        b = lane / (chunks * cells_y * cells_x)
+        cy = cell / cells_x
+        cx = cell % cells_x
+        bc = b * channels + c
+        rows = row_bounds[cy + 1] - row_bounds[cy]
+        per_chunk = (rows + row_chunks - 1) / row_chunks
+        s_start = row_bounds[cy] + row_chunk * per_chunk
+        s_stop = wp.min(s_start + per_chunk, row_bounds[cy + 1])
+        cols = col_bounds[cx + 1] - col_bounds[cx]
+        per_chunk = (cols + col_chunks - 1) / col_chunks
+        t_first = col_bounds[cx] + col_chunk * per_chunk
+        t_end = wp.min(t_first + per_chunk, col_bounds[cx + 1])
+        one = source.dtype(1.0)
+        s00 = wp.vector(length=TAPS, dtype=source.dtype)
+        s01 = wp.vector(length=TAPS, dtype=source.dtype)
+        s10 = wp.vector(length=TAPS, dtype=source.dtype)
+        s11 = wp.vector(length=TAPS, dtype=source.dtype)
+        # the gradients along the row: before source t is taken, window[0 .. TAPS - 2] hold padded_grad at t + j0 + 0 ..
+        # TAPS - 2 (relative to the row's `grads`); a block of TAPS sources loads the next TAPS into window[TAPS - 1 ..],
+        # so source t + u reads window[u .. u + TAPS - 1] by constant indices, and its loads are all in flight at once
+        window = wp.vector(length=wp.static(2 * TAPS - 1), dtype=source.dtype)
+        values = wp.vector(length=TAPS, dtype=source.dtype)
+        weighted = wp.vector(length=TAPS, dtype=source.dtype)
+        blocks = wp.max(t_end - t_first, 0) / TAPS  # an empty chunk (wide, short cells on a GPU) has none
+        for s in range(s_start, s_stop):
+            grads = (bc * padded_grad.shape[1] + s + i) * padded_grad.shape[2] + j0  # padded_grad[bc, s + i, j0 + 0]
+            sources = (bc * source.shape[1] + s) * source.shape[2]  # source[bc, s, 0]
+            for m in range(TAPS - 1):
+                window[m] = load(padded_grad, grads + t_first + m)
+            total = wp.vector(length=TAPS, dtype=source.dtype)
+            upper = wp.vector(length=TAPS, dtype=source.dtype)
+            for block in range(blocks):
+                t = t_first + block * TAPS
+                for u in range(TAPS):
+                    window[TAPS - 1 + u] = load(padded_grad, grads + t + TAPS - 1 + u)
+                    values[u] = load(source, sources + t + u)
+                    weighted[u] = values[u] * load(col_frac, t + u)  # upper takes the value weighted by fx
+                for u in range(TAPS):
+                    for m in range(TAPS):
+                        total[m] = total[m] + window[u + m] * values[u]
+                        upper[m] = upper[m] + window[u + m] * weighted[u]
+                for m in range(TAPS - 1):
+                    window[m] = window[TAPS + m]
+            for t in range(t_first + blocks * TAPS, t_end):  # the last sources, one at a time
+                window[TAPS - 1] = load(padded_grad, grads + t + TAPS - 1)
+                value = load(source, sources + t)
+                fraction = load(col_frac, t)
                 for m in range(TAPS):
-                    total[m] = total[m] + window[u + m] * values[u]
-                    upper[m] = upper[m] + window[u + m] * weighted[u]
-            for m in range(TAPS - 1):
-                window[m] = window[TAPS + m]
-        for t in range(t_first + blocks * TAPS, t_end):  # the last sources, one at a time
-            window[TAPS - 1] = load(padded_grad, grads + t + TAPS - 1)
-            value = load(source, sources + t)
-            fraction = load(col_frac, t)
+                    total[m] = total[m] + window[m] * value
+                    upper[m] = upper[m] + window[m] * (value * fraction)
+                for m in range(TAPS - 1):
+                    window[m] = window[m + 1]
+            fy = row_frac[s]
+            lower = total - upper
+            s00 += (one - fy) * lower
+            s01 += (one - fy) * upper
+            s10 += fy * lower
+            s11 += fy * upper
+        slot = b * chunks + chunk
+        for m in range(TAPS):
+            if j0 + m < size:
+                partials[slot, c, cell, i * size + j0 + m] = wp.vector(s00[m], s01[m], s10[m], s11[m])
+
+    for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
+        planes, table, index = wp.array3d(dtype=_float), wp.array(dtype=_float), wp.array(dtype=wp.int32)
+        wp.overload(psf_backward_cells, [planes, planes, index, table, index, table, int, int, int, int, int, int,
+                                         wp.array4d(dtype=_vec4)])
+    return psf_backward_cells
+
+
+STAGED_ROWS = 8  # source rows a block of the staged PSF adjoint takes into shared memory at a time
+STAGED_COLS = 64  # source columns of one block of the staged PSF adjoint (a cell wider is split into column chunks)
+
+
+def staged_tiles(size: int) -> tuple[int, int, int]:
+    """(tap groups a row, threads a block, shared-memory elements a block) of the staged PSF adjoint for PSFs of
+    ``size`` taps: the gradient rows and columns the block's sources reach, its sources and their column
+    fractions."""
+    groups = (size + TAPS - 1) // TAPS
+    threads = -(-size * groups // 32) * 32
+    elements = (STAGED_ROWS + size - 1) * (STAGED_COLS + groups * TAPS - 1) + STAGED_ROWS * STAGED_COLS + STAGED_COLS
+    return groups, threads, elements
+
+
+@functools.lru_cache(maxsize=None)
+def psf_cells_staged(size: int) -> wp.Kernel:
+    """The PSF adjoint with the gradient rows a block reads staged in shared memory (float32 and float64 overloads,
+    a Warp module of its own per size): the same sums as `psf_cells_kernel`, read as tiles.
+
+    Why: in `psf_cells_kernel` the 32 threads of a warp are 32 tap groups, each reading the gradient of another
+    row, so each of its window loads took 32 sectors (80% of the kernel's sectors excessive, Nsight Compute;
+    docs/benchmarks.md, PSF convolution) and the kernel waited on L1. Here a block is one (image, channel, cell,
+    row split, column chunk); its threads are the tap groups (tap row i, TAPS consecutive tap columns from j0) of
+    one channel, and it loads the STAGED_ROWS x STAGED_COLS sources of a step and the gradient rows and columns
+    they reach as tiles into shared memory (coalesced, once), then each thread slides its window along its
+    gradient row there (a thread a row: distinct banks but for rows 8 apart). Partial sums per (image, split) as in
+    `psf_cells_kernel`: no atomics, deterministic.
+
+    Grid: (blocks, threads), blocks = planes * cells * row splits * column chunks, launched in blocks of
+    ``threads`` (`staged_tiles`); every column chunk at most STAGED_COLS wide. The planes come as 2D views [planes *
+    rows, columns] (``source_rows``, ``grad_rows`` a plane) read without bounds checks (the checks took more
+    instructions than the sums): the op layer pads them so that every tile a block loads lies inside its plane
+    and gives ``col_frac`` STAGED_COLS more entries.
+    """
+    groups, threads, _ = staged_tiles(size)
+    tile_rows = STAGED_ROWS + size - 1
+    tile_cols = STAGED_COLS + groups * TAPS - 1
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def psf_backward_staged(
+        source: wp.array2d(dtype=Any),
+        source_rows: int,
+        padded_grad: wp.array2d(dtype=Any),
+        grad_rows: int,
+        row_bounds: wp.array(dtype=wp.int32),
+        row_frac: wp.array(dtype=Any),
+        col_bounds: wp.array(dtype=wp.int32),
+        col_frac: wp.array(dtype=Any),
+        channels: int,
+        cells_y: int,
+        cells_x: int,
+        row_splits: int,
+        col_chunks: int,
+        partials: wp.array4d(dtype=Any),
+    ):
+        block, lane = wp.tid()
+        splits = row_splits * col_chunks
+        split = block % splits
+        cell = (block / splits) % (cells_y * cells_x)
+        bc = block / (splits * cells_y * cells_x)
+        cy = cell / cells_x
+        cx = cell % cells_x
+        rows = row_bounds[cy + 1] - row_bounds[cy]
+        per_split = (rows + row_splits - 1) / row_splits
+        s_begin = row_bounds[cy] + (split / col_chunks) * per_split
+        s_end = wp.min(s_begin + per_split, row_bounds[cy + 1])
+        cols = col_bounds[cx + 1] - col_bounds[cx]
+        per_chunk = (cols + col_chunks - 1) / col_chunks
+        t_first = col_bounds[cx] + (split % col_chunks) * per_chunk
+        width = wp.max(wp.min(t_first + per_chunk, col_bounds[cx + 1]) - t_first, 0)
+        i = lane / wp.static(groups)
+        j0 = (lane % wp.static(groups)) * TAPS
+        active = i < wp.static(size)
+        one = source.dtype(1.0)
+        s00 = wp.vector(length=TAPS, dtype=source.dtype)
+        s01 = wp.vector(length=TAPS, dtype=source.dtype)
+        s10 = wp.vector(length=TAPS, dtype=source.dtype)
+        s11 = wp.vector(length=TAPS, dtype=source.dtype)
+        window = wp.vector(length=wp.static(2 * TAPS - 1), dtype=source.dtype)
+        values = wp.vector(length=TAPS, dtype=source.dtype)
+        weighted = wp.vector(length=TAPS, dtype=source.dtype)
+        blocks = width / TAPS
+        s0 = s_begin
+        while s0 < s_end:  # the same steps in every thread of the block: the tile loads are the block's
+            grads = wp.tile_load(padded_grad, shape=(tile_rows, tile_cols), offset=(bc * grad_rows + s0, t_first),
+                                 storage="shared", bounds_check=False)
+            sources = wp.tile_load(source, shape=(STAGED_ROWS, STAGED_COLS), offset=(bc * source_rows + s0, t_first),
+                                   storage="shared", bounds_check=False)
+            fractions = wp.tile_load(col_frac, shape=(STAGED_COLS,), offset=(t_first,), storage="shared",
+                                     bounds_check=False)
+            if active:
+                for r in range(wp.min(STAGED_ROWS, s_end - s0)):
+                    g = r + i  # this thread's gradient row in the tile
+                    for m in range(TAPS - 1):
+                        window[m] = grads[g, j0 + m]
+                    total = wp.vector(length=TAPS, dtype=source.dtype)
+                    upper = wp.vector(length=TAPS, dtype=source.dtype)
+                    for step in range(blocks):
+                        t = step * TAPS
+                        for u in range(TAPS):
+                            window[TAPS - 1 + u] = grads[g, t + j0 + TAPS - 1 + u]
+                            values[u] = sources[r, t + u]
+                            weighted[u] = values[u] * fractions[t + u]
+                        for u in range(TAPS):
+                            for m in range(TAPS):
+                                total[m] = total[m] + window[u + m] * values[u]
+                                upper[m] = upper[m] + window[u + m] * weighted[u]
+                        for m in range(TAPS - 1):
+                            window[m] = window[TAPS + m]
+                    for t in range(blocks * TAPS, width):  # the last sources, one at a time
+                        window[TAPS - 1] = grads[g, t + j0 + TAPS - 1]
+                        value = sources[r, t]
+                        fraction = fractions[t]
+                        for m in range(TAPS):
+                            total[m] = total[m] + window[m] * value
+                            upper[m] = upper[m] + window[m] * (value * fraction)
+                        for m in range(TAPS - 1):
+                            window[m] = window[m + 1]
+                    fy = row_frac[s0 + r]
+                    lower = total - upper
+                    s00 += (one - fy) * lower
+                    s01 += (one - fy) * upper
+                    s10 += fy * lower
+                    s11 += fy * upper
+            s0 += STAGED_ROWS
+        if active:
+            slot = (bc / channels) * splits + split
+            c = bc % channels
             for m in range(TAPS):
-                total[m] = total[m] + window[m] * value
-                upper[m] = upper[m] + window[m] * (value * fraction)
-            for m in range(TAPS - 1):
-                window[m] = window[m + 1]
-        fy = row_frac[s]
-        lower = total - upper
-        s00 += (one - fy) * lower
-        s01 += (one - fy) * upper
-        s10 += fy * lower
-        s11 += fy * upper
-    slot = b * chunks + chunk
-    for m in range(TAPS):
-        if j0 + m < size:
-            partials[slot, c, cell, i * size + j0 + m] = wp.vector(s00[m], s01[m], s10[m], s11[m])
+                if j0 + m < size:
+                    partials[slot, c, cell, i * size + j0 + m] = wp.vector(s00[m], s01[m], s10[m], s11[m])
 
-
-for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
-    _planes = wp.array3d(dtype=_float)
-    _cells = wp.array4d(dtype=_vec4)
-    _table = wp.array(dtype=_float)
-    _index = wp.array(dtype=wp.int32)
-    wp.overload(psf_backward_cells, [_planes, _planes, _index, _table, _index, _table, int, int, int, int, int, int,
-                                     wp.array4d(dtype=_vec4)])
+    for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
+        planes, table, index = wp.array2d(dtype=_float), wp.array(dtype=_float), wp.array(dtype=wp.int32)
+        wp.overload(psf_backward_staged, [planes, int, planes, int, index, table, index, table, int, int, int, int,
+                                          int, wp.array4d(dtype=_vec4)])
+    return psf_backward_staged
 
 
 class PsfKernels(NamedTuple):

@@ -219,11 +219,15 @@ def test_gradients_match_reference_dense_grid(device):
     assert_matches_reference(psf_conv, psf_conv_reference, (image, psf), grad)
 
 
-def test_psf_gradient_rows_split_into_chunks(monkeypatch):
-    """The GPU launch splits each cell's rows and columns over several lanes; force that split on the CPU."""
+@pytest.mark.parametrize("staged", [True, False])
+def test_psf_gradient_rows_split_into_chunks(staged, monkeypatch):
+    """The GPU launch splits each cell's rows (and, unstaged, its columns) over several blocks or lanes; force
+    that split on the CPU, for the staged PSF adjoint and for the one that stages nothing (large PSFs)."""
     from warpsense.ops import psf as psf_module
 
     monkeypatch.setitem(psf_module._THREADS_TARGET, "cpu", 10_000)
+    if not staged:
+        monkeypatch.setattr(psf_module, "STAGED_BYTES", 0)
     chunks = psf_module._chunks
     monkeypatch.setattr(psf_module, "_chunks", lambda wanted, rows, cols: chunks(wanted, rows, cols, min_cols=2))
     assert psf_module._chunks(10, 5, 9) == (5, 2)  # rows and columns both split
@@ -231,6 +235,23 @@ def test_psf_gradient_rows_split_into_chunks(monkeypatch):
     psf = random_psf(2, 3, 2, 5).requires_grad_()
     grad = torch.rand(2, 2, 13, 10, dtype=torch.float64)
     assert_matches_reference(psf_conv, psf_conv_reference, (image, psf), grad)
+
+
+@pytest.mark.parametrize(("shape", "grid", "size"), [((1, 2, 21, 150), (3, 2), 5), ((1, 1, 19, 23), (2, 3), 15)])
+def test_staged_psf_gradient_steps_chunks_and_tap_groups(shape, grid, size):
+    """The staged PSF adjoint where a cell is wider than a block's STAGED_COLS (column chunks), taller than its
+    STAGED_ROWS (several steps of tiles), and where a tap row takes two groups of TAPS taps (K = 15)."""
+    from warpsense.kernels import psf as kernels
+
+    padded_cols = shape[3] + size - 1
+    assert padded_cols / (grid[1] - 1) > kernels.STAGED_COLS or size > kernels.TAPS
+    assert (shape[2] + size - 1) / (grid[0] - 1) > kernels.STAGED_ROWS
+    image = torch.rand(*shape, dtype=torch.float64)
+    psf = random_psf(shape[1], *grid, size).requires_grad_()
+    grad = torch.rand(*shape, dtype=torch.float64)
+    ours = torch.autograd.grad((psf_conv(image, psf, "direct") * grad).sum(), psf)[0]
+    expected = torch.autograd.grad((psf_conv_reference(image, psf) * grad).sum(), psf)[0]
+    torch.testing.assert_close(ours, expected, rtol=1e-10, atol=1e-12)
 
 
 @pytest.mark.parametrize("device", device_params())

@@ -89,21 +89,21 @@ def _source_tables(image: torch.Tensor, grid_y: int, grid_x: int, radius: int):
     return rows, cols
 
 
-def _padded_source(image: torch.Tensor, radius: int) -> torch.Tensor:
-    """[B, C, H, W] -> [B*C, H + 2r + ROWS - 1, W + 2r], edge-replicated (the kernels' clamp-to-edge
+def _padded_source(image: torch.Tensor, radius: int, extra: int = 0) -> torch.Tensor:
+    """[B, C, H, W] -> [B*C, H + 2r + ROWS - 1 (+ extra), W + 2r], edge-replicated (the kernels' clamp-to-edge
     borders)."""
     batch, channels = image.shape[:2]
-    padded = F.pad(image, (radius, radius, radius, radius + kernels.ROWS - 1), mode="replicate")
+    padded = F.pad(image, (radius, radius, radius, radius + kernels.ROWS - 1 + extra), mode="replicate")
     # contiguous: the kernels read by flat offset (a channels-last pad of one image reshapes to a strided view)
     return padded.reshape(batch * channels, *padded.shape[-2:]).contiguous()
 
 
-def _padded_gradient(grad_out: torch.Tensor, radius: int, dtype: torch.dtype) -> torch.Tensor:
-    """[B, C, H, W] -> [B*C, H + 4r + ROWS - 1, W + 4r + TAPS - 1], zero-padded: the outputs beyond the image
-    a source would reach contribute nothing."""
+def _padded_gradient(grad_out: torch.Tensor, radius: int, dtype: torch.dtype, extra: int = 0) -> torch.Tensor:
+    """[B, C, H, W] -> [B*C, H + 4r + ROWS - 1 (+ extra), W + 4r + TAPS - 1], zero-padded: the outputs beyond the
+    image a source would reach contribute nothing."""
     batch, channels = grad_out.shape[:2]
     pad = 2 * radius
-    padded = F.pad(grad_out.to(dtype), (pad, pad + kernels.TAPS - 1, pad, pad + kernels.ROWS - 1))
+    padded = F.pad(grad_out.to(dtype), (pad, pad + kernels.TAPS - 1, pad, pad + kernels.ROWS - 1 + extra))
     return padded.reshape(batch * channels, *padded.shape[-2:]).contiguous()  # read by flat offset
 
 
@@ -181,25 +181,57 @@ def _chunks(wanted: int, rows: int, cols: int, min_cols: int = 32) -> tuple[int,
     return row_chunks, col_chunks
 
 
+@functools.lru_cache(maxsize=64)
+def _widest_cell(width: int, grid_x: int, radius: int) -> int:
+    """Padded source columns of the widest grid cell (the border cells take the padding), from the host's tables:
+    no device read, so the launch can be captured in a CUDA graph."""
+    bounds = source_axis(width, grid_x, radius, 0)[2]
+    return int((bounds[1:] - bounds[:-1]).max())
+
+
+STAGED_BYTES = 40 * 1024
+"""Shared memory a block of the staged PSF adjoint may take (`kernels.psf.staged_tiles`); larger PSFs (K > 63 in
+float32, K > 31 in float64) run `kernels.psf.psf_cells_kernel`, which stages nothing."""
+
+
 @warp_op("psf_conv_backward_cells", lambda image, grad_out, cells, grid_y, grid_x: torch.empty_like(cells))
 def _psf_backward_cells(image: torch.Tensor, grad_out: torch.Tensor, cells: torch.Tensor, grid_y: int,
                         grid_x: int) -> torch.Tensor:
-    """The PSF adjoint: per (tap group, image, cell, row chunk) partial sums, then one deterministic sum."""
+    """The PSF adjoint: per (image, cell, chunk of sources) partial sums, then one deterministic sum."""
     batch, channels, height, width = image.shape
     size = cells.shape[2]
     radius = size // 2
     _check_offsets(image, radius)
     cells_y, cells_x = max(grid_y - 1, 1), max(grid_x - 1, 1)
     rows, cols = _source_tables(image, grid_y, grid_x, radius)
+    cell_rows, cell_cols = -(-(height + 2 * radius) // cells_y), -(-(width + 2 * radius) // cells_x)
+    target = _THREADS_TARGET.get(image.device.type, 1)
+    groups, threads, elements = kernels.staged_tiles(size)
+    if elements * image.element_size() <= STAGED_BYTES:
+        col_chunks = -(-_widest_cell(width, grid_x, radius) // kernels.STAGED_COLS)
+        planes = batch * channels * cells_y * cells_x * col_chunks
+        row_splits = max(1, min(-(-cell_rows // kernels.STAGED_ROWS), -(-target // (threads * planes))))
+        partials = image.new_empty(batch * row_splits * col_chunks, channels, cells_y * cells_x, size * size, 4)
+        # rows below each plane, so that every tile a block loads whole and unchecked lies inside its plane: the
+        # columns of a tile's last rows run on past a row's end, and the gradient's tile one row past the plane's
+        source = _padded_source(image, radius, -(-kernels.STAGED_COLS // (width + 2 * radius)))
+        tile_cols = kernels.STAGED_COLS + groups * kernels.TAPS - 1
+        padded_grad = _padded_gradient(grad_out, radius, image.dtype,
+                                       1 + -(-tile_cols // (width + 4 * radius + kernels.TAPS - 1)))
+        fractions = source_axis(width, grid_x, radius, kernels.STAGED_COLS, image.dtype, image.device)[1]
+        launch(kernels.psf_cells_staged(size), (planes * row_splits, threads),
+               [source.view(-1, source.shape[-1]), source.shape[1], padded_grad.view(-1, padded_grad.shape[-1]),
+                padded_grad.shape[1], rows[2], rows[1], cols[2], fractions, channels, cells_y, cells_x, row_splits,
+                col_chunks, Vectors(partials)], image.device, threads_per_block=threads)
+        return partials.sum(dim=0).view_as(cells)
+    source, padded_grad = _padded_source(image, radius), _padded_gradient(grad_out, radius, image.dtype)
     tap_groups = channels * size * -(-size // kernels.TAPS)
     lanes = batch * cells_y * cells_x
-    row_chunks, col_chunks = _chunks(-(-_THREADS_TARGET.get(image.device.type, 1) // (tap_groups * lanes)),
-                                     -(-(height + 2 * radius) // cells_y), -(-(width + 2 * radius) // cells_x))
+    row_chunks, col_chunks = _chunks(-(-target // (tap_groups * lanes)), cell_rows, cell_cols)
     partials = image.new_empty(batch * row_chunks * col_chunks, channels, cells_y * cells_x, size * size, 4)
-    launch(kernels.psf_backward_cells, (lanes * row_chunks * col_chunks, tap_groups),
-           [_padded_source(image, radius), _padded_gradient(grad_out, radius, image.dtype), rows[2], rows[1],
-            cols[2], cols[1], size, channels, cells_y, cells_x, row_chunks, col_chunks, Vectors(partials)],
-           image.device, threads_per_block=CELLS_BLOCK)
+    launch(kernels.psf_cells_kernel(), (lanes * row_chunks * col_chunks, tap_groups),
+           [source, padded_grad, rows[2], rows[1], cols[2], cols[1], size, channels, cells_y, cells_x, row_chunks,
+            col_chunks, Vectors(partials)], image.device, threads_per_block=CELLS_BLOCK)
     return partials.sum(dim=0).view_as(cells)
 
 

@@ -34,7 +34,12 @@ def measure(rows: int, taps: int, reference: str | None, blocks: tuple[int, int]
         # minimum blocks a multiprocessor: its launch bounds, which cap its registers]
         psf_module.FORWARD_BLOCK, psf_module.CELLS_BLOCK = blocks[:2]
         # the forward's launch bounds must admit its block: the given minimum blocks, or none
-        kernels.FORWARD_BOUNDS = (blocks[0], blocks[2]) if len(blocks) > 2 else None
+        kernels.FORWARD_BOUNDS = (blocks[0], blocks[2]) if len(blocks) > 2 and blocks[2] else None
+        # a fourth figure: the PSF adjoint's launch bounds (CELLS_BLOCK, N blocks a multiprocessor); a fifth: the
+        # threads its launch aims for (ops.psf._THREADS_TARGET), as a power of two
+        kernels.CELLS_BOUNDS = (blocks[1], blocks[3]) if len(blocks) > 3 and blocks[3] else None
+        if len(blocks) > 4:
+            psf_module._THREADS_TARGET["cuda"] = 1 << blocks[4]
 
     torch.manual_seed(0)
     image = torch.rand(*SHAPE, device="cuda")
@@ -65,7 +70,8 @@ def main() -> None:
     parser.add_argument("--blocks", default="", help="threads per block, forward/PSF adjoint pairs to time at the "
                         "shipped layout, e.g. 128/256,64/128 (with the ops' FORWARD_BLOCK and CELLS_BLOCK); a "
                         "third figure sets the forward's launch bounds (FORWARD_BLOCK, N blocks a multiprocessor), "
-                        "e.g. 128/128/4")
+                        "e.g. 128/128/4; a fourth the PSF adjoint's launch bounds (0: none), a fifth log2 of the threads its launch aims "
+                        "for, e.g. 128/128/5/6/19")
     parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
