@@ -23,12 +23,13 @@ a compile-time constant) give each thread ROWS outputs of one column in register
 loads the K + ROWS - 1 values of its window once and runs all K tap rows from registers; where the window lies in
 one grid cell, which holds for most threads, a tap is one warp-uniform vector load, interpolated along x once
 for the ROWS outputs, and each output then costs two fused multiply-adds. Neighbouring threads hold neighbouring
-columns, so every load is coalesced. The PSF adjoint (`psf_backward_cells`) slides TAPS taps along each source
-row. Every kernel is a gather with one writer per output element: no atomics, deterministic.
+columns, so every load is coalesced. The PSF adjoint slides TAPS taps along each source row: `psf_cells_staged`
+with the gradient rows a block reads staged in shared memory, `psf_backward_cells` (PSFs too large to stage)
+from global memory. Every kernel is a gather with one writer per output element: no atomics, deterministic.
 
 The planes, tables and cells are contiguous (the op layer builds them) and are read by flat element offset
 (`load`, `load_node`), so an inner loop's loads are an address and a constant; offsets are int32 (the op layer
-refuses larger images). On an H100 the forward runs at 25% of the FP32 peak and the forward + PSF gradient at 26%
+refuses larger images). On an H100 the forward runs at 25% of the FP32 peak and the forward + PSF gradient at 28%
 (docs/benchmarks.md, PSF convolution, with the profile of what bounds them).
 """
 
@@ -84,8 +85,6 @@ of 128 threads, five a multiprocessor, which caps a thread at ~100 registers (14
 0.457-0.467 -> 0.430 ms on an H100 (docs/benchmarks.md, PSF convolution). The op layer launches blocks of the first."""
 
 ROWS = 8  # output rows per thread in the forward and image-adjoint kernels
-CELLS_BOUNDS = None
-"""CUDA launch bounds of the PSF-adjoint kernel (None: none)."""
 TAPS = 8  # PSF taps (consecutive j) per thread in the PSF-adjoint kernel (8 beat 4 on an H100)
 
 
@@ -102,117 +101,115 @@ def bilinear(corners: Any, fy: Any, fx: Any):
     return top + fy * (bottom - top)
 
 
-@functools.lru_cache(maxsize=None)
-def psf_cells_kernel() -> wp.Kernel:
-    """The PSF-adjoint kernel (float32 and float64 overloads, in a Warp module of its own, built with the launch
-    bounds `CELLS_BOUNDS`)."""
+@wp.kernel
+def psf_backward_cells(
+    source: wp.array3d(dtype=Any),
+    padded_grad: wp.array3d(dtype=Any),
+    row_bounds: wp.array(dtype=wp.int32),
+    row_frac: wp.array(dtype=Any),
+    col_bounds: wp.array(dtype=wp.int32),
+    col_frac: wp.array(dtype=Any),
+    size: int,
+    channels: int,
+    cells_y: int,
+    cells_x: int,
+    row_chunks: int,
+    col_chunks: int,
+    partials: wp.array4d(dtype=Any),
+):
+    """dL/dcell_n(d) for the four corners of each cell: sum over the cell's sources s of x(s) times the gradient
+    of the output s reached under tap d, times s's bilinear corner weights.
 
-    @wp.kernel(module="unique", enable_backward=False, launch_bounds=CELLS_BOUNDS)
-    def psf_backward_cells(
-        source: wp.array3d(dtype=Any),
-        padded_grad: wp.array3d(dtype=Any),
-        row_bounds: wp.array(dtype=wp.int32),
-        row_frac: wp.array(dtype=Any),
-        col_bounds: wp.array(dtype=wp.int32),
-        col_frac: wp.array(dtype=Any),
-        size: int,
-        channels: int,
-        cells_y: int,
-        cells_x: int,
-        row_chunks: int,
-        col_chunks: int,
-        partials: wp.array4d(dtype=Any),
-    ):
-        """dL/dcell_n(d) for the four corners of each cell: sum over the cell's sources s of x(s) times the gradient
-        of the output s reached under tap d, times s's bilinear corner weights.
-
-        Thread (lane, tap group): the tap group enumerates (c, i, TAPS consecutive j); the lane (b, cell, chunk of the
-        cell's source rows, chunk of its columns). Neighbouring threads share a source row, so its loads are broadcast.
-        Along the row the gradients of the TAPS outputs slide through registers (one load per source), TAPS sources a
-        block with every load of a block issued before its arithmetic (the kernel waited on its loads one source at a
-        time: docs/benchmarks.md, PSF convolution); the weights are separable, so
-        each row keeps two sums per tap (sum v and sum fx * v, v = g x) and folds them into the four corners with its
-        fy. Each thread writes its own partials[(b, row chunk, column chunk), c, cell, tap] (summed over batch and
-        chunks by the caller): no atomics.
-        """
-        lane, group = wp.tid()
-        groups = (size + TAPS - 1) / TAPS
-        j0 = (group % groups) * TAPS
-        i = (group / groups) % size
-        c = group / (groups * size)
-        chunks = row_chunks * col_chunks
-        chunk = lane % chunks
-        row_chunk = chunk / col_chunks
-        col_chunk = chunk % col_chunks
-        cell = (lane / chunks) % (cells_y * cells_x)
-        b = lane / (chunks * cells_y * cells_x)
-        cy = cell / cells_x
-        cx = cell % cells_x
-        bc = b * channels + c
-        rows = row_bounds[cy + 1] - row_bounds[cy]
-        per_chunk = (rows + row_chunks - 1) / row_chunks
-        s_start = row_bounds[cy] + row_chunk * per_chunk
-        s_stop = wp.min(s_start + per_chunk, row_bounds[cy + 1])
-        cols = col_bounds[cx + 1] - col_bounds[cx]
-        per_chunk = (cols + col_chunks - 1) / col_chunks
-        t_first = col_bounds[cx] + col_chunk * per_chunk
-        t_end = wp.min(t_first + per_chunk, col_bounds[cx + 1])
-        one = source.dtype(1.0)
-        s00 = wp.vector(length=TAPS, dtype=source.dtype)
-        s01 = wp.vector(length=TAPS, dtype=source.dtype)
-        s10 = wp.vector(length=TAPS, dtype=source.dtype)
-        s11 = wp.vector(length=TAPS, dtype=source.dtype)
-        # the gradients along the row: before source t is taken, window[0 .. TAPS - 2] hold padded_grad at t + j0 + 0 ..
-        # TAPS - 2 (relative to the row's `grads`); a block of TAPS sources loads the next TAPS into window[TAPS - 1 ..],
-        # so source t + u reads window[u .. u + TAPS - 1] by constant indices, and its loads are all in flight at once
-        window = wp.vector(length=wp.static(2 * TAPS - 1), dtype=source.dtype)
-        values = wp.vector(length=TAPS, dtype=source.dtype)
-        weighted = wp.vector(length=TAPS, dtype=source.dtype)
-        blocks = wp.max(t_end - t_first, 0) / TAPS  # an empty chunk (wide, short cells on a GPU) has none
-        for s in range(s_start, s_stop):
-            grads = (bc * padded_grad.shape[1] + s + i) * padded_grad.shape[2] + j0  # padded_grad[bc, s + i, j0 + 0]
-            sources = (bc * source.shape[1] + s) * source.shape[2]  # source[bc, s, 0]
-            for m in range(TAPS - 1):
-                window[m] = load(padded_grad, grads + t_first + m)
-            total = wp.vector(length=TAPS, dtype=source.dtype)
-            upper = wp.vector(length=TAPS, dtype=source.dtype)
-            for block in range(blocks):
-                t = t_first + block * TAPS
-                for u in range(TAPS):
-                    window[TAPS - 1 + u] = load(padded_grad, grads + t + TAPS - 1 + u)
-                    values[u] = load(source, sources + t + u)
-                    weighted[u] = values[u] * load(col_frac, t + u)  # upper takes the value weighted by fx
-                for u in range(TAPS):
-                    for m in range(TAPS):
-                        total[m] = total[m] + window[u + m] * values[u]
-                        upper[m] = upper[m] + window[u + m] * weighted[u]
-                for m in range(TAPS - 1):
-                    window[m] = window[TAPS + m]
-            for t in range(t_first + blocks * TAPS, t_end):  # the last sources, one at a time
-                window[TAPS - 1] = load(padded_grad, grads + t + TAPS - 1)
-                value = load(source, sources + t)
-                fraction = load(col_frac, t)
+    Thread (lane, tap group): the tap group enumerates (c, i, TAPS consecutive j); the lane (b, cell, chunk of the
+    cell's source rows, chunk of its columns). Neighbouring threads share a source row, so its loads are broadcast.
+    Along the row the gradients of the TAPS outputs slide through registers (one load per source), TAPS sources a
+    block with every load of a block issued before its arithmetic (the kernel waited on its loads one source at a
+    time: docs/benchmarks.md, PSF convolution); the weights are separable, so
+    each row keeps two sums per tap (sum v and sum fx * v, v = g x) and folds them into the four corners with its
+    fy. Each thread writes its own partials[(b, row chunk, column chunk), c, cell, tap] (summed over batch and
+    chunks by the caller): no atomics.
+    """
+    lane, group = wp.tid()
+    groups = (size + TAPS - 1) / TAPS
+    j0 = (group % groups) * TAPS
+    i = (group / groups) % size
+    c = group / (groups * size)
+    chunks = row_chunks * col_chunks
+    chunk = lane % chunks
+    row_chunk = chunk / col_chunks
+    col_chunk = chunk % col_chunks
+    cell = (lane / chunks) % (cells_y * cells_x)
+    b = lane / (chunks * cells_y * cells_x)
+    cy = cell / cells_x
+    cx = cell % cells_x
+    bc = b * channels + c
+    rows = row_bounds[cy + 1] - row_bounds[cy]
+    per_chunk = (rows + row_chunks - 1) / row_chunks
+    s_start = row_bounds[cy] + row_chunk * per_chunk
+    s_stop = wp.min(s_start + per_chunk, row_bounds[cy + 1])
+    cols = col_bounds[cx + 1] - col_bounds[cx]
+    per_chunk = (cols + col_chunks - 1) / col_chunks
+    t_first = col_bounds[cx] + col_chunk * per_chunk
+    t_end = wp.min(t_first + per_chunk, col_bounds[cx + 1])
+    one = source.dtype(1.0)
+    s00 = wp.vector(length=TAPS, dtype=source.dtype)
+    s01 = wp.vector(length=TAPS, dtype=source.dtype)
+    s10 = wp.vector(length=TAPS, dtype=source.dtype)
+    s11 = wp.vector(length=TAPS, dtype=source.dtype)
+    # the gradients along the row: before source t is taken, window[0 .. TAPS - 2] hold padded_grad at t + j0 + 0 ..
+    # TAPS - 2 (relative to the row's `grads`); a block of TAPS sources loads the next TAPS into window[TAPS - 1 ..],
+    # so source t + u reads window[u .. u + TAPS - 1] by constant indices, and its loads are all in flight at once
+    window = wp.vector(length=wp.static(2 * TAPS - 1), dtype=source.dtype)
+    values = wp.vector(length=TAPS, dtype=source.dtype)
+    weighted = wp.vector(length=TAPS, dtype=source.dtype)
+    blocks = wp.max(t_end - t_first, 0) / TAPS  # an empty chunk (wide, short cells on a GPU) has none
+    for s in range(s_start, s_stop):
+        grads = (bc * padded_grad.shape[1] + s + i) * padded_grad.shape[2] + j0  # padded_grad[bc, s + i, j0 + 0]
+        sources = (bc * source.shape[1] + s) * source.shape[2]  # source[bc, s, 0]
+        for m in range(TAPS - 1):
+            window[m] = load(padded_grad, grads + t_first + m)
+        total = wp.vector(length=TAPS, dtype=source.dtype)
+        upper = wp.vector(length=TAPS, dtype=source.dtype)
+        for block in range(blocks):
+            t = t_first + block * TAPS
+            for u in range(TAPS):
+                window[TAPS - 1 + u] = load(padded_grad, grads + t + TAPS - 1 + u)
+                values[u] = load(source, sources + t + u)
+                weighted[u] = values[u] * load(col_frac, t + u)  # upper takes the value weighted by fx
+            for u in range(TAPS):
                 for m in range(TAPS):
-                    total[m] = total[m] + window[m] * value
-                    upper[m] = upper[m] + window[m] * (value * fraction)
-                for m in range(TAPS - 1):
-                    window[m] = window[m + 1]
-            fy = row_frac[s]
-            lower = total - upper
-            s00 += (one - fy) * lower
-            s01 += (one - fy) * upper
-            s10 += fy * lower
-            s11 += fy * upper
-        slot = b * chunks + chunk
-        for m in range(TAPS):
-            if j0 + m < size:
-                partials[slot, c, cell, i * size + j0 + m] = wp.vector(s00[m], s01[m], s10[m], s11[m])
+                    total[m] = total[m] + window[u + m] * values[u]
+                    upper[m] = upper[m] + window[u + m] * weighted[u]
+            for m in range(TAPS - 1):
+                window[m] = window[TAPS + m]
+        for t in range(t_first + blocks * TAPS, t_end):  # the last sources, one at a time
+            window[TAPS - 1] = load(padded_grad, grads + t + TAPS - 1)
+            value = load(source, sources + t)
+            fraction = load(col_frac, t)
+            for m in range(TAPS):
+                total[m] = total[m] + window[m] * value
+                upper[m] = upper[m] + window[m] * (value * fraction)
+            for m in range(TAPS - 1):
+                window[m] = window[m + 1]
+        fy = row_frac[s]
+        lower = total - upper
+        s00 += (one - fy) * lower
+        s01 += (one - fy) * upper
+        s10 += fy * lower
+        s11 += fy * upper
+    slot = b * chunks + chunk
+    for m in range(TAPS):
+        if j0 + m < size:
+            partials[slot, c, cell, i * size + j0 + m] = wp.vector(s00[m], s01[m], s10[m], s11[m])
 
-    for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
-        planes, table, index = wp.array3d(dtype=_float), wp.array(dtype=_float), wp.array(dtype=wp.int32)
-        wp.overload(psf_backward_cells, [planes, planes, index, table, index, table, int, int, int, int, int, int,
-                                         wp.array4d(dtype=_vec4)])
-    return psf_backward_cells
+
+for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
+    _planes = wp.array3d(dtype=_float)
+    _cells = wp.array4d(dtype=_vec4)
+    _table = wp.array(dtype=_float)
+    _index = wp.array(dtype=wp.int32)
+    wp.overload(psf_backward_cells, [_planes, _planes, _index, _table, _index, _table, int, int, int, int, int, int,
+                                     wp.array4d(dtype=_vec4)])
 
 
 STAGED_ROWS = 8  # source rows a block of the staged PSF adjoint takes into shared memory at a time
@@ -232,16 +229,16 @@ def staged_tiles(size: int) -> tuple[int, int, int]:
 @functools.lru_cache(maxsize=None)
 def psf_cells_staged(size: int) -> wp.Kernel:
     """The PSF adjoint with the gradient rows a block reads staged in shared memory (float32 and float64 overloads,
-    a Warp module of its own per size): the same sums as `psf_cells_kernel`, read as tiles.
+    a Warp module of its own per size): the same sums as `psf_backward_cells`, read as tiles.
 
-    Why: in `psf_cells_kernel` the 32 threads of a warp are 32 tap groups, each reading the gradient of another
+    Why: in `psf_backward_cells` the 32 threads of a warp are 32 tap groups, each reading the gradient of another
     row, so each of its window loads took 32 sectors (80% of the kernel's sectors excessive, Nsight Compute;
     docs/benchmarks.md, PSF convolution) and the kernel waited on L1. Here a block is one (image, channel, cell,
     row split, column chunk); its threads are the tap groups (tap row i, TAPS consecutive tap columns from j0) of
     one channel, and it loads the STAGED_ROWS x STAGED_COLS sources of a step and the gradient rows and columns
     they reach as tiles into shared memory (coalesced, once), then each thread slides its window along its
     gradient row there (a thread a row: distinct banks but for rows 8 apart). Partial sums per (image, split) as in
-    `psf_cells_kernel`: no atomics, deterministic.
+    `psf_backward_cells`: no atomics, deterministic.
 
     Grid: (blocks, threads), blocks = planes * cells * row splits * column chunks, launched in blocks of
     ``threads`` (`staged_tiles`); every column chunk at most STAGED_COLS wide. The planes come as 2D views [planes *

@@ -191,7 +191,7 @@ def _widest_cell(width: int, grid_x: int, radius: int) -> int:
 
 STAGED_BYTES = 40 * 1024
 """Shared memory a block of the staged PSF adjoint may take (`kernels.psf.staged_tiles`); larger PSFs (K > 63 in
-float32, K > 31 in float64) run `kernels.psf.psf_cells_kernel`, which stages nothing."""
+float32, K > 31 in float64) run `kernels.psf.psf_backward_cells`, which stages nothing."""
 
 
 @warp_op("psf_conv_backward_cells", lambda image, grad_out, cells, grid_y, grid_x: torch.empty_like(cells))
@@ -229,7 +229,7 @@ def _psf_backward_cells(image: torch.Tensor, grad_out: torch.Tensor, cells: torc
     lanes = batch * cells_y * cells_x
     row_chunks, col_chunks = _chunks(-(-target // (tap_groups * lanes)), cell_rows, cell_cols)
     partials = image.new_empty(batch * row_chunks * col_chunks, channels, cells_y * cells_x, size * size, 4)
-    launch(kernels.psf_cells_kernel(), (lanes * row_chunks * col_chunks, tap_groups),
+    launch(kernels.psf_backward_cells, (lanes * row_chunks * col_chunks, tap_groups),
            [source, padded_grad, rows[2], rows[1], cols[2], cols[1], size, channels, cells_y, cells_x, row_chunks,
             col_chunks, Vectors(partials)], image.device, threads_per_block=CELLS_BLOCK)
     return partials.sum(dim=0).view_as(cells)

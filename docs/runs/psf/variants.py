@@ -35,9 +35,8 @@ def measure(rows: int, taps: int, reference: str | None, blocks: tuple[int, int]
         psf_module.FORWARD_BLOCK, psf_module.CELLS_BLOCK = blocks[:2]
         # the forward's launch bounds must admit its block: the given minimum blocks, or none
         kernels.FORWARD_BOUNDS = (blocks[0], blocks[2]) if len(blocks) > 2 and blocks[2] else None
-        # a fourth figure: the PSF adjoint's launch bounds (CELLS_BLOCK, N blocks a multiprocessor); a fifth: the
-        # threads its launch aims for (ops.psf._THREADS_TARGET), as a power of two
-        kernels.CELLS_BOUNDS = (blocks[1], blocks[3]) if len(blocks) > 3 and blocks[3] else None
+        # a fifth figure: the threads the PSF adjoint's launch aims for (ops.psf._THREADS_TARGET), as a power of
+        # two (a fourth, the unstaged adjoint's launch bounds, was e3260ff's; none since)
         if len(blocks) > 4:
             psf_module._THREADS_TARGET["cuda"] = 1 << blocks[4]
 
@@ -70,8 +69,8 @@ def main() -> None:
     parser.add_argument("--blocks", default="", help="threads per block, forward/PSF adjoint pairs to time at the "
                         "shipped layout, e.g. 128/256,64/128 (with the ops' FORWARD_BLOCK and CELLS_BLOCK); a "
                         "third figure sets the forward's launch bounds (FORWARD_BLOCK, N blocks a multiprocessor), "
-                        "e.g. 128/128/4; a fourth the PSF adjoint's launch bounds (0: none), a fifth log2 of the threads its launch aims "
-                        "for, e.g. 128/128/5/6/19")
+                        "e.g. 128/128/4; a fourth 0 (the unstaged PSF adjoint's launch bounds at e3260ff), a fifth log2 of the threads "
+                        "the PSF adjoint's launch aims for, e.g. 128/128/5/0/17")
     parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
