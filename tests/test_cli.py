@@ -48,6 +48,9 @@ def test_console_entry_point_runs():
 @pytest.mark.parametrize("arguments,message", [
     (["--plot", "x.png"], "--plot draws the sweeps: add --sweep"),
     (["--latency", "--latency-size", "192"], "--latency-size must be HxW"),
+    # without --latency these were ignored: a full evaluation ran, with no latency in it
+    (["--latency-size", "64x96"], "--latency-size sets the input of --latency: add --latency"),
+    (["--latency-batch", "2"], "--latency-batch sets the input of --latency: add --latency"),
 ])
 def test_eval_argument_mistakes_are_one_line_errors_before_any_work(capsys, arguments, message):
     assert main(["eval", "--checkpoint", "missing.safetensors", *arguments]) == 2

@@ -36,10 +36,9 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
     parser.add_argument("--latency", action="store_true",
                         help="time sensor simulation + network (the camera cached: Camera.cached) and network alone "
                              "(alone: no dataset, no mIoU; with --sweep: both)")
-    parser.add_argument("--latency-size", default="192x640", metavar="HxW",
-                        help="input size for --latency (default: %(default)s)")
-    parser.add_argument("--latency-batch", type=count(1), default=1, metavar="N",
-                        help="batch size for --latency (default: %(default)s)")
+    parser.add_argument("--latency-size", metavar="HxW", help="with --latency: its input size (default: 192x640)")
+    parser.add_argument("--latency-batch", type=count(1), metavar="N",
+                        help="with --latency: its batch size (default: 1)")
     parser.add_argument("--batch-size", type=count(1), default=4, metavar="N",
                         help="evaluation batch size (default: %(default)s)")
     parser.add_argument("--limit", type=count(0), default=0, metavar="N",
@@ -53,11 +52,14 @@ def run(args: argparse.Namespace) -> int:
     """Check the options that depend on each other and where the outputs go, then `run_eval`; returns 0."""
     if args.plot and not args.sweep:
         raise ValueError("--plot draws the sweeps: add --sweep")
+    for given, option in ((args.latency_size, "--latency-size"), (args.latency_batch, "--latency-batch")):
+        if given is not None and not args.latency:
+            raise ValueError(f"{option} sets the input of --latency: add --latency")
     check_output_file(args.json, "--json")
     check_plot_file(args.plot, "--plot")
-    height, width = parse_size(args.latency_size, "--latency-size", "192x640")
+    height, width = parse_size(args.latency_size or "192x640", "--latency-size", "192x640")
     run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
-             (height, width), args.latency_batch, args.device, args.batch_size, args.limit, args.plot, args.flip_tta,
+             (height, width), args.latency_batch or 1, args.device, args.batch_size, args.limit, args.plot, args.flip_tta,
              progress=show_progress(args))
     return 0
 
