@@ -286,6 +286,23 @@ def test_explicit_gpu_ids_are_checked_against_the_visible_devices(monkeypatch):
         check_local_gpus(["3"])
 
 
+@pytest.mark.parametrize("gpus, per_gpu, pool", [("1", "1", ["1"]), ("0", "1", None), ("0", "2", ["0"]),
+                                                   ("0,1", "1", ["0", "1"]), ("none", "1", None)])
+def test_one_gpu_other_than_the_first_runs_on_a_worker_given_that_gpu(tmp_path, monkeypatch, gpus, per_gpu, pool):
+    """`--gpus 1 --per-gpu 1` ran its cells in the command's process, whose training takes cuda:0 whatever --gpus
+    says: the GPU the user kept free for someone else. Only the first visible GPU (or none) runs here; another
+    single GPU gets a worker process whose CUDA_VISIBLE_DEVICES names it."""
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    given = []
+    monkeypatch.setattr(runner, "run_cells", lambda plan, out, gpus=None, **kwargs: given.append(gpus) or 0)
+    assert main(["study", "run", "smoke", "--out", str(tmp_path / "study"), "--gpus", gpus, "--per-gpu", per_gpu,
+                 "--mps", "off"]) == 0
+    assert given == [pool]
+
+
 def test_a_worker_that_dies_fails_its_cell_and_a_fresh_one_takes_the_next(tmp_path, monkeypatch, capsys):
     """A worker process that exits without answering (a crash) fails the cell it held, with its exit status, and the
     slot starts a new worker for the next cell; the study reports both failures and exits 1."""

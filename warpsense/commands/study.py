@@ -62,8 +62,8 @@ def _add_run(subcommands: argparse._SubParsersAction) -> None:
         "run", help="run the plan's cells (resumable; finished cells are never retrained)",
         description="Run every cell of a plan into OUT/runs/<camera>.<light>[.<fold>].seed<N>. Finished cells are "
         "skipped, interrupted ones resume, failed ones are reported and the others go on. With GPUs the cells run "
-        "on a local pool of worker processes (--per-gpu on each GPU), each taking the next cell; one GPU at one cell "
-        "a GPU, and a CPU, run them in this process.",
+        "on a local pool of worker processes (--per-gpu on each GPU), each taking the next cell; the first GPU "
+        "(id 0) at one cell a GPU, and a CPU, run them in this process.",
         epilog="shipped plans: configs/studies/")
     parser.add_argument("plan", help="a study plan TOML file or a shipped plan name (configs/studies/)")
     parser.add_argument("--out", required=True, help="the study directory")
@@ -168,8 +168,11 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         return submit_study(plan, Path(out), cluster, None if cell is None else [plan.cell(cell)], reuse_dirs)
     if cell is not None:
         return run_cells(plan, Path(out), [plan.cell(cell)], progress=progress, record=False, reuse=reuse_dirs)
-    def run_pool(per_gpu: int, mps: str) -> int:  # in this process where that is one cell at a time
-        return run_cells(plan, Path(out), gpus=devices if len(devices) * per_gpu > 1 else None, per_gpu=per_gpu,
+    def run_pool(per_gpu: int, mps: str) -> int:
+        # in this process where that is one cell at a time on its own cuda:0 (or the CPU); one worker process
+        # for another single GPU (--gpus 1): this process's training would take cuda:0 whatever --gpus says
+        here = not devices or (devices == ["0"] and per_gpu == 1)
+        return run_cells(plan, Path(out), gpus=None if here else devices, per_gpu=per_gpu,
                          progress=progress, sample_gpus=devices, reuse=reuse_dirs, mps=mps)
 
     chosen = per_gpu == "auto"
