@@ -70,6 +70,7 @@ BASE = {
 # options that a value of theirs needs beside it to be read at all
 CONTEXT = {
     "eval --plot": ["--sweep"], "eval --latency-size": ["--latency"], "eval --latency-batch": ["--latency"],
+    "study report --split": ["--plot", "report.png"],
     "study run --slurm-partition": ["--executor", "slurm"], "study run --slurm-time": ["--executor", "slurm"],
     "study run --gpus-per-cell": ["--executor", "slurm"], "study run --array-parallelism": ["--executor", "slurm"],
     "study run --slurm-option": ["--executor", "slurm"], "study run --wait": ["--executor", "slurm"],

@@ -286,6 +286,13 @@ def test_explicit_gpu_ids_are_checked_against_the_visible_devices(monkeypatch):
         check_local_gpus(["3"])
 
 
+def test_report_split_without_plot_is_one_line_error(tmp_path, capsys):
+    """`study report DIR --split heldout` without --plot was checked and then ignored (the text and --json hold every
+    split; --split picks the one the plot draws): a one-line error naming both, before the study is read."""
+    assert_clean_failure(capsys, ["study", "report", str(tmp_path / "no_such_study"), "--split", "heldout"],
+                         ("--split heldout", "add --plot"), watched=tmp_path)
+
+
 @pytest.mark.parametrize("gpus, per_gpu, pool", [("1", "1", ["1"]), ("0", "1", None), ("0", "2", ["0"]),
                                                    ("0,1", "1", ["0", "1"]), ("none", "1", None)])
 def test_one_gpu_other_than_the_first_runs_on_a_worker_given_that_gpu(tmp_path, monkeypatch, gpus, per_gpu, pool):

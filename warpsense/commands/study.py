@@ -35,7 +35,8 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
     report.add_argument("study_dir", metavar="DIR", help="a study directory (warpsense study run --out)")
     report.add_argument("--json", metavar="OUT", help="write the report's record as JSON")
     report.add_argument("--plot", metavar="OUT.png", help="scores with intervals and per-class differences")
-    report.add_argument("--split", help="the split the plot shows (default: the first, val)")
+    report.add_argument("--split", help="with --plot: the split it draws (default: the first the runs were judged "
+                        "on: val, or heldout with sequence folds; the text and --json hold every split)")
     report.add_argument("--resamples", type=count(1), default=2000, metavar="N",
                         help="bootstrap resamples (default: %(default)s)")
     report.add_argument("--block-frames", type=count(1), default=10, metavar="N",
@@ -215,6 +216,9 @@ def report_study(study_dir: str, json_out: str | None = None, plot_out: str | No
     the design map beside it: OUT_map.png for ``--plot OUT.png``)."""
     from warpsense.study.report import plot_study, render_text, study_record
 
+    if split is not None and not plot_out:
+        raise ValueError(f"--split {split} picks the split --plot draws (the text and --json hold every split): "
+                         "add --plot OUT.png")
     check_output_file(json_out, "--json")
     check_plot_file(plot_out, "--plot")
     record = study_record(study_dir, resamples, block_frames)
