@@ -17,7 +17,9 @@ import math
 
 import torch
 
+from warpsense.bench import parse_size
 from warpsense.camera import Camera
+from warpsense.commands.options import count
 from warpsense.data.color import srgb_to_linear
 from warpsense.data.scenes import StreetScenes
 
@@ -74,12 +76,21 @@ def calibrate_exposure(radiance: torch.Tensor, target_gain: float = 1.5, steps: 
     return gains
 
 
+def scene_size(text: str) -> tuple[int, int]:
+    """``--size HxW`` as (height, width); a usage error naming the option otherwise (not a traceback)."""
+    try:
+        return parse_size(text, "--size", "48x64")
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("--size ")) from None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--steps", type=int, default=20, help="calibration steps (default: %(default)s)")
-    parser.add_argument("--size", default="48x64", metavar="HxW", help="scene size (default: %(default)s)")
+    parser.add_argument("--steps", type=count(1), default=20, help="calibration steps (default: %(default)s)")
+    parser.add_argument("--size", type=scene_size, default="48x64", metavar="HxW",
+                        help="scene size (default: %(default)s)")
     args = parser.parse_args(argv)
-    height, width = (int(part) for part in args.size.split("x"))
+    height, width = args.size
     radiance = scene(height, width)
 
     print(f"d(mean RAW) / d(parameter), a {height}x{width} street scene:")
