@@ -315,3 +315,13 @@ def test_load_system_takes_a_device_name_and_refuses_cuda_without_it_in_one_line
             load_system("checkpoints/camvid_codesign.safetensors", device)
     model, _, _ = load_system("checkpoints/camvid_codesign.safetensors", "auto")
     assert next(model.parameters()).device.type == "cpu"
+
+
+def test_allow_config_change_without_a_run_to_continue_is_one_line_error(tmp_path, capsys):
+    """--allow-config-change without --resume/--resume-dir was ignored and a fresh run trained (--extend, its
+    sibling, was refused): a one-line error before anything is written."""
+    from tests.reliability.conftest import assert_clean_failure
+
+    assert_clean_failure(capsys, ["train", "--allow-config-change", "--set", f"run.output_dir={tmp_path}",
+                                  "--set", "train.epochs=1", "--set", "train.warmup_epochs=0", "--no-progress"],
+                         ("--allow-config-change", "--resume"), watched=tmp_path)

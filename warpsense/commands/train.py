@@ -86,6 +86,9 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
                          "choice: give one of them")
     if extend is not None and not (resume or resume_dir):
         raise ValueError("--extend continues a run: give --resume or --resume-dir")
+    if allow_config_change and not (resume or resume_dir):
+        raise ValueError("--allow-config-change lets a continued run take changed --config/--set values: give "
+                         "--resume or --resume-dir")
     if extend is not None and extend < 1:
         raise ValueError(f"--extend must be a number of epochs >= 1, got {extend}")
     if not (resume or resume_dir):
