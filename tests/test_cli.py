@@ -325,3 +325,12 @@ def test_allow_config_change_without_a_run_to_continue_is_one_line_error(tmp_pat
     assert_clean_failure(capsys, ["train", "--allow-config-change", "--set", f"run.output_dir={tmp_path}",
                                   "--set", "train.epochs=1", "--set", "train.warmup_epochs=0", "--no-progress"],
                          ("--allow-config-change", "--resume"), watched=tmp_path)
+
+
+@pytest.mark.parametrize("suite", ["kernels", "train"])
+def test_bench_camvid_for_a_suite_that_reads_none_is_one_line_error(capsys, suite):
+    """--camvid with the kernels or train suite was checked (its val.txt read) and then ignored."""
+    from tests.reliability.conftest import assert_clean_failure
+
+    assert_clean_failure(capsys, ["bench", "--suite", suite, "--camvid", "camvid_root", "--quick"],
+                         ("--camvid", f"--suite {suite}"))

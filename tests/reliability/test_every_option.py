@@ -71,6 +71,7 @@ BASE = {
 CONTEXT = {
     "eval --plot": ["--sweep"], "eval --latency-size": ["--latency"], "eval --latency-batch": ["--latency"],
     "study report --split": ["--plot", "report.png"],
+    "bench --camvid": ["--suite", "accuracy"],
     "study run --slurm-partition": ["--executor", "slurm"], "study run --slurm-time": ["--executor", "slurm"],
     "study run --gpus-per-cell": ["--executor", "slurm"], "study run --array-parallelism": ["--executor", "slurm"],
     "study run --slurm-option": ["--executor", "slurm"], "study run --wait": ["--executor", "slurm"],

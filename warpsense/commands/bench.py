@@ -9,6 +9,7 @@ from warpsense.choices import DEVICES, MPS_MODES
 from warpsense.commands.options import check_local_gpus, count, parse_gpus
 from warpsense.files import check_output_file, check_plot_file
 
+CAMVID_SUITES = ("accuracy", "time-to-accuracy", "all")  # the suites that read --camvid ("all": its accuracy suite)
 STUDY_OPTIONS = ("plan", "out", "cells", "per_gpu", "gpus", "mps")
 """The study suite's own options (refused with another suite)."""
 SET_SUITES = ("train", "study")
@@ -79,6 +80,9 @@ def run(args: argparse.Namespace) -> int:
     """Refuse --seeds for a suite that trains nothing, then `run_bench_command`; returns the exit code."""
     if args.seeds is not None and args.suite != "time-to-accuracy":
         raise ValueError(f"--seeds are the time-to-accuracy suite's training seeds: --suite {args.suite} trains none")
+    if args.camvid is not None and args.suite not in CAMVID_SUITES:
+        raise ValueError(f"--camvid is the CamVid folder of the {', '.join(CAMVID_SUITES)} suites: --suite "
+                         f"{args.suite} reads none")
     if args.suite == "study":
         return run_study_suite_command(args.plan, args.out, args.cells or 0, args.per_gpu or 3, args.gpus or "auto",
                                        args.mps or "auto", tuple(args.overrides or ()), args.json)
