@@ -86,6 +86,9 @@ def test_unknown_keys_and_types_are_errors(tmp_path):
     bad.write_text("[noise]\nshot = 'high'\n")
     with pytest.raises(ConfigError, match=f"{bad}: noise.shot: expected float"):
         load_config(bad)
+    bad.write_text("epochs = 3\n[noise]\nshot = 0.1\n")
+    with pytest.raises(ConfigError, match=f"^{bad}: epochs = 3 is outside any section .*a key of \\[train\\]$"):
+        load_config(bad)
     bad.write_text("[noise\n")
     with pytest.raises(ConfigError, match="invalid TOML"):
         load_config(bad)
@@ -111,7 +114,7 @@ def test_int_accepted_for_float_and_save_round_trip(tmp_path):
     ("cfa.temperature_end=0", "cfa.temperature_end: must be > 0"),
     ("quantize.bits=0", "quantize.bits: must be >= 1"),
     ("quantize.bits=64", "quantize.bits: must be <= 24"),
-    ("data.crop_height=0", "data.crop_height: must be >= 1"),
+    ("data.crop_height=1", "data.crop_height: must be >= 2"),
     ("train.eval_every=0", "train.eval_every: must be >= 1"),
     ("train.checkpoint_every=0", "train.checkpoint_every: must be >= 1"),
     ("noise.shot=-1", "noise.shot: must be >= 0"),

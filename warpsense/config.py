@@ -74,8 +74,8 @@ class DataConfig:
     classes_file: str = ""
     train_split: str = "train"
     val_split: str = "val"
-    crop_height: int = _field(96, minimum=1)
-    crop_width: int = _field(128, minimum=1)
+    crop_height: int = _field(96, minimum=2)  # 2: the smoothness loss compares neighbouring pixels
+    crop_width: int = _field(128, minimum=2)
     scale_min: float = _field(1.0, minimum=0, exclusive=True)
     scale_max: float = _field(1.0, minimum=0, exclusive=True)
     scale_fill: str = _field("cover", choices=SCALE_FILLS)
@@ -378,6 +378,12 @@ def _apply(config: Config, overrides: dict, source: str, saved: bool = False) ->
     saved run's config (`config_from_dict`), whose `RETIRED` keys at their remaining value are dropped."""
     sections = {f.name: f for f in dataclasses.fields(Config)}
     for section_name, values in overrides.items():
+        if section_name not in sections and not isinstance(values, dict):
+            owners = [name for name, f in sections.items()
+                      if section_name in {key.name for key in dataclasses.fields(f.default_factory)}]
+            hint = f"; it is a key of [{'], ['.join(owners)}]" if owners else ""
+            raise ConfigError(f"{source}: {section_name} = {values!r} is outside any section (keys go under their "
+                              f"[section]){hint}")
         if section_name not in sections:
             raise ConfigError(f"{source}: unknown section [{section_name}]; valid sections: {', '.join(sections)}")
         if not isinstance(values, dict):
