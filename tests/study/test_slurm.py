@@ -142,8 +142,8 @@ def test_status_reads_the_directory_and_the_queue(tmp_path, monkeypatch, capsys)
     assert rows[queued.id] == ["pending", "job 7_2 pending (Resources)"]
     assert rows[failed.id][0] == "failed" and f"job 7_3 ended, stopped at epoch 2 of {EPOCHS}" in rows[failed.id][1]
     assert "CANCELLED" in rows[failed.id][1]
-    assert rows[fresh.id] == ["pending", "not submitted"]
-    assert rows[partial.id] == ["pending", f"not submitted, checkpoint at epoch 2 of {EPOCHS}"]
+    assert rows[fresh.id] == ["pending", "not started"]
+    assert rows[partial.id] == ["pending", f"stopped at epoch 2 of {EPOCHS}, resumes there"]
     assert lines[7] == "6 cells: 1 done, 1 running, 3 pending, 1 failed"
     assert_clean_failure(capsys, ["study", "status", str(tmp_path / "nowhere")], ("no such study directory",))
 

@@ -326,7 +326,8 @@ def cell_status(out: Path, cell: Cell, job_id: str | None, queue: dict[str, tupl
     Returns:
         "done" where its evaluation is written; "running" or "pending" while squeue lists its task so (or, never
         submitted, while a process of this machine holds its run directory); "failed" where its task is gone
-        without finishing it; else "pending" (not submitted, or the scheduler does not answer).
+        without finishing it; else "pending" (not started, stopped with a checkpoint that the next run resumes, or
+        the scheduler does not answer).
     """
     state = runner.cell_state(out, cell)
     progress = _epochs(out, cell)
@@ -350,7 +351,9 @@ def cell_status(out: Path, cell: Cell, job_id: str | None, queue: dict[str, tupl
     pid = RunLock(runner.run_dir(out, cell)).holder()  # never submitted: perhaps training here (the local executor)
     if pid is not None:
         return CellStatus(cell, "running", f"process {pid} on this machine" + (f", {progress}" if progress else ""))
-    return CellStatus(cell, "pending", "not submitted" + (f", checkpoint at {progress}" if progress else ""))
+    # never submitted and no process here holds it: not started, or stopped (a local run interrupted), which the next
+    # `study run` or `study submit` resumes from its checkpoint
+    return CellStatus(cell, "pending", f"stopped at {progress}, resumes there" if progress else "not started")
 
 
 def study_status(out: Path, plan: Plan, cells: list[Cell] | None = None) -> tuple[list[CellStatus], bool]:
