@@ -112,6 +112,8 @@ def test_smoke_study_runs_resumes_skips_failures_and_reports(tmp_path, monkeypat
     json_out, plot_out = tmp_path / "report.json", tmp_path / "report.png"
     assert main(["study", "report", str(out), "--json", str(json_out), "--plot", str(plot_out),
                  "--resamples", "100"]) == 0
+    printed = capsys.readouterr().out
+    assert f"wrote {json_out}\n" in printed and f"wrote {plot_out}\n" in printed
     assert json.loads(json_out.read_text())["splits"]["val"]["groups"] == json.loads(json.dumps(val["groups"]))
     assert plot_out.stat().st_size > 10_000
 

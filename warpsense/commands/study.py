@@ -230,6 +230,7 @@ def report_study(study_dir: str, json_out: str | None = None, plot_out: str | No
     print(render_text(record))
     if json_out:
         write_json(json_out, record)
+        print(f"wrote {json_out}")
     if plot_out:
         plot_study(record, plot_out, split)
         print(f"wrote {plot_out}")
