@@ -84,7 +84,11 @@ def test_a_sweep_is_the_grids_product_crossed_like_cameras(tmp_path, capsys):
     (SWEEP.replace('grid = {', 'xgrid = {'), "sweep[0].xgrid: unknown key"),
     (SWEEP + '\n[[camera]]\nname = "map_f4_t3"\n', "camera.name: duplicate name 'map_f4_t3' (also a [[camera]] or "
      "another sweep's point)"),
-    (SWEEP + SWEEP, "camera.name: duplicate name 'map_f1p4_t3'"),
+    (SWEEP + SWEEP, "sweep.name: duplicate name 'map'"),
+    (SWEEP.replace('name = "map"', 'name = "m.ap"'), "sweep.name: 'm.ap' must be a plain name"),
+    (SWEEP.replace('name = "map"', 'name = "m"') + SWEEP.replace('name = "map"', 'name = "m_f1p4"').replace(
+        '"optics.f_number" = [1.4, 4.0], ', '').replace('"optics.f_number" = "f", ', ''), "camera.name: duplicate "
+     "name 'm_f1p4_t3' (also a [[camera]] or another sweep's point)"),
     (SWEEP.replace("[3.0, 30.0]", "[-5.0]"), "optics.exposure_ms"),  # the config's own check, at the point
 ])
 def test_bad_sweeps_are_one_line_errors_with_nothing_written(tmp_path, body, message, capsys):

@@ -383,9 +383,9 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     lights = [_table(x, LIGHT_KEYS, f"{source}: light[{i}]", ("name",)) for i, x in enumerate(lights)]
     _names(cameras, f"{source}: camera")
     sweeps = [_sweep(table, f"{source}: sweep[{i}]") for i, table in enumerate(sweep_tables)]
+    _names([{"name": sweep.name} for sweep in sweeps], f"{source}: sweep")  # before its points, named after it
     _names([*cameras, *({"name": camera} for sweep in sweeps for camera, _ in sweep.points)], f"{source}: camera",
            "a [[camera]] or another sweep's point")
-    _names([{"name": sweep.name} for sweep in sweeps], f"{source}: sweep")
     cameras += [{"name": camera, "preset": sweep.preset, "set": [*sweep.set, *_point_overrides(sweep, values)]}
                 for sweep in sweeps for camera, values in sweep.points]
     _names(lights, f"{source}: light")
