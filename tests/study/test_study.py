@@ -315,12 +315,13 @@ def test_one_gpu_other_than_the_first_runs_on_a_worker_given_that_gpu(tmp_path, 
 @pytest.mark.parametrize("options, noted", [(["--per-gpu", "3"], True), (["--mps", "on"], True),
                                              (["--per-gpu", "auto"], False), (["--per-gpu", "1"], False)])
 def test_gpu_options_without_a_gpu_say_what_they_do(tmp_path, monkeypatch, capsys, options, noted):
-    """A GPU machine's command line (--per-gpu 3, --mps on) run with no GPU says in one line that the cells run one
-    at a time in this process, instead of ignoring the options silently."""
+    """A GPU machine's command line (--per-gpu 3, --mps on) run without a pool of GPUs (--gpus none, or auto on a
+    machine without CUDA) says in one line that the cells run one at a time in this process, instead of ignoring
+    the options silently."""
     monkeypatch.setattr(runner, "run_cells", lambda plan, out, gpus=None, **kwargs: 0)
     assert main(["study", "run", "smoke", "--out", str(tmp_path / "study"), "--gpus", "none", *options]) == 0
     printed = capsys.readouterr().out
-    assert ("study: no GPU (--gpus none): the cells run one at a time in this process" in printed) == noted
+    assert ("study: no pool of GPUs (--gpus none): the cells run one at a time in this process" in printed) == noted
 
 
 def test_a_worker_that_dies_fails_its_cell_and_a_fresh_one_takes_the_next(tmp_path, monkeypatch, capsys):

@@ -178,8 +178,8 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
 
     chosen = per_gpu == "auto"
     if not devices and (mps == "on" or per_gpu not in ("auto", 1)):  # a GPU machine's command line, run on a CPU
-        print(f"study: no GPU (--gpus {gpus}): the cells run one at a time in this process; --per-gpu and --mps "
-              "apply to GPUs", flush=True)
+        print(f"study: no pool of GPUs (--gpus {gpus}): the cells run one at a time in this process; --per-gpu and "
+              "--mps apply to the pool", flush=True)
     try:
         code = run_pool(pool_cells_per_gpu(plan, devices, mps) if chosen else per_gpu, mps)
     except MPSError as error:
