@@ -143,9 +143,40 @@ def test_status_reads_the_directory_and_the_queue(tmp_path, monkeypatch, capsys)
     assert rows[failed.id][0] == "failed" and f"job 7_3 ended, stopped at epoch 2 of {EPOCHS}" in rows[failed.id][1]
     assert "CANCELLED" in rows[failed.id][1]
     assert rows[fresh.id] == ["pending", "not started"]
-    assert rows[partial.id] == ["pending", f"stopped at epoch 2 of {EPOCHS}, resumes there"]
+    assert rows[partial.id] == ["pending", f"stopped at epoch 2 of {EPOCHS}, resumes from its last checkpoint"]
     assert lines[7] == "6 cells: 1 done, 1 running, 3 pending, 1 failed"
     assert_clean_failure(capsys, ["study", "status", str(tmp_path / "nowhere")], ("no such study directory",))
+
+
+def test_status_of_a_stopped_cell_names_the_epoch_it_resumes_after(tmp_path):
+    """A cell stopped here, never submitted: with train.checkpoint_every > 1 (the camvid presets: 5) its resume point
+    lies before the last epoch metrics.jsonl records, and before its first checkpoint there is none (the next run
+    trains it from the start); the status said 'resumes there' at the last recorded epoch in both cases."""
+    import torch
+    from safetensors.torch import save_file
+
+    from warpsense.study import runner
+    from warpsense.system.checkpoint import METADATA_KEY
+    from warpsense.train.run_dir import LAST, METRICS
+
+    plan = load_plan("smoke", FAST)
+    out = tmp_path / "study"
+    runner.record_plan(plan, out)
+    behind, level, unsaved = plan.cells()[:3]
+    for cell, saved_epoch in ((behind, 4), (level, 6), (unsaved, None)):
+        folder = runner.run_dir(out, cell)
+        folder.mkdir(parents=True)
+        (folder / METRICS).write_text("".join(json.dumps({"epoch": epoch}) + "\n" for epoch in range(7)))
+        (folder / "config.json").write_text(json.dumps({"train": {"epochs": EPOCHS}}))
+        if saved_epoch is not None:
+            save_file({"model.w": torch.zeros(1)}, str(folder / LAST),
+                      metadata={METADATA_KEY: json.dumps({"config": {}, "state": {"epoch": saved_epoch}})})
+    detail = {cell: slurm.cell_status(out, cell, None, None) for cell in (behind, level, unsaved)}
+    assert {status.state for status in detail.values()} == {"pending"}
+    assert detail[behind].detail == f"stopped at epoch 7 of {EPOCHS}, resumes after epoch 5 (its last checkpoint)"
+    assert detail[level].detail == f"stopped at epoch 7 of {EPOCHS}, resumes there"
+    assert detail[unsaved].detail == (f"stopped at epoch 7 of {EPOCHS} before its first checkpoint, trains from the "
+                                      "start")
 
 
 # -- a real Slurm -----------------------------------------------------------------------------------------------------

@@ -326,8 +326,8 @@ def cell_status(out: Path, cell: Cell, job_id: str | None, queue: dict[str, tupl
     Returns:
         "done" where its evaluation is written; "running" or "pending" while squeue lists its task so (or, never
         submitted, while a process of this machine holds its run directory); "failed" where its task is gone
-        without finishing it; else "pending" (not started, stopped with a checkpoint that the next run resumes, or
-        the scheduler does not answer).
+        without finishing it; else "pending" (not started; stopped, which the next run resumes from its last
+        checkpoint, or trains from the start where it stopped before its first; or the scheduler does not answer).
     """
     state = runner.cell_state(out, cell)
     progress = _epochs(out, cell)
@@ -352,8 +352,34 @@ def cell_status(out: Path, cell: Cell, job_id: str | None, queue: dict[str, tupl
     if pid is not None:
         return CellStatus(cell, "running", f"process {pid} on this machine" + (f", {progress}" if progress else ""))
     # never submitted and no process here holds it: not started, or stopped (a local run interrupted), which the next
-    # `study run` or `study submit` resumes from its checkpoint
-    return CellStatus(cell, "pending", f"stopped at {progress}, resumes there" if progress else "not started")
+    # `study run` or `study submit` resumes from its last checkpoint: with train.checkpoint_every > 1 (the camvid
+    # presets: 5) that can lie epochs before the last one metrics.jsonl records, and before the first there is none
+    if not progress:
+        return CellStatus(cell, "pending", "not started")
+    if state != "partial":
+        return CellStatus(cell, "pending", f"stopped at {progress} before its first checkpoint, trains from the start")
+    saved = _checkpoint_epochs(out, cell)
+    if saved is None:
+        return CellStatus(cell, "pending", f"stopped at {progress}, resumes from its last checkpoint")
+    if progress.startswith(f"epoch {saved} of "):
+        return CellStatus(cell, "pending", f"stopped at {progress}, resumes there")
+    return CellStatus(cell, "pending", f"stopped at {progress}, resumes after epoch {saved} (its last checkpoint)")
+
+
+def _checkpoint_epochs(out: Path, cell: Cell) -> int | None:
+    """The epochs the cell's last checkpoint (its resume point) holds, from the file's metadata (its header only: no
+    tensor is read); None where that cannot be read."""
+    from safetensors import safe_open
+
+    from warpsense.system.checkpoint import METADATA_KEY
+    from warpsense.train.run_dir import LAST
+
+    with contextlib.suppress(Exception):  # an unreadable file: the caller says "its last checkpoint"
+        with safe_open(str(runner.run_dir(out, cell) / LAST), framework="pt") as handle:
+            epoch = json.loads((handle.metadata() or {})[METADATA_KEY])["state"]["epoch"]
+        if isinstance(epoch, int) and not isinstance(epoch, bool):
+            return epoch + 1
+    return None
 
 
 def study_status(out: Path, plan: Plan, cells: list[Cell] | None = None) -> tuple[list[CellStatus], bool]:
