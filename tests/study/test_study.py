@@ -312,14 +312,15 @@ def test_one_gpu_other_than_the_first_runs_on_a_worker_given_that_gpu(tmp_path, 
     assert given == [pool]
 
 
-@pytest.mark.parametrize("gpus, pool", [("1", ["1"]), ("0", None), ("none", None), ("0,1", None), ("auto", None)])
+@pytest.mark.parametrize("gpus, pool", [("1", ["1"]), ("0", None), ("none", None), ("0,1", None), ("auto", None),
+                                        ("2,1", ["2"]), ("1,0", None)])
 def test_one_cell_on_a_gpu_named_alone_runs_there(tmp_path, monkeypatch, gpus, pool):
-    """`--cell X --gpus 1` trained in the command's process, on cuda:0 whatever --gpus said: a GPU named alone other
-    than the first gets one worker process given it; otherwise the cell trains here."""
+    """`--cell X --gpus 1` (or `--gpus 2,1`) trained in the command's process, on cuda:0 whatever --gpus said: where
+    --gpus names GPUs but not the first, the first it names gets one worker process; otherwise the cell trains here."""
     import torch
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
-    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 3)
     given = []
     monkeypatch.setattr(runner, "run_cells", lambda plan, out, cells, gpus=None, **kwargs: given.append(gpus) or 0)
     cell = load_plan("smoke", FAST).cells()[0].id

@@ -71,8 +71,8 @@ def _add_run(subcommands: argparse._SubParsersAction) -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override one config key of every cell (repeatable)")
     parser.add_argument("--cell", metavar="CAMERA/LIGHT/[FOLD/]SEED",
-                        help="run this cell only (what --plan-only prints), in this process; on a GPU named "
-                        "alone by --gpus other than 0, in a worker process given it")
+                        help="run this cell only (what --plan-only prints), in this process; where --gpus names "
+                        "GPUs but not 0, in a worker process given the first it names")
     parser.add_argument("--plan-only", action="store_true",
                         help="print one command per cell, for a scheduler (a Slurm job array, ...), and exit")
     parser.add_argument("--gpus", default="auto",
@@ -168,11 +168,11 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         return 0
     if cluster is not None:
         return submit_study(plan, Path(out), cluster, None if cell is None else [plan.cell(cell)], reuse_dirs)
-    if cell is not None:  # here, on this process's cuda:0 or the CPU; a GPU named alone other than 0 gets a worker
-        elsewhere = len(devices) == 1 and devices[0] != "0" and gpus != "auto"
+    if cell is not None:  # here, on this process's cuda:0 or the CPU; GPUs named without 0: a worker on the first
+        elsewhere = devices[:1] if devices and "0" not in devices else None
         if elsewhere:
             check_local_gpus(devices)
-        return run_cells(plan, Path(out), [plan.cell(cell)], gpus=devices if elsewhere else None, mps="off",
+        return run_cells(plan, Path(out), [plan.cell(cell)], gpus=elsewhere, mps="off",
                          progress=progress, record=False, reuse=reuse_dirs)
     def run_pool(per_gpu: int, mps: str) -> int:
         # in this process where that is one cell at a time on its own cuda:0 (or the CPU); one worker process
