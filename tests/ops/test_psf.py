@@ -220,6 +220,22 @@ def test_gradients_match_reference_dense_grid(device):
 
 
 @pytest.mark.parametrize("staged", [True, False])
+@pytest.mark.parametrize(("height", "width", "grid"), [(1, 1, 3), (1, 4, 3), (4, 1, 3), (2, 3, 6)])
+def test_psf_gradient_where_an_axis_has_fewer_pixels_than_cells(staged, height, width, grid, monkeypatch):
+    """An axis of fewer pixels than half its cells leaves its first cell empty: the border copies of pixel 0 belong
+    to pixel 0's cell (as the forward reads them), not to the empty first cell (the PSF gradient was off by 0.1-1.1
+    of its size)."""
+    from warpsense.ops import psf as psf_module
+
+    if not staged:
+        monkeypatch.setattr(psf_module, "STAGED_BYTES", 0)
+    image = torch.rand(1, 1, height, width, dtype=torch.float64, requires_grad=True)
+    psf = random_psf(1, grid, grid, 7).requires_grad_()
+    grad = torch.rand(1, 1, height, width, dtype=torch.float64)
+    assert_matches_reference(psf_conv, psf_conv_reference, (image, psf), grad)
+
+
+@pytest.mark.parametrize("staged", [True, False])
 def test_psf_gradient_rows_split_into_chunks(staged, monkeypatch):
     """The GPU launch splits each cell's rows (and, unstaged, its columns) over several blocks or lanes; force
     that split on the CPU, for the staged PSF adjoint and for the one that stages nothing (large PSFs)."""

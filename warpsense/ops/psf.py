@@ -67,18 +67,22 @@ def node_cells(psf: torch.Tensor) -> torch.Tensor:
 
 @functools.lru_cache(maxsize=64)
 def _source_axis_cached(size: int, nodes: int, radius: int, extra: int, dtype: torch.dtype, device: torch.device):
-    cell, fraction, bounds = _node_axis_cached(size, nodes, dtype, torch.device("cpu"))
+    cell, fraction, _ = _node_axis_cached(size, nodes, dtype, torch.device("cpu"))
     clamped = (torch.arange(size + 2 * radius + extra) - radius).clamp(0, size - 1)
-    padded_bounds = bounds + radius
-    padded_bounds[0], padded_bounds[-1] = 0, size + 2 * radius
-    return cell[clamped].to(device), fraction[clamped].to(device), padded_bounds.to(device)
+    cells = cell[clamped]
+    # each cell's first padded source by the sources' own cells, as the forward reads them: a border copy belongs to
+    # the cell of the pixel it copies, also where that is not the first or last cell (an axis of fewer pixels than
+    # cells leaves cells empty; by the pixels' bounds shifted, the first copies went to an empty first cell)
+    padded_bounds = torch.searchsorted(cells[:size + 2 * radius].contiguous(),
+                                       torch.arange(max(nodes - 1, 1) + 1, dtype=cells.dtype))
+    return cells.to(device), fraction[clamped].to(device), padded_bounds.to(torch.int32).to(device)
 
 
 def source_axis(size: int, nodes: int, radius: int, extra: int, dtype=torch.float64, device="cpu"):
     """`node_axis` over the padded source coordinates the kernels use: source s of an axis padded by ``radius``
     (plus ``extra`` at the end) is pixel clamp(s - radius). Returns (cell, fraction) per padded source and each
-    cell's first padded source (the first cell starts at 0 and the last ends at size + 2 * radius: border
-    copies belong to the border cells)."""
+    cell's first padded source (the cells in order, the last ending at size + 2 * radius; a border copy belongs to
+    its pixel's cell)."""
     return _source_axis_cached(int(size), int(nodes), int(radius), int(extra), dtype, torch.device(device))
 
 
@@ -191,7 +195,7 @@ def _widest_cell(width: int, grid_x: int, radius: int) -> int:
 
 STAGED_BYTES = 40 * 1024
 """Shared memory a block of the staged PSF adjoint may take (`kernels.psf.staged_tiles`); larger PSFs (K > 63 in
-float32, K > 31 in float64) run `kernels.psf.psf_backward_cells`, which stages nothing."""
+float32, K > 37 in float64) run `kernels.psf.psf_backward_cells`, which stages nothing."""
 
 
 @warp_op("psf_conv_backward_cells", lambda image, grad_out, cells, grid_y, grid_x: torch.empty_like(cells))
