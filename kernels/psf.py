@@ -216,14 +216,23 @@ STAGED_ROWS = 8  # source rows a block of the staged PSF adjoint takes into shar
 STAGED_COLS = 64  # source columns of one block of the staged PSF adjoint (a cell wider is split into column chunks)
 
 
-def staged_tiles(size: int) -> tuple[int, int, int]:
-    """(tap groups a row, threads a block, shared-memory elements a block) of the staged PSF adjoint for PSFs of
-    ``size`` taps: the gradient rows and columns the block's sources reach, its sources and their column
-    fractions."""
+class StagedTiles(NamedTuple):
+    """The staged PSF adjoint's block for PSFs of ``size`` taps (`staged_tiles`)."""
+
+    groups: int  # tap groups (TAPS consecutive tap columns) a tap row
+    threads: int  # threads a block: the tap groups of one channel, in whole warps
+    rows: int  # gradient rows a block's STAGED_ROWS sources reach
+    cols: int  # gradient columns its STAGED_COLS sources reach through every tap group
+    elements: int  # shared-memory elements a block: the gradient tile, its sources and their column fractions
+
+
+def staged_tiles(size: int) -> StagedTiles:
+    """`StagedTiles` of PSFs of ``size`` x ``size`` taps: the one place their sizes are derived (the kernel's tile
+    shapes, the op's launch and padding)."""
     groups = (size + TAPS - 1) // TAPS
-    threads = -(-size * groups // 32) * 32
-    elements = (STAGED_ROWS + size - 1) * (STAGED_COLS + groups * TAPS - 1) + STAGED_ROWS * STAGED_COLS + STAGED_COLS
-    return groups, threads, elements
+    rows, cols = STAGED_ROWS + size - 1, STAGED_COLS + groups * TAPS - 1
+    return StagedTiles(groups, -(-size * groups // 32) * 32, rows, cols,
+                       rows * cols + STAGED_ROWS * STAGED_COLS + STAGED_COLS)
 
 
 @functools.lru_cache(maxsize=None)
@@ -246,9 +255,7 @@ def psf_cells_staged(size: int) -> wp.Kernel:
     instructions than the sums): the op layer pads them so that every tile a block loads lies inside its plane
     and gives ``col_frac`` STAGED_COLS more entries.
     """
-    groups, threads, _ = staged_tiles(size)
-    tile_rows = STAGED_ROWS + size - 1
-    tile_cols = STAGED_COLS + groups * TAPS - 1
+    groups, _, tile_rows, tile_cols, _ = staged_tiles(size)
 
     @wp.kernel(module="unique", enable_backward=False)
     def psf_backward_staged(

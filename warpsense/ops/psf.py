@@ -210,23 +210,22 @@ def _psf_backward_cells(image: torch.Tensor, grad_out: torch.Tensor, cells: torc
     rows, cols = _source_tables(image, grid_y, grid_x, radius)
     cell_rows, cell_cols = -(-(height + 2 * radius) // cells_y), -(-(width + 2 * radius) // cells_x)
     target = _THREADS_TARGET.get(image.device.type, 1)
-    groups, threads, elements = kernels.staged_tiles(size)
-    if elements * image.element_size() <= STAGED_BYTES:
+    tiles = kernels.staged_tiles(size)
+    if tiles.elements * image.element_size() <= STAGED_BYTES:
         col_chunks = -(-_widest_cell(width, grid_x, radius) // kernels.STAGED_COLS)
         planes = batch * channels * cells_y * cells_x * col_chunks
-        row_splits = max(1, min(-(-cell_rows // kernels.STAGED_ROWS), -(-target // (threads * planes))))
+        row_splits = max(1, min(-(-cell_rows // kernels.STAGED_ROWS), -(-target // (tiles.threads * planes))))
         partials = image.new_empty(batch * row_splits * col_chunks, channels, cells_y * cells_x, size * size, 4)
         # rows below each plane, so that every tile a block loads whole and unchecked lies inside its plane: the
         # columns of a tile's last rows run on past a row's end, and the gradient's tile one row past the plane's
         source = _padded_source(image, radius, -(-kernels.STAGED_COLS // (width + 2 * radius)))
-        tile_cols = kernels.STAGED_COLS + groups * kernels.TAPS - 1
         padded_grad = _padded_gradient(grad_out, radius, image.dtype,
-                                       1 + -(-tile_cols // (width + 4 * radius + kernels.TAPS - 1)))
+                                       1 + -(-tiles.cols // (width + 4 * radius + kernels.TAPS - 1)))
         fractions = source_axis(width, grid_x, radius, kernels.STAGED_COLS, image.dtype, image.device)[1]
-        launch(kernels.psf_cells_staged(size), (planes * row_splits, threads),
+        launch(kernels.psf_cells_staged(size), (planes * row_splits, tiles.threads),
                [source.view(-1, source.shape[-1]), source.shape[1], padded_grad.view(-1, padded_grad.shape[-1]),
                 padded_grad.shape[1], rows[2], rows[1], cols[2], fractions, channels, cells_y, cells_x, row_splits,
-                col_chunks, Vectors(partials)], image.device, threads_per_block=threads)
+                col_chunks, Vectors(partials)], image.device, threads_per_block=tiles.threads)
         return partials.sum(dim=0).view_as(cells)
     source, padded_grad = _padded_source(image, radius), _padded_gradient(grad_out, radius, image.dtype)
     tap_groups = channels * size * -(-size // kernels.TAPS)
