@@ -101,6 +101,51 @@ def bilinear(corners: Any, fy: Any, fx: Any):
     return top + fy * (bottom - top)
 
 
+@wp.func
+def slide_taps(window: Any, values: Any, weighted: Any, total: Any, upper: Any):
+    """TAPS sources along a source row against the gradients of TAPS tap columns, from registers: source u meets tap
+    m's gradient at window[u + m] (window[0 .. TAPS - 2] held from before, window[TAPS - 1 ..] the block's loads);
+    ``total`` sums v g, ``upper`` fx v g (``weighted`` = v fx: the upper corners' share along x). The window then moves
+    on by TAPS. Returns (window, total, upper)."""
+    for u in range(TAPS):
+        for m in range(TAPS):
+            total[m] = total[m] + window[u + m] * values[u]
+            upper[m] = upper[m] + window[u + m] * weighted[u]
+    for m in range(TAPS - 1):
+        window[m] = window[TAPS + m]
+    return window, total, upper
+
+
+@wp.func
+def slide_tap(window: Any, value: Any, fraction: Any, total: Any, upper: Any):
+    """`slide_taps` for one source (the row's last ones): its gradients at window[0 .. TAPS - 1], the window then
+    moves on by one. Returns (window, total, upper)."""
+    for m in range(TAPS):
+        total[m] = total[m] + window[m] * value
+        upper[m] = upper[m] + window[m] * (value * fraction)
+    for m in range(TAPS - 1):
+        window[m] = window[m + 1]
+    return window, total, upper
+
+
+@wp.func
+def fold_row(total: Any, upper: Any, fy: Any, s00: Any, s01: Any, s10: Any, s11: Any):
+    """A source row's sums folded into the four corners' (00, 01, 10, 11) with its fraction ``fy`` along y: the
+    weights are separable, (1 - fy, fy) x (1 - fx, fx). Returns (s00, s01, s10, s11)."""
+    one = type(fy)(1.0)
+    lower = total - upper
+    return s00 + (one - fy) * lower, s01 + (one - fy) * upper, s10 + fy * lower, s11 + fy * upper
+
+
+@wp.func
+def write_partials(partials: Any, slot: int, c: int, cell: int, i: int, j0: int, size: int, s00: Any, s01: Any,
+                   s10: Any, s11: Any):
+    """A thread's corner sums of taps (i, j0 .. j0 + TAPS - 1) into its partial slot (the taps past K left out)."""
+    for m in range(TAPS):
+        if j0 + m < size:
+            partials[slot, c, cell, i * size + j0 + m] = wp.vector(s00[m], s01[m], s10[m], s11[m])
+
+
 @wp.kernel
 def psf_backward_cells(
     source: wp.array3d(dtype=Any),
@@ -151,7 +196,6 @@ def psf_backward_cells(
     per_chunk = (cols + col_chunks - 1) / col_chunks
     t_first = col_bounds[cx] + col_chunk * per_chunk
     t_end = wp.min(t_first + per_chunk, col_bounds[cx + 1])
-    one = source.dtype(1.0)
     s00 = wp.vector(length=TAPS, dtype=source.dtype)
     s01 = wp.vector(length=TAPS, dtype=source.dtype)
     s10 = wp.vector(length=TAPS, dtype=source.dtype)
@@ -175,32 +219,13 @@ def psf_backward_cells(
             for u in range(TAPS):
                 window[TAPS - 1 + u] = load(padded_grad, grads + t + TAPS - 1 + u)
                 values[u] = load(source, sources + t + u)
-                weighted[u] = values[u] * load(col_frac, t + u)  # upper takes the value weighted by fx
-            for u in range(TAPS):
-                for m in range(TAPS):
-                    total[m] = total[m] + window[u + m] * values[u]
-                    upper[m] = upper[m] + window[u + m] * weighted[u]
-            for m in range(TAPS - 1):
-                window[m] = window[TAPS + m]
+                weighted[u] = values[u] * load(col_frac, t + u)
+            window, total, upper = slide_taps(window, values, weighted, total, upper)
         for t in range(t_first + blocks * TAPS, t_end):  # the last sources, one at a time
             window[TAPS - 1] = load(padded_grad, grads + t + TAPS - 1)
-            value = load(source, sources + t)
-            fraction = load(col_frac, t)
-            for m in range(TAPS):
-                total[m] = total[m] + window[m] * value
-                upper[m] = upper[m] + window[m] * (value * fraction)
-            for m in range(TAPS - 1):
-                window[m] = window[m + 1]
-        fy = row_frac[s]
-        lower = total - upper
-        s00 += (one - fy) * lower
-        s01 += (one - fy) * upper
-        s10 += fy * lower
-        s11 += fy * upper
-    slot = b * chunks + chunk
-    for m in range(TAPS):
-        if j0 + m < size:
-            partials[slot, c, cell, i * size + j0 + m] = wp.vector(s00[m], s01[m], s10[m], s11[m])
+            window, total, upper = slide_tap(window, load(source, sources + t), load(col_frac, t), total, upper)
+        s00, s01, s10, s11 = fold_row(total, upper, row_frac[s], s00, s01, s10, s11)
+    write_partials(partials, b * chunks + chunk, c, cell, i, j0, size, s00, s01, s10, s11)
 
 
 for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
@@ -292,7 +317,6 @@ def psf_cells_staged(size: int) -> wp.Kernel:
         i = lane / wp.static(groups)
         j0 = (lane % wp.static(groups)) * TAPS
         active = i < wp.static(size)
-        one = source.dtype(1.0)
         s00 = wp.vector(length=TAPS, dtype=source.dtype)
         s01 = wp.vector(length=TAPS, dtype=source.dtype)
         s10 = wp.vector(length=TAPS, dtype=source.dtype)
@@ -322,34 +346,15 @@ def psf_cells_staged(size: int) -> wp.Kernel:
                             window[TAPS - 1 + u] = grads[g, t + j0 + TAPS - 1 + u]
                             values[u] = sources[r, t + u]
                             weighted[u] = values[u] * fractions[t + u]
-                        for u in range(TAPS):
-                            for m in range(TAPS):
-                                total[m] = total[m] + window[u + m] * values[u]
-                                upper[m] = upper[m] + window[u + m] * weighted[u]
-                        for m in range(TAPS - 1):
-                            window[m] = window[TAPS + m]
+                        window, total, upper = slide_taps(window, values, weighted, total, upper)
                     for t in range(blocks * TAPS, width):  # the last sources, one at a time
                         window[TAPS - 1] = grads[g, t + j0 + TAPS - 1]
-                        value = sources[r, t]
-                        fraction = fractions[t]
-                        for m in range(TAPS):
-                            total[m] = total[m] + window[m] * value
-                            upper[m] = upper[m] + window[m] * (value * fraction)
-                        for m in range(TAPS - 1):
-                            window[m] = window[m + 1]
-                    fy = row_frac[s0 + r]
-                    lower = total - upper
-                    s00 += (one - fy) * lower
-                    s01 += (one - fy) * upper
-                    s10 += fy * lower
-                    s11 += fy * upper
+                        window, total, upper = slide_tap(window, sources[r, t], fractions[t], total, upper)
+                    s00, s01, s10, s11 = fold_row(total, upper, row_frac[s0 + r], s00, s01, s10, s11)
             s0 += STAGED_ROWS
         if active:
-            slot = (bc / channels) * splits + split
-            c = bc % channels
-            for m in range(TAPS):
-                if j0 + m < size:
-                    partials[slot, c, cell, i * size + j0 + m] = wp.vector(s00[m], s01[m], s10[m], s11[m])
+            write_partials(partials, (bc / channels) * splits + split, bc % channels, cell, i, j0, wp.static(size),
+                           s00, s01, s10, s11)
 
     for _float, _vec4 in ((wp.float32, wp.vec4f), (wp.float64, wp.vec4d)):
         planes, table, index = wp.array2d(dtype=_float), wp.array(dtype=_float), wp.array(dtype=wp.int32)
