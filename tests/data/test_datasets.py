@@ -74,3 +74,23 @@ def test_srgb_round_trip_and_known_values():
     values = torch.linspace(0, 1, 11)
     torch.testing.assert_close(linear_to_srgb(srgb_to_linear(values)), values, atol=1e-6, rtol=0)
     assert srgb_to_linear(torch.tensor([0.5])).item() == pytest.approx(0.2140, abs=1e-4)
+
+
+@pytest.mark.parametrize("broken", ["image", "label"])
+@pytest.mark.parametrize("damage", ["truncated", "corrupt"])
+def test_an_unreadable_file_is_an_error_naming_it(tmp_path, broken, damage):
+    """PIL's messages for a truncated or corrupt PNG ("image file is truncated", "broken data stream when reading
+    image file") name no file: `warpsense eval` and training stopped with one of them alone."""
+    _write_pair(tmp_path / "val" / "0016E5_00001.png", tmp_path / "valannot" / "0016E5_00001.png", [3] * 64 * 96,
+                size=(64, 96))
+    (tmp_path / "val.txt").write_text("val/0016E5_00001.png valannot/0016E5_00001.png\n")
+    path = tmp_path / ("val" if broken == "image" else "valannot") / "0016E5_00001.png"
+    content = path.read_bytes()
+    if damage == "truncated":
+        path.write_bytes(content[: len(content) * 3 // 4])
+    else:  # a flipped byte inside the pixel data (IDAT): the header still opens
+        middle = bytearray(content)
+        middle[len(middle) // 2] ^= 0xFF
+        path.write_bytes(bytes(middle))
+    with pytest.raises(DatasetError, match=f"^{path}: unreadable image \\("):
+        CamVid(tmp_path, "val")[0]

@@ -15,6 +15,7 @@ from PIL import Image
 from torch.utils.data import Dataset
 
 from warpsense.data.labels import CAMVID_CLASSES, CITYSCAPES_CLASSES, IGNORE_INDEX, id_to_train_id_table
+from warpsense.errors import first_line
 
 
 class DatasetError(ValueError):
@@ -75,8 +76,19 @@ def sequence_fold(sources: list, held_out: str) -> tuple[Frames, Frames]:
     return Frames(sources, rest), Frames(sources, held)
 
 
+def _read_image(path: Path) -> np.ndarray:
+    """The pixels of an image file as a writable array (torch.from_numpy needs one); DatasetError naming the file
+    where it cannot be decoded (PIL's messages for a truncated or corrupt file, "image file is truncated", name
+    none)."""
+    try:
+        with Image.open(path) as image:
+            return np.array(image)
+    except (OSError, SyntaxError) as error:  # PIL reports a broken PNG chunk as a SyntaxError
+        raise DatasetError(f"{path}: unreadable image ({first_line(error)})") from None
+
+
 def _read_rgb(path: Path) -> np.ndarray:
-    image = np.array(Image.open(path))  # a writable copy (torch.from_numpy needs one)
+    image = _read_image(path)
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)
     return np.ascontiguousarray(image[..., :3])
@@ -160,8 +172,7 @@ class PairDataset(Dataset):
     def __getitem__(self, index: int):
         image_path, label_path = self.pairs[index]
         image = torch.from_numpy(_read_rgb(image_path)).permute(2, 0, 1).contiguous()
-        with Image.open(label_path) as opened:
-            label = torch.from_numpy(self.encode(np.array(opened), label_path))
+        label = torch.from_numpy(self.encode(_read_image(label_path), label_path))
         if label.shape != image.shape[1:]:
             raise DatasetError(f"{label_path}: label size {tuple(label.shape)} != image size {tuple(image.shape[1:])}")
         return image, label
