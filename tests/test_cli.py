@@ -334,3 +334,29 @@ def test_bench_camvid_for_a_suite_that_reads_none_is_one_line_error(capsys, suit
 
     assert_clean_failure(capsys, ["bench", "--suite", suite, "--camvid", "camvid_root", "--quick"],
                          ("--camvid", f"--suite {suite}"))
+
+
+def test_a_bad_training_image_read_by_a_dataloader_worker_is_one_line_error(tmp_path, capsys):
+    """With data.num_workers > 0 the worker's error came back with its traceback as the message: the "one-line"
+    error was some twenty lines of it."""
+    import numpy as np
+    from PIL import Image
+
+    from tests.reliability.conftest import assert_clean_failure
+
+    root = tmp_path / "camvid"
+    for split, frames in (("train", ["0001TP_000010", "0001TP_000020"]), ("val", ["0016E5_000010"])):
+        (root / split).mkdir(parents=True)
+        (root / f"{split}annot").mkdir()
+        for frame in frames:
+            Image.fromarray(np.zeros((32, 48, 3), dtype=np.uint8)).save(root / split / f"{frame}.png")
+            Image.fromarray(np.full((32, 48), 3, dtype=np.uint8)).save(root / f"{split}annot" / f"{frame}.png")
+        (root / f"{split}.txt").write_text("".join(f"{split}/{f}.png {split}annot/{f}.png\n" for f in frames))
+    bad = root / "train" / "0001TP_000020.png"
+    bad.write_bytes(bad.read_bytes()[:60])  # the header opens; the pixel data is cut off
+    settings = ["data.dataset=camvid", f"data.root={root}", "data.num_workers=1", "data.batch_size=2",
+                "data.crop_height=32", "data.crop_width=48", "train.epochs=1", "train.warmup_epochs=0",
+                "train.plots=false", "train.compile=off", "train.cuda_graph=false", "run.device=cpu",
+                f"run.output_dir={tmp_path / 'runs'}"]
+    assert_clean_failure(capsys, ["train", "--no-progress", *(f"--set={text}" for text in settings)],
+                         (f"{bad}: unreadable image",))

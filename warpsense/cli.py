@@ -56,6 +56,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from warpsense.config import ConfigError
     from warpsense.data.datasets import DatasetError
+    from warpsense.errors import worker_message
     from warpsense.optics.lens import LensFileError
     from warpsense.study.plan import PlanError
 
@@ -63,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
         return COMMANDS[args.command].run(args)
     except (ConfigError, DatasetError, LensFileError, PlanError, OSError, KeyError, ValueError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
-        print(f"warpsense {args.command}: error: {message}", file=sys.stderr)
+        # a bad file read by a DataLoader worker (data.num_workers > 0) comes back with the worker's traceback
+        print(f"warpsense {args.command}: error: {worker_message(str(message))}", file=sys.stderr)
         return 2
 
 
