@@ -63,9 +63,9 @@ def test_paths_that_are_not_raw_files(tmp_path, capsys):
 CHECKPOINT = Path(__file__).resolve().parents[2] / "checkpoints" / "camvid_fixed_isp.safetensors"
 
 
-def _capture_bytes(tmp_path, metadata):
+def _capture_bytes(tmp_path, metadata, mosaic=None):
     path = tmp_path / "whole.safetensors"
-    save_file({"mosaic": torch.zeros(1, 8, 8)}, str(path), metadata=metadata)
+    save_file({"mosaic": torch.zeros(1, 8, 8) if mosaic is None else mosaic}, str(path), metadata=metadata)
     whole = path.read_bytes()
     path.unlink()
     return whole
@@ -74,21 +74,44 @@ def _capture_bytes(tmp_path, metadata):
 @pytest.mark.parametrize("kind,reason", [
     ("empty", "header too small"), ("text", "header"), ("truncated", "Error while deserializing"),
     ("no metadata", "no 'warpsense' metadata"), ("metadata not JSON", "not JSON"),
-    ("no cfa_pattern", "names no cfa_pattern"), ("checkpoint", "no 'mosaic' tensor")])
+    ("no cfa_pattern", "names no cfa_pattern"), ("checkpoint", "no 'mosaic' tensor"),
+    ("cfa_pattern not text", "names no cfa_pattern"), ("mosaic [H, W]", "its 'mosaic' is float32 [8, 8], expected"),
+    ("mosaic of 3 planes", "float32 [3, 8, 8]"), ("mosaic float16", "float16 [1, 8, 8]"),
+    ("mosaic int32", "int32 [1, 8, 8]"), ("mosaic 1 x 1", "float32 [1, 1, 1]"), ("mosaic empty", "[1, 0, 0]"),
+    ("mosaic NaN", "holds NaN or infinite values")])
 def test_predict_refuses_a_safetensors_that_is_no_capture(kind, reason, tmp_path, capsys):
-    """Each was a traceback (safetensors' "header too small", a TypeError for no metadata) or a bare "mosaic" (a
-    checkpoint given as the capture)."""
-    capture = _capture_bytes(tmp_path, {"warpsense": json.dumps({"cfa_pattern": "RGGB"})})
+    """Each was a traceback (safetensors' "header too small", a TypeError for no metadata or a cfa_pattern that is
+    no text, torch errors for a float16, integer or empty mosaic), an error naming no file ("not enough values to
+    unpack" for a mosaic of other dimensions), or an image written without complaint (a mosaic of NaN, of 3
+    planes) or a bare "mosaic" (a checkpoint given as the capture)."""
+    metadata = {"warpsense": json.dumps({"cfa_pattern": "RGGB"})}
+    capture = _capture_bytes(tmp_path, metadata)
+    mosaics = {"mosaic [H, W]": torch.zeros(8, 8), "mosaic of 3 planes": torch.zeros(3, 8, 8),
+               "mosaic float16": torch.zeros(1, 8, 8, dtype=torch.float16),
+               "mosaic int32": torch.zeros(1, 8, 8, dtype=torch.int32), "mosaic 1 x 1": torch.zeros(1, 1, 1),
+               "mosaic empty": torch.zeros(1, 0, 0), "mosaic NaN": torch.full((1, 8, 8), float("nan"))}
     content = {"empty": b"", "text": b"hello\n", "truncated": capture[: len(capture) // 2],
                "no metadata": _capture_bytes(tmp_path, None),
                "metadata not JSON": _capture_bytes(tmp_path, {"warpsense": "{oops"}),
                "no cfa_pattern": _capture_bytes(tmp_path, {"warpsense": "{}"}),
-               "checkpoint": CHECKPOINT.read_bytes()}[kind]
+               "checkpoint": CHECKPOINT.read_bytes(),
+               "cfa_pattern not text": _capture_bytes(tmp_path, {"warpsense": json.dumps({"cfa_pattern": 5})}),
+               **{name: _capture_bytes(tmp_path, metadata, mosaic) for name, mosaic in mosaics.items()}}[kind]
     path = tmp_path / "capture.safetensors"
     path.write_bytes(content)
     out = tmp_path / "p.png"
     assert_clean_failure(capsys, ["predict", str(CHECKPOINT), str(path), "--out", str(out), "--device", "cpu"],
                          (f"{path}: not a raw capture written by `warpsense convert`", reason), watched=tmp_path)
+
+
+def test_predict_names_a_capture_whose_cfa_is_no_bayer_layout(tmp_path, capsys):
+    """`warpsense simulate` writes RCCB and monochrome captures, which predict cannot read: the error was
+    "layout RCCB cannot be cropped into RGGB", naming no file."""
+    path = tmp_path / "rccb.safetensors"
+    path.write_bytes(_capture_bytes(tmp_path, {"warpsense": json.dumps({"cfa_pattern": "RCCB"})}))
+    out = tmp_path / "p.png"
+    assert_clean_failure(capsys, ["predict", str(CHECKPOINT), str(path), "--out", str(out), "--device", "cpu"],
+                         (f"{path}: the capture's CFA 'RCCB' is not a Bayer layout",), watched=tmp_path)
 
 
 def test_predict_names_a_folder_given_as_the_capture(tmp_path, capsys):

@@ -114,6 +114,9 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
             raise ValueError(f"{checkpoint}: the checkpoint's CFA ({model_pattern or 'none'}) is not a Bayer layout; "
                              f"predict needs one of {', '.join(BAYER_LAYOUTS)}")
         mosaic_np, metadata = read_capture(raw_path)
+        if metadata["cfa_pattern"] not in BAYER_LAYOUTS:  # a simulated RCCB or monochrome capture, say
+            raise ValueError(f"{raw_path}: the capture's CFA {metadata['cfa_pattern']!r} is not a Bayer layout; "
+                             f"predict needs one of {', '.join(BAYER_LAYOUTS)}")
         capture_height, capture_width = mosaic_np.shape
         mosaic, factor, (dy, dx) = prepare_capture(mosaic_np, metadata["cfa_pattern"], model_pattern, target_width)
         if learned.exposure_gain is not None:

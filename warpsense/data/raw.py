@@ -159,13 +159,19 @@ def load_raw(path: str | Path) -> tuple[torch.Tensor, dict]:
         raise refused(first_line(error)) from None
     if mosaic is None:
         raise refused("no 'mosaic' tensor")
+    # what convert and simulate write; another tool's tensor failed later in predict with a traceback
+    if mosaic.dtype != torch.float32 or mosaic.ndim != 3 or mosaic.shape[0] != 1 or min(mosaic.shape[1:]) < 2:
+        raise refused(f"its 'mosaic' is {str(mosaic.dtype).removeprefix('torch.')} {list(mosaic.shape)}, expected "
+                      "float32 [1, H, W] with H, W >= 2")
+    if not torch.isfinite(mosaic).all():
+        raise refused("its 'mosaic' holds NaN or infinite values")
     if text is None:
         raise refused("no 'warpsense' metadata")
     try:
         metadata = json.loads(text)
     except json.JSONDecodeError as error:
         raise refused(f"its 'warpsense' metadata is not JSON: {error}") from None
-    if not isinstance(metadata, dict) or "cfa_pattern" not in metadata:
+    if not isinstance(metadata, dict) or not isinstance(metadata.get("cfa_pattern"), str):
         raise refused("its 'warpsense' metadata names no cfa_pattern")
     return mosaic, metadata
 
