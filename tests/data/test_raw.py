@@ -225,3 +225,15 @@ def test_convert_exits_2_when_a_file_of_the_batch_fails(tmp_path, capsys):
     assert main(["convert", str(tmp_path / "good.dng"), str(tmp_path / "bad.dng"), "--out", str(out),
                  "--no-progress"]) == 2
     assert "bad.dng" in capsys.readouterr().err and [p.name for p in out.iterdir()] == ["good.safetensors"]
+
+
+@pytest.mark.parametrize("white", [64, 40])
+def test_a_white_level_not_above_the_black_level_is_refused(tmp_path, capsys, white):
+    """(value - black) / (white - black) made a mosaic of NaN (white at black, with a RuntimeWarning) or of values
+    flipped around black (white below it), converted with exit 0."""
+    from tests.reliability.conftest import assert_clean_failure
+
+    path = tmp_path / "flat.dng"
+    write_dng(path, np.full((32, 48), 64, dtype=np.uint16), "RGGB", black_level=64, white_level=white)
+    assert_clean_failure(capsys, ["convert", str(path), "--out", str(tmp_path / "out"), "--no-progress"],
+                         (f"{path}: its white level {white} is not above its black level(s) 64",), watched=tmp_path)

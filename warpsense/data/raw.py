@@ -109,6 +109,9 @@ def _decode(raw, path: Path, rawpy) -> tuple[np.ndarray, dict]:
                            f"{', '.join(BAYER_LAYOUTS)}")
     black = np.asarray(raw.black_level_per_channel, dtype=np.float32)
     white = float(raw.white_level)
+    if (white <= black).any():  # the normalisation would divide by zero or a negative range: NaN or flipped values
+        raise RawFileError(f"{path}: its white level {white:g} is not above its black level(s) "
+                           f"{', '.join(f'{value:g}' for value in black)}: refusing")
     black_map = black[colors]
     mosaic = (visible - black_map) / (white - black_map)
     make, model = _camera_names(path)
