@@ -105,6 +105,24 @@ def test_batch_goes_on_past_bad_files_and_leaves_nothing_partial(tmp_path, capsy
     assert sorted(p.name for p in out.iterdir()) == ["good.dng", "good.preview.png", "good.safetensors"]
 
 
+def test_a_truncated_compressed_tiff_is_skipped_and_the_batch_goes_on(tmp_path, capsys):
+    """tifffile's deflate codec raises zlib.error for a cut strip, which is no OSError nor ValueError: it was a
+    traceback that stopped the batch (exit 1) before the good image."""
+    linear = np.random.default_rng(0).random((32, 48, 3)).astype(np.float32)
+    tifffile.imwrite(tmp_path / "good.tif", linear, photometric="rgb")
+    tifffile.imwrite(tmp_path / "whole.tif", linear, photometric="rgb", compression="zlib")
+    whole = (tmp_path / "whole.tif").read_bytes()
+    (tmp_path / "cut.tif").write_bytes(whole[: len(whole) // 2])
+    out = tmp_path / "out"
+    code = main(["simulate", "--linear", str(tmp_path / "cut.tif"), str(tmp_path / "good.tif"), *CLEAN,
+                 "--out", str(out)])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert f"skipped {tmp_path / 'cut.tif'}: cannot read it as an image (error: Error -5" in err
+    assert "Traceback" not in err
+    assert sorted(p.name for p in out.iterdir()) == ["good.dng", "good.preview.png", "good.safetensors"]
+
+
 def test_a_failing_write_leaves_none_of_the_images_files(tmp_path, monkeypatch, capsys):
     import warpsense.data.raw as raw_module
 

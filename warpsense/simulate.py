@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from warpsense.choices import BAYER_LAYOUTS, IMAGE_SUFFIXES
+from warpsense.errors import first_line
 
 LINEAR_SUFFIXES = {".tif", ".tiff", ".png"}
 DNG_BITS_WITHOUT_QUANTIZER = 16
@@ -101,7 +102,7 @@ def read_image(path: str | Path, linear: bool = False) -> torch.Tensor:
     sRGB (default): an 8-bit PNG/JPEG/BMP/WebP, decoded with the sRGB curve. ``linear``: a TIFF (or PNG) of linear
     values: 16-bit integers divided by 65535, 8-bit by 255, floats taken as they are (>= 0, finite). Grey images are
     repeated into three channels; an alpha channel is dropped."""
-    from PIL import Image, UnidentifiedImageError
+    from PIL import Image
 
     from warpsense.data.color import srgb_to_linear
 
@@ -129,8 +130,9 @@ def read_image(path: str | Path, linear: bool = False) -> torch.Tensor:
                 if image.mode not in ("L", "RGB", "RGBA", "I;16", "I"):
                     image = image.convert("RGB")
                 array = np.array(image)
-    except (OSError, UnidentifiedImageError, ValueError) as error:
-        raise SimulateError(f"{path}: cannot read it as an image ({type(error).__name__}: {error})") from None
+    except Exception as error:  # noqa: BLE001 (the decoders raise many types: zlib.error for a cut deflate TIFF)
+        raise SimulateError(f"{path}: cannot read it as an image ({type(error).__name__}: {first_line(error)})") \
+            from None
     if array.ndim == 2:
         array = np.repeat(array[..., None], 3, axis=2)
     if array.ndim != 3 or array.shape[2] < 3:
