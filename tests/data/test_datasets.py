@@ -94,3 +94,14 @@ def test_an_unreadable_file_is_an_error_naming_it(tmp_path, broken, damage):
         path.write_bytes(bytes(middle))
     with pytest.raises(DatasetError, match=f"^{path}: unreadable image \\("):
         CamVid(tmp_path, "val")[0]
+
+
+def test_a_listed_file_that_is_missing_or_an_empty_list_is_named(tmp_path):
+    """A missing file was "unreadable image ([Errno 2] No such file or directory: ...)"; an empty split list was
+    "no image/label pairs found", naming no list."""
+    (tmp_path / "val.txt").write_text("val/0016E5_00001.png valannot/0016E5_00001.png\n")
+    with pytest.raises(DatasetError, match=f"^{tmp_path / 'val' / '0016E5_00001.png'}: no such file$"):
+        CamVid(tmp_path, "val")[0]
+    (tmp_path / "val.txt").write_text("\n\n")
+    with pytest.raises(DatasetError, match=f"^{tmp_path / 'val.txt'}: no 'image label' lines$"):
+        CamVid(tmp_path, "val")

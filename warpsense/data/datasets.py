@@ -83,6 +83,8 @@ def _read_image(path: Path) -> np.ndarray:
     try:
         with Image.open(path) as image:
             return np.array(image)
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: no such file") from None
     except (OSError, SyntaxError) as error:  # PIL reports a broken PNG chunk as a SyntaxError
         raise DatasetError(f"{path}: unreadable image ({first_line(error)})") from None
 
@@ -96,7 +98,7 @@ def _read_rgb(path: Path) -> np.ndarray:
 
 def read_pair_list(listing: Path, resolve) -> list[tuple[Path, Path]]:
     """Parse a split list of "image label" lines (blank lines skipped); ``resolve`` maps each listed path to a
-    file path. Malformed lines raise DatasetError naming the file and line."""
+    file path. Malformed lines raise DatasetError naming the file and line, and so does a list without a pair."""
     pairs = []
     for line_number, line in enumerate(listing.read_text().splitlines(), 1):
         if not line.strip():
@@ -105,6 +107,8 @@ def read_pair_list(listing: Path, resolve) -> list[tuple[Path, Path]]:
         if len(parts) != 2:
             raise DatasetError(f"{listing}:{line_number}: expected 'image label', got {line!r}")
         pairs.append((Path(resolve(parts[0])), Path(resolve(parts[1]))))
+    if not pairs:  # PairDataset's "no image/label pairs found" would not say which list is empty
+        raise DatasetError(f"{listing}: no 'image label' lines")
     return pairs
 
 
