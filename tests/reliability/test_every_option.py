@@ -132,7 +132,9 @@ FREE_STRINGS = {
     "eval --latency-size": [("not_hxw", ["--latency-size", "192"], ("--latency-size",)),
                             ("zero", ["--latency-size", "0x640"], ("--latency-size",)),
                             ("negative", ["--latency-size", "-1x640"], ("--latency-size",)),
-                            ("nan", ["--latency-size", "nanxnan"], ("--latency-size",))],
+                            ("nan", ["--latency-size", "nanxnan"], ("--latency-size",)),
+                            # a traceback from the fixed ISP's reflection padding once the checkpoint had loaded
+                            ("one_pixel_side", ["--latency-size", "1x640"], ("--latency-size", ">= 2"))],
     "simulate images": [("missing_file", [], ("no_such_image.png",))],
     "simulate --config": [("missing_file", ["--config", "no_such_file.toml"], ("no_such_file.toml",))],
     "simulate --set": [("unknown_key", ["--set", "train.epoch=3"], ("train.epoch",))],

@@ -6,10 +6,11 @@ BENCH_SUITES = ("kernels", "accuracy", "train", "time-to-accuracy", "study", "al
 trains a plan's cells twice)."""
 
 
-def parse_size(text: str, option: str, example: str) -> tuple[int, int]:
-    """``HxW`` (e.g. "192x640") as (height, width), both positive integers; otherwise a ValueError naming
+def parse_size(text: str, option: str, example: str, minimum: int = 1) -> tuple[int, int]:
+    """``HxW`` (e.g. "192x640") as (height, width), both integers >= ``minimum``; otherwise a ValueError naming
     ``option`` and giving ``example``."""
     parts = text.lower().split("x")
-    if len(parts) != 2 or not all(part.isdigit() and int(part) > 0 for part in parts):
-        raise ValueError(f"{option} must be HxW, e.g. {example}, got {text!r}")
+    if len(parts) != 2 or not all(part.isdigit() and int(part) >= max(minimum, 1) for part in parts):
+        least = f" with both sides >= {minimum}" if minimum > 1 else ""
+        raise ValueError(f"{option} must be HxW{least}, e.g. {example}, got {text!r}")
     return int(parts[0]), int(parts[1])

@@ -57,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{option} sets the input of --latency: add --latency")
     check_output_file(args.json, "--json")
     check_plot_file(args.plot, "--plot")
-    height, width = parse_size(args.latency_size or "192x640", "--latency-size", "192x640")
+    # 2 a side: the fixed ISP's demosaic pads by reflection, a torch error (traceback) on a 1-pixel side
+    height, width = parse_size(args.latency_size or "192x640", "--latency-size", "192x640", minimum=2)
     run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
              (height, width), args.latency_batch or 1, args.device, args.batch_size, args.limit, args.plot, args.flip_tta,
              progress=show_progress(args))
