@@ -114,6 +114,17 @@ def test_predict_names_a_capture_whose_cfa_is_no_bayer_layout(tmp_path, capsys):
                          (f"{path}: the capture's CFA 'RCCB' is not a Bayer layout",), watched=tmp_path)
 
 
+def test_predict_names_a_capture_too_small_for_the_phase_crop(tmp_path, capsys):
+    """A 2 x 2 BGGR capture cropped by (1, 1) into the model's RGGB keeps no whole tile: the network got an empty
+    image and the command ended in a torch traceback."""
+    path = tmp_path / "tiny.safetensors"
+    path.write_bytes(_capture_bytes(tmp_path, {"warpsense": json.dumps({"cfa_pattern": "BGGR"})},
+                                    torch.rand(1, 2, 2)))
+    out = tmp_path / "p.png"
+    assert_clean_failure(capsys, ["predict", str(CHECKPOINT), str(path), "--out", str(out), "--device", "cpu"],
+                         (f"{path}: its 2x2 mosaic holds no whole RGGB tile",), watched=tmp_path)
+
+
 def test_predict_names_a_folder_given_as_the_capture(tmp_path, capsys):
     """A folder was reported as "no such file"."""
     folder = tmp_path / "captures"

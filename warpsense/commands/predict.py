@@ -119,6 +119,10 @@ def predict_raw(checkpoint: str, raw_path: str, out_image: str, device: str = "a
                              f"predict needs one of {', '.join(BAYER_LAYOUTS)}")
         capture_height, capture_width = mosaic_np.shape
         mosaic, factor, (dy, dx) = prepare_capture(mosaic_np, metadata["cfa_pattern"], model_pattern, target_width)
+        if min(mosaic.shape) < 2:  # the phase crop left no whole 2 x 2 tile: the network would get an empty image
+            raise ValueError(f"{raw_path}: its {capture_height}x{capture_width} mosaic holds no whole "
+                             f"{model_pattern} tile after the {metadata['cfa_pattern']} -> {model_pattern} crop "
+                             f"({dy}, {dx})")
         if learned.exposure_gain is not None:
             mosaic = mosaic * (model.camera.raw_mean() * 0.5 / max(float(mosaic.mean()), 1e-6))
         mosaic = mosaic.clamp(0, 1)
