@@ -70,6 +70,19 @@ def test_scenes_have_all_classes_and_are_reproducible():
     assert torch.equal(scenes[5][0], StreetScenes(16, 96, 128, seed=0)[5][0])
 
 
+def test_generated_scenes_take_the_image_limits_as_files_do():
+    """data.max_train_images / max_val_images cut generated scenes to their first N, as they cut a file list (the
+    scenes ignored them)."""
+    config = load_config(None, ["data.scenes_train=6", "data.scenes_val=4", "data.max_train_images=3",
+                                "data.max_val_images=2", "data.scene_height=16", "data.scene_width=24"])
+    train = build_dataset(config.data, config.data.train_split, train=True)
+    val = build_dataset(config.data, config.data.val_split, train=False)
+    assert (len(train), len(val)) == (3, 2)
+    whole = build_dataset(load_config(None, ["data.scenes_val=4", "data.scene_height=16", "data.scene_width=24"]).data,
+                          config.data.val_split, train=False)
+    assert len(whole) == 4 and torch.equal(val[1][0], whole[1][0]) and torch.equal(val[1][1], whole[1][1])
+
+
 def test_srgb_round_trip_and_known_values():
     values = torch.linspace(0, 1, 11)
     torch.testing.assert_close(linear_to_srgb(srgb_to_linear(values)), values, atol=1e-6, rtol=0)

@@ -28,6 +28,7 @@ def _source(data_config, split: str, train: bool, seed: int, limit: int = 0):
         if split not in SCENE_SPLITS:
             raise DatasetError(f"scenes: split {split!r}: the generated scenes have the splits {', '.join(SCENE_SPLITS)}")
         count = data_config.scenes_train if train else data_config.scenes_val
+        count = min(count, limit) if limit else count  # max_train_images / max_val_images, as for files
         return StreetScenes(count, data_config.scene_height, data_config.scene_width, seed=seed + (0 if train else 7919),
                             sequence_blocks=data_config.scene_sequences, stream="train" if train else "val")
     if not data_config.root:
