@@ -166,6 +166,66 @@ def test_fewer_cells_than_slots_spread_over_the_gpus(tmp_path, capsys):
     assert sorted(re.findall(r"started on GPU (\d)", capsys.readouterr().out)) == ["0", "1"]
 
 
+FAKE_WORKER = """
+import json, pathlib, sys, time
+out = pathlib.Path(sys.argv[1])
+for line in sys.stdin:  # the pool's protocol: a cell id a line, answered "done <id>" once its evaluation is written
+    cell = line.strip()
+    *head, seed = cell.split("/")
+    run = out / "runs" / ".".join([*head, f"seed{seed}"])
+    run.mkdir(parents=True, exist_ok=True)
+    time.sleep(0.2)
+    (run / "evaluation.json").write_text(json.dumps({"splits": {"val": {"miou": 0.5}}}))
+    print(f"done {cell}", flush=True)
+"""
+
+
+def test_the_pool_hands_out_the_longest_cells_first_and_balances_each_gpus_work(tmp_path, capsys, monkeypatch):
+    """Cells of three lengths (as CamVid's folds: 406, 367 and 163 training frames) x 4 seeds on 4 GPUs x 3 slots:
+    each GPU runs one cell of each length. Handed out in plan order and balanced by count, one GPU of the answers
+    study took the three longest (docs/benchmarks.md, studies per GPU-hour)."""
+    import collections
+    import re
+    import sys
+
+    plan = load_plan(_plan_file(tmp_path), FAST + ["study.seeds=[0,1,2,3]"])
+    frames = {"rggb": 163, "rccb": 406, "learned": 367}  # the shortest first in plan order
+    monkeypatch.setattr(runner, "cell_work", lambda plan, cells: {cell: frames[cell.camera] for cell in cells})
+    monkeypatch.setattr(runner, "worker_command",
+                        lambda plan, out, progress=False: [sys.executable, "-c", FAKE_WORKER, str(out)])
+    assert run_cells(plan, tmp_path / "study", gpus=["0", "1", "2", "3"], per_gpu=3) == 0
+    printed = capsys.readouterr().out
+    started = re.findall(r"\] (\w+)/night/\d: started on GPU (\d)", printed)
+    assert len(started) == 12
+    assert [camera for camera, _ in started] == ["rccb"] * 4 + ["learned"] * 4 + ["rggb"] * 4  # the longest first
+    by_gpu = collections.defaultdict(list)
+    for camera, gpu in started:
+        by_gpu[gpu].append(camera)
+    assert {gpu: sorted(cameras) for gpu, cameras in by_gpu.items()} == {
+        gpu: ["learned", "rccb", "rggb"] for gpu in "0123"}
+    assert printed.count("done in") == 12
+
+
+def test_cell_work_counts_epochs_frames_and_crop_pixels(tmp_path, monkeypatch):
+    """A cell's work is epochs x training frames x crop pixels (independent counts: the smoke plan's 16 generated
+    training scenes); a training set that cannot be read gives every cell the same work (plan order)."""
+    plan = load_plan(_plan_file(tmp_path, '''
+[[camera]]
+name = "long"
+set = ["data.crop_height=32", "data.max_train_images=10"]
+'''), [*FAST, "train.epochs=3"])
+    cells = plan.cells()
+    work = runner.cell_work(plan, cells)
+    assert {cell.camera: work[cell] for cell in cells} == {"rggb": 3 * 16 * 48 * 64, "rccb": 3 * 16 * 48 * 64,
+                                                           "learned": 3 * 16 * 48 * 64, "long": 3 * 10 * 32 * 64}
+
+    def unreadable(data_config, seed=0):
+        raise engine.DatasetError("train.txt: no such file")
+
+    monkeypatch.setattr("warpsense.data.build_training", unreadable)
+    assert set(runner.cell_work(plan, cells).values()) == {1}
+
+
 def test_a_worker_that_cannot_start_fails_its_cells_and_the_pool_goes_on(tmp_path, capsys, monkeypatch):
     """Every worker fails to start (here: no such program): each cell is reported failed (none lost, exit 1) and no
     slot waits for a GPU whose slots stopped."""

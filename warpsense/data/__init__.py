@@ -91,6 +91,15 @@ def build_fold(data_config, train: bool, seed: int = 0):
     return _augmented(data_config, rest, seed)
 
 
+def build_training(data_config, seed: int = 0):
+    """The augmented training set a run of ``data_config`` trains on: its sequence fold's other frames
+    (``holdout_sequence``), the train split outside the held-out prefix (``holdout_prefix``), or the train split."""
+    if data_config.holdout_sequence:
+        return build_fold(data_config, train=True, seed=seed)
+    part = "rest" if data_config.holdout_prefix else "all"
+    return build_dataset(data_config, data_config.train_split, train=True, seed=seed, part=part)
+
+
 def evaluation_splits(data_config) -> list[str]:
     """The labelled splits a finished run is judged on: the held-out sequence (`HELDOUT_SPLIT`) with
     ``data.holdout_sequence``; else the val split, and CamVid's test split where the copy has one
@@ -111,5 +120,5 @@ def load_raw(path):
 
 
 __all__ = ["Augmented", "CamVid", "Cityscapes", "DATASETS", "DatasetError", "FolderDataset", "Frames", "HELDOUT_SPLIT", "KITTI360",
-           "StreetScenes", "build_dataset", "build_fold", "evaluation_splits", "frame_sequences", "labelled_sources",
-           "load_raw", "sequence_fold", "sequence_names"]
+           "StreetScenes", "build_dataset", "build_fold", "build_training", "evaluation_splits", "frame_sequences",
+           "labelled_sources", "load_raw", "sequence_fold", "sequence_names"]

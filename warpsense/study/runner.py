@@ -126,6 +126,27 @@ def step_pixels(plan: Plan) -> int:
     return max(c.data.batch_size * c.data.crop_height * c.data.crop_width for c in configs)
 
 
+def cell_work(plan: Plan, cells: list[Cell]) -> dict[Cell, int]:
+    """Each cell's training work, epochs x training frames x crop pixels: what the pool balances over its GPUs and
+    hands out longest first (`_pool`). A fold's training frames are the other sequences' (163-406 of CamVid's, so
+    its cells run 1.2-2.5x as long as each other). Every cell counts 1 where a training set cannot be read (the cells
+    then go in plan order; the cell reports the error when it trains)."""
+    from warpsense.data import DatasetError, build_training
+
+    sizes = {}  # training frames by data config: folds and cameras share them
+    work = {}
+    for cell in cells:
+        config = plan.config(cell, "runs")
+        key = repr(config.data)
+        if key not in sizes:
+            try:
+                sizes[key] = len(build_training(config.data, config.run.seed))
+            except (DatasetError, OSError, KeyError):
+                return dict.fromkeys(cells, 1)
+        work[cell] = config.train.epochs * sizes[key] * config.data.crop_height * config.data.crop_width
+    return work
+
+
 class BusySampler:
     """Samples `gpu_busy` every ``interval`` seconds on a thread while a study runs; ``fractions()`` is each GPU's
     mean busy fraction in [0, 1] (None when nothing could be sampled)."""
@@ -485,32 +506,44 @@ def worker_environment(gpu: str, workers: int, environ=None, cores: int | None =
 
 
 def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None, progress=False) -> list[Cell] | None:
-    """Cells on ``per_gpu`` worker processes per GPU (`cell_worker`), each taking the next pending cell when it is
-    free and its GPU runs no more cells than any other (fewer cells than slots spread over the GPUs instead of
-    filling the first); each cell writes its output to <out>/logs/<cell>.log. A worker that dies fails its cell and
-    is replaced for the next. The failed cells, or None after Ctrl-C (every worker is interrupted; a cell's last
-    checkpoint resumes it)."""
-    todo = collections.deque(pending)
+    """Cells on ``per_gpu`` worker processes per GPU (`cell_worker`), the longest first (`cell_work`; equal ones in
+    plan order), each slot taking the next pending cell when it is free and no GPU with a free slot runs less work
+    than its own (fewer cells than slots spread over the GPUs instead of filling the first, and a GPU's cells under
+    MPS share it, so its load is the sum of their work); each cell writes its output to <out>/logs/<cell>.log. A
+    worker that dies fails its cell and is replaced for the next. The failed cells, or None after Ctrl-C (every
+    worker is interrupted; a cell's last checkpoint resumes it).
+
+    Why longest first by work: the 12 cells of 3 CamVid folds x 4 seeds on 4 GPUs x 3 slots went out in plan order,
+    and one GPU took the three longest cells (406 training frames each) while two others finished at 150-200 s of the
+    study's 297 (docs/benchmarks.md, studies per GPU-hour)."""
+    work = cell_work(plan, pending)
+    todo = collections.deque(sorted(pending, key=lambda cell: -work[cell]))  # a stable sort: ties in plan order
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     failed, running, lock, stopping = [], set(), threading.Lock(), threading.Event()
     turn = threading.Condition()  # guards `todo` and `active`
     active = dict.fromkeys(gpus, 0)  # cells running on each GPU
+    load = dict.fromkeys(gpus, 0)  # their work
 
     def take(gpu: str) -> Cell | None:
-        """The next pending cell for a slot of ``gpu`` once no other GPU runs fewer cells; None when none is left."""
+        """The next pending cell for a slot of ``gpu`` once no GPU with a free slot runs less work; None when none
+        is left."""
         with turn:
-            while todo and not stopping.is_set() and active[gpu] > min(active.values()):
+            while todo and not stopping.is_set() and any(active[other] < per_gpu and load[other] < load[gpu]
+                                                         for other in gpus):
                 turn.wait(timeout=1.0)
             if not todo or stopping.is_set():
                 return None
+            cell = todo.popleft()
             active[gpu] += 1
+            load[gpu] += work[cell]
             turn.notify_all()  # a slot of another GPU may wait for this one to take its share
-            return todo.popleft()
+            return cell
 
-    def release(gpu: str) -> None:
+    def release(gpu: str, cell: Cell) -> None:
         with turn:
             active[gpu] -= 1
+            load[gpu] -= work[cell]
             turn.notify_all()
 
     def start(gpu: str) -> subprocess.Popen:
@@ -539,7 +572,7 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None,
                 process = None
                 fail(cell, first_line(error))
             finally:
-                release(gpu)
+                release(gpu, cell)
         if process is not None and not stopping.is_set():
             stop(process)
 

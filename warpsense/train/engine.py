@@ -23,6 +23,7 @@ from warpsense.data import (
     Frames,
     build_dataset,
     build_fold,
+    build_training,
     evaluation_splits,
     frame_sequences,
 )
@@ -229,12 +230,11 @@ class _Datasets(NamedTuple):
 
 def _datasets(config) -> _Datasets:
     seed = config.run.seed
+    train = build_training(config.data, seed)
     if config.data.holdout_sequence:  # a sequence fold: validate (and judge) on the held-out sequence
-        return _Datasets(build_fold(config.data, train=True, seed=seed), build_fold(config.data, train=False, seed=seed),
-                         None)
-    holdout = "rest" if config.data.holdout_prefix else "all"
+        return _Datasets(train, build_fold(config.data, train=False, seed=seed), None)
     return _Datasets(
-        build_dataset(config.data, config.data.train_split, train=True, seed=seed, part=holdout),
+        train,
         build_dataset(config.data, config.data.val_split, train=False, seed=seed),
         build_dataset(config.data, config.data.train_split, train=False, seed=seed, part="holdout")
         if config.data.holdout_prefix else None)
