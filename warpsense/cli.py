@@ -47,7 +47,8 @@ def _cpu_thread_defaults() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Parse ``argv`` (default: the process's arguments) and run the command; returns its exit code, 2 (with a
-    one-line error on stderr) where it failed on bad input, and 2 with the help when no command is given."""
+    one-line error on stderr) where it failed on bad input, 130 after Ctrl-C, and 2 with the help when no command
+    is given."""
     _cpu_thread_defaults()  # before anything imports torch, which loads the OpenMP runtime that reads them once
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -67,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         # a bad file read by a DataLoader worker (data.num_workers > 0) comes back with the worker's traceback
         print(f"warpsense {args.command}: error: {worker_message(str(message))}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # train and study say how to resume themselves; the others stop here in one line
+        print(f"warpsense {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

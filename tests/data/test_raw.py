@@ -227,6 +227,46 @@ def test_convert_exits_2_when_a_file_of_the_batch_fails(tmp_path, capsys):
     assert "bad.dng" in capsys.readouterr().err and [p.name for p in out.iterdir()] == ["good.safetensors"]
 
 
+def test_convert_run_again_keeps_up_to_date_outputs_and_goes_on_after_an_interruption(tmp_path, capsys,
+                                                                                     monkeypatch):
+    """A batch interrupted after its first file exits 130 in one line with that file kept; run again it converts
+    only the rest (an output of the same source bytes is kept), a changed source is converted again, and --force
+    converts everything."""
+    from warpsense.data import raw
+
+    for name in ("a", "b"):
+        _simulated_dng(tmp_path / f"{name}.dng")
+    out = tmp_path / "out"
+    command = ["convert", str(tmp_path / "a.dng"), str(tmp_path / "b.dng"), "--out", str(out), "--no-progress"]
+    converted = []
+    original = raw.convert_file
+
+    def interrupted_at_b(path, out_dir):
+        if path.name == "b.dng" and not converted:
+            converted.append(path)
+            raise KeyboardInterrupt
+        return original(path, out_dir)
+
+    monkeypatch.setattr(raw, "convert_file", interrupted_at_b)
+    assert main(command) == 130
+    assert capsys.readouterr().err == "warpsense convert: interrupted\n"
+    assert sorted(p.name for p in out.iterdir()) == ["a.safetensors"]
+    first = (out / "a.safetensors").stat().st_mtime_ns
+
+    calls = []
+    monkeypatch.setattr(raw, "convert_file", lambda path, out_dir: calls.append(path.name) or original(path, out_dir))
+    assert main(command) == 0
+    assert calls == ["b.dng"] and (out / "a.safetensors").stat().st_mtime_ns == first
+    assert "(1 up to date from an earlier run, kept)" in capsys.readouterr().out  # b converted, a kept
+
+    write_dng(tmp_path / "a.dng", np.random.default_rng(1).random((32, 48)), "RGGB", black_level=64)  # new bytes
+    calls.clear()
+    assert main(command) == 0 and calls == ["a.dng"]
+    assert "(1 up to date from an earlier run, kept)" in capsys.readouterr().out
+    calls.clear()
+    assert main([*command, "--force"]) == 0 and calls == ["a.dng", "b.dng"]
+
+
 @pytest.mark.parametrize("white", [64, 40])
 def test_a_white_level_not_above_the_black_level_is_refused(tmp_path, capsys, white):
     """(value - black) / (white - black) made a mosaic of NaN (white at black, with a RuntimeWarning) or of values

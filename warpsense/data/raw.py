@@ -266,9 +266,27 @@ def expand_inputs(inputs: list[str]) -> tuple[list[Path], list[tuple[Path, str]]
     return unique, problems
 
 
-def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True) -> list[tuple[Path, str]]:
+def up_to_date(path: Path, target: Path) -> bool:
+    """Whether ``target`` is a conversion of ``path`` as it is now: a readable output whose metadata names the same
+    source bytes (``source_sha256``). What lets an interrupted batch go on where it stopped."""
+    from safetensors import safe_open
+
+    if not target.is_file():
+        return False
+    try:
+        with safe_open(str(target), framework="pt") as handle:
+            recorded = json.loads((handle.metadata() or {}).get("warpsense", "{}")).get("source_sha256")
+    except Exception:  # noqa: BLE001 - a foreign, truncated or unreadable output is converted again
+        return False
+    return recorded == hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True,
+                  force: bool = False) -> list[tuple[Path, str]]:
     """Convert every input; a failing file is reported on stderr with a one-line reason and skipped, and the batch
-    goes on. Two inputs with one stem would write one output: the second is refused, naming the first.
+    goes on. Two inputs with one stem would write one output: the second is refused, naming the first. An output
+    that already converts the same source bytes is kept (`up_to_date`; ``force`` converts it again), so a batch run
+    again after an interruption goes on where it stopped.
 
     Returns the failures [(path, reason)]; the CLI exits 2 when there are any.
 
@@ -283,6 +301,7 @@ def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True)
     for _, reason in failures:
         print(f"warpsense convert: skipped {reason}", file=sys.stderr)
     outputs: dict[str, Path] = {}
+    kept = 0
     for path in tqdm(paths, desc="convert", unit="file", disable=not progress):
         try:
             name = f"{path.stem}.safetensors"
@@ -291,7 +310,10 @@ def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True)
                                    "convert it into another folder")
             if not path.exists():
                 raise RawFileError(f"{path}: no such file")
-            convert_file(path, out_dir)
+            if not force and up_to_date(path, Path(out_dir) / name):
+                kept += 1
+            else:
+                convert_file(path, out_dir)
             outputs[name] = path
         except (RawFileError, OSError) as error:
             reason = str(error) if isinstance(error, RawFileError) else f"{path}: cannot write its output ({error})"
@@ -299,7 +321,8 @@ def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True)
             tqdm.write(f"warpsense convert: skipped {reason}", file=sys.stderr)
     failed = f"; {len(failures)} failed" if failures else ""
     where = f" into {out_dir}" if outputs else ""  # nothing written: no folder to name
-    print(f"converted {len(outputs)} of {len(paths)} file(s){where}{failed}")
+    earlier = f" ({kept} up to date from an earlier run, kept)" if kept else ""
+    print(f"converted {len(outputs)} of {len(paths)} file(s){where}{earlier}{failed}")
     return failures
 
 
