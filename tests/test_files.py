@@ -1,8 +1,10 @@
-"""warpsense.files.source_state: the commit and edited-or-not state a run's environment.json records."""
+"""warpsense.files: the commit and edited-or-not state a run's environment.json records (source_state); output folders checked before anything is written."""
 
 import subprocess
 
-from warpsense.files import environment, source_state
+import pytest
+
+from warpsense.files import check_output_folder, environment, source_state
 
 
 def _git(repo, *arguments):
@@ -29,3 +31,11 @@ def test_commit_and_edited_tracked_files(tmp_path):
 def test_environment_records_both():
     record = environment()
     assert (record["git_commit"] is None) == (record["git_dirty"] is None)
+
+
+@pytest.mark.parametrize("text", ["", "  "])
+def test_an_empty_output_folder_is_refused_naming_the_option(text):
+    """`--out ""` (an unset shell variable) wrote into the current folder and said "into " with no folder."""
+    with pytest.raises(ValueError, match=r"^--out is empty: name a folder \('\.' for the current one\)$"):
+        check_output_folder(text, "--out")
+    check_output_folder(".", "--out")  # the current folder, named, is fine

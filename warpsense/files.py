@@ -76,7 +76,10 @@ def plot_format(path: str | Path) -> str:
 
 
 def check_output_folder(path: str | Path, what: str) -> None:
-    """Refuse an output folder that is a file or sits under a non-writable folder (it may not exist yet)."""
+    """Refuse an output folder that is empty text (an unset shell variable: Path("") is the current folder), a file,
+    or under a non-writable folder (it may not exist yet)."""
+    if not str(path).strip():
+        raise ValueError(f"{what} is empty: name a folder ('.' for the current one)")
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise ValueError(f"{what} {path}: is a file, expected a folder")
