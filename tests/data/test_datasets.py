@@ -118,3 +118,19 @@ def test_a_listed_file_that_is_missing_or_an_empty_list_is_named(tmp_path):
     (tmp_path / "val.txt").write_text("\n\n")
     with pytest.raises(DatasetError, match=f"^{tmp_path / 'val.txt'}: no 'image label' lines$"):
         CamVid(tmp_path, "val")
+
+
+def test_a_colour_label_image_is_refused_and_a_grey_one_saved_as_rgb_is_read(tmp_path):
+    """CamVid's original colour-coded labels (RGB, channels differ) were read through their red channel and scored
+    as garbage with exit 0; a grey label saved as RGB (one value in every channel) reads as the grey one does."""
+    (tmp_path / "val.txt").write_text("val/0016E5_00001.png valannot/0016E5_00001.png\n")
+    indices = np.arange(96, dtype=np.uint8).reshape(8, 12) % 12
+    _write_pair(tmp_path / "val" / "0016E5_00001.png", tmp_path / "valannot" / "0016E5_00001.png", indices)
+    grey = CamVid(tmp_path, "val")[0][1]
+    label = tmp_path / "valannot" / "0016E5_00001.png"
+    Image.fromarray(np.repeat(indices[..., None], 3, axis=2)).save(label)
+    assert torch.equal(CamVid(tmp_path, "val")[0][1], grey)
+    colours = np.stack([indices, indices, (indices + 1) % 12], axis=2)  # blue differs
+    Image.fromarray(colours).save(label)
+    with pytest.raises(DatasetError, match=f"^{label}: a colour label image \\(its channels differ\\)"):
+        CamVid(tmp_path, "val")[0]

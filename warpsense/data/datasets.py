@@ -168,8 +168,15 @@ class PairDataset(Dataset):
         return rest, held
 
     def encode(self, label: np.ndarray, label_path: Path) -> np.ndarray:
-        """A label image as read -> class indices int64 [H, W] (its first channel through ``label_table``)."""
+        """A label image as read -> class indices int64 [H, W] (through ``label_table``). A label saved as RGB (or
+        RGBA) with one value in every colour channel is read from its first; one whose channels differ is a colour
+        label (e.g. CamVid's original colour-coded labels), which would have been scored as garbage: DatasetError
+        naming it."""
         if label.ndim == 3:
+            colours = label[..., :3]
+            if not (colours == colours[..., :1]).all():
+                raise DatasetError(f"{label_path}: a colour label image (its channels differ): expected one class "
+                                   "index a pixel (a grey PNG such as the SegNet release's CamVid labels)")
             label = label[..., 0]
         return self.label_table[label].astype(np.int64)
 
