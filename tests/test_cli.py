@@ -360,3 +360,94 @@ def test_a_bad_training_image_read_by_a_dataloader_worker_is_one_line_error(tmp_
                 f"run.output_dir={tmp_path / 'runs'}"]
     assert_clean_failure(capsys, ["train", "--no-progress", *(f"--set={text}" for text in settings)],
                          (f"{bad}: unreadable image",))
+
+
+TERM_RUN = ["data.scenes_train=16", "data.scenes_val=4", "data.batch_size=4", "data.scene_height=32",
+            "data.scene_width=48", "data.crop_height=32", "data.crop_width=48", "train.plots=false",
+            "train.compile=off", "train.cuda_graph=false", "train.epochs=3", "train.warmup_epochs=1"]
+
+
+def _train_command(tmp_path, *flags):
+    return ["train", *(part for text in TERM_RUN for part in ("--set", text)), "--set", f"run.output_dir={tmp_path}",
+            "--set", "run.name=cut", "--no-progress", *flags]
+
+
+def test_sigterm_in_the_first_epoch_stops_like_ctrl_c_and_leaves_nothing(tmp_path, monkeypatch, capsys):
+    """SIGTERM (kill, a cluster scheduler) ended the process on the spot: the run folder stayed behind with its
+    config, an empty metrics log and a lock but no checkpoint, and nothing was said. Now it is Ctrl-C's path: one
+    line, exit 143 (128 + SIGTERM), nothing left on disk, and SIGTERM's own handling back after the command."""
+    import os
+    import signal
+
+    from warpsense.train import engine
+
+    run_epoch = engine._run_epoch
+
+    def terminated_mid_epoch(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return run_epoch(*args, **kwargs)
+
+    monkeypatch.setattr(engine, "_run_epoch", terminated_mid_epoch)
+    assert main(_train_command(tmp_path)) == 143
+    error = capsys.readouterr().err
+    assert "warpsense train: interrupted before the first epoch ended; nothing to resume" in error
+    assert list(tmp_path.iterdir()) == []
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+def test_sigterm_while_a_checkpoint_is_written_keeps_the_last_one_and_resumes(tmp_path, monkeypatch, capsys):
+    """SIGTERM arriving while epoch 2's checkpoint_last is written: the previous checkpoint stays whole, no .tmp or
+    lock is left, the resume command is printed, and the resume trains epochs 2 and 3 with each epoch once in
+    metrics.jsonl."""
+    import json
+    import os
+    import signal
+
+    from warpsense.system import checkpoint
+
+    save_file = checkpoint.save_file
+    writes = []
+
+    def terminated_while_writing(tensors, filename, metadata=None):
+        save_file(tensors, filename, metadata=metadata)  # the temporary is written; the rename has not happened
+        if filename.endswith("checkpoint_last.safetensors.tmp"):
+            writes.append(filename)
+            if len(writes) == 2:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(checkpoint, "save_file", terminated_while_writing)
+    assert main(_train_command(tmp_path)) == 143
+    run = tmp_path / "cut"
+    assert f"continue with: warpsense train --resume-dir {run}" in capsys.readouterr().err
+    assert sorted(path.name for path in run.iterdir() if path.name.endswith((".tmp", ".lock"))) == []
+    assert json.loads((run / "checkpoint_last.json").read_text())["state"]["epoch"] == 0
+    monkeypatch.setattr(checkpoint, "save_file", save_file)
+    assert main(["train", "--resume-dir", str(run), "--no-progress"]) == 0
+    epochs = [json.loads(line)["epoch"] for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert epochs == [0, 1, 2]
+    assert json.loads((run / "checkpoint_last.json").read_text())["state"]["epoch"] == 2
+
+
+@pytest.mark.parametrize("error", ["CUDA out of memory. Tried to allocate 20.00 GiB.\nOf the allocated memory ...",
+                                   "[enforce fail at alloc_cpu.cpp:117] DefaultCPUAllocator: can't allocate memory: "
+                                   "you tried to allocate 1000000000000 bytes."])
+def test_out_of_memory_is_one_line_error_naming_what_to_lower(capsys, monkeypatch, error):
+    """A GPU's or the CPU's allocation failure (eval --latency-size 100000x100000, a batch too large) was a
+    traceback; another RuntimeError still is one (a bug, not bad input)."""
+    import torch
+
+    from warpsense.cli import COMMANDS
+
+    kind = torch.OutOfMemoryError if "CUDA" in error else RuntimeError
+
+    def fails(args):
+        raise kind(error)
+
+    monkeypatch.setattr(COMMANDS["lens"], "run", fails)
+    assert main(["lens", "phone_80deg"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"warpsense lens: error: out of memory ({error.splitlines()[0]}): lower the batch size")
+    assert len(err.splitlines()) == 1
+    monkeypatch.setattr(COMMANDS["lens"], "run", lambda args: (_ for _ in ()).throw(RuntimeError("a bug")))
+    with pytest.raises(RuntimeError, match="a bug"):
+        main(["lens", "phone_80deg"])

@@ -4,8 +4,11 @@ dispatch to the parsed command with its errors as one line each."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+from collections.abc import Iterator
 
 from warpsense import __version__
 from warpsense.commands import bench, convert, lens, predict, simulate, study, train
@@ -45,6 +48,33 @@ def _cpu_thread_defaults() -> None:
         os.environ.setdefault(key, value)
 
 
+@contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[list[int]]:
+    """While the block runs, SIGTERM (what `kill`, torchrun, or a cluster scheduler before its SIGKILL sends) raises
+    KeyboardInterrupt, as Ctrl-C does: Python's default ended the process on the spot, so a training killed so left
+    a run folder without a checkpoint (its first epoch), a half-written checkpoint's .tmp and its lock, and said
+    nothing. Now training keeps its last epoch's checkpoint and says how to resume, a study stops its workers, and
+    each command cleans up as after Ctrl-C. A second SIGTERM ends the process at once. Yields a list that holds the
+    signal once one came. SIGTERM is left alone where it is not at its default (a parent made it ignored, a caller
+    handles it) or off the main thread."""
+    received: list[int] = []
+
+    def interrupt(signum, frame):
+        received.append(signum)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        raise KeyboardInterrupt
+
+    previous = None
+    with contextlib.suppress(ValueError):  # signal.signal works on the main thread only
+        if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+            previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield received
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Parse ``argv`` (default: the process's arguments) and run the command; returns its exit code, 2 (with a
     one-line error on stderr) where it failed on bad input, 130 after Ctrl-C, and 2 with the help when no command
@@ -55,9 +85,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
+    with _terminate_as_interrupt() as terminated:
+        code = _run(args)
+    return 128 + signal.SIGTERM if terminated and code == 130 else code  # as the shell reports a SIGTERM
+
+
+def _run(args: argparse.Namespace) -> int:
+    """Run the parsed command; its exit code, with bad input and Ctrl-C as one line each."""
     from warpsense.config import ConfigError
     from warpsense.data.datasets import DatasetError
-    from warpsense.errors import worker_message
+    from warpsense.errors import first_line, worker_message
     from warpsense.optics.lens import LensFileError
     from warpsense.study.plan import PlanError
 
@@ -71,6 +108,19 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:  # train and study say how to resume themselves; the others stop here in one line
         print(f"warpsense {args.command}: interrupted", file=sys.stderr)
         return 130
+    except RuntimeError as error:
+        if not out_of_memory(error):
+            raise
+        print(f"warpsense {args.command}: error: out of memory ({first_line(error)}): lower the batch size or the "
+              "image size (data.batch_size, data.crop_height / crop_width; eval --batch-size, --latency-size)",
+              file=sys.stderr)
+        return 2
+
+
+def out_of_memory(error: BaseException) -> bool:
+    """Whether ``error`` is torch's failure to allocate memory: torch.OutOfMemoryError on a GPU, a RuntimeError
+    from the CPU allocator ("DefaultCPUAllocator: can't allocate memory")."""
+    return type(error).__name__ == "OutOfMemoryError" or "can't allocate memory" in str(error)
 
 
 if __name__ == "__main__":
