@@ -608,6 +608,30 @@ def test_bad_study_directories_and_overrides(tmp_path, capsys):
         load_plan("smoke").cell("rggb/day/0")
 
 
+def test_unreadable_study_records_are_one_line_errors_naming_the_file(tmp_path, capsys):
+    """A torn or hand-edited plan.json, throughput.json or slurm/jobs.json: `study run` and `study status` printed
+    json's message alone ("Expecting value: line 1 column 1 (char 0)", no file named), a plan.json of the wrong shape
+    a bare key ("name"), and a run whose cells had all trained failed at its end the same way."""
+    out = tmp_path / "study"
+    plan = load_plan("smoke", FAST)
+    cell = plan.cells()[0]
+    assert run_cells(plan, out, [cell], record=False) == 0
+    run = ["study", "run", "smoke", "--out", str(out), "--gpus", "none", *(p for t in FAST for p in ("--set", t))]
+    saved = (out / "plan.json").read_text()
+    for text in ('{"name": "smo', "{}"):
+        (out / "plan.json").write_text(text)
+        for command in (run, ["study", "status", str(out)], ["study", "report", str(out), "--resamples", "20"]):
+            assert_clean_failure(capsys, command, (str(out / "plan.json"),), watched=out)
+    (out / "plan.json").write_text(saved)
+    (out / "throughput.json").write_text("[{")
+    assert_clean_failure(capsys, ["study", "report", str(out), "--resamples", "20"], (str(out / "throughput.json"),))
+    with pytest.raises(PlanError, match="throughput.json: unreadable"):
+        runner.record_throughput(out, 1, 1.0, None, 1, None)
+    (out / "slurm").mkdir()
+    (out / "slurm" / "jobs.json").write_text("")
+    assert_clean_failure(capsys, ["study", "status", str(out)], (str(out / "slurm" / "jobs.json"),))
+
+
 def test_ctrl_c_stops_the_local_pool_and_a_rerun_resumes(tmp_path, capsys):
     import os
     import signal

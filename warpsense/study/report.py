@@ -7,7 +7,6 @@ from one record (`study_record`)."""
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -15,7 +14,7 @@ import numpy as np
 
 from warpsense.study.maps import design_maps, map_lines
 from warpsense.study.plan import Plan, PlanError
-from warpsense.study.runner import PLAN_RECORD, THROUGHPUT, evaluation_path, throughput_line
+from warpsense.study.runner import THROUGHPUT, evaluation_path, read_plan_record, read_record, throughput_line
 from warpsense.study.statistics import (
     LEVEL,
     block_bootstrap_difference,
@@ -28,19 +27,6 @@ from warpsense.study.statistics import (
 from warpsense.train.run_dir import METRICS, read_metrics
 
 NOT_DISTINGUISHABLE = "not distinguishable"
-
-
-def _read_plan(study_dir: Path) -> dict:
-    path = study_dir / PLAN_RECORD
-    if not study_dir.is_dir():
-        raise PlanError(f"{study_dir}: no such study directory")
-    if not path.is_file():
-        raise PlanError(f"{study_dir}: not a study directory (no {PLAN_RECORD}); run `warpsense study run PLAN "
-                        f"--out {study_dir}` first")
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as error:
-        raise PlanError(f"{path}: unreadable: {error}") from None
 
 
 def _sign_count(paired: dict, folds: bool = False) -> str:
@@ -252,17 +238,14 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
     if resamples < 1 or block < 1:
         raise ValueError(f"{'--resamples' if resamples < 1 else '--block-frames'} must be >= 1")
     study_dir = Path(study_dir)
-    plan = _read_plan(study_dir)
+    plan = read_plan_record(study_dir)
     evaluations, run_s, steady_s, cells, missing = {}, {}, {}, [], []
     for cell in Plan.from_dict(plan).cells():
         path = evaluation_path(study_dir, cell)
         if not path.is_file():
             missing.append(cell.id)
             continue
-        try:
-            evaluation = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as error:
-            raise PlanError(f"{path}: unreadable: {error}") from None
+        evaluation = read_record(path)
         _check_scores(evaluation, cell.id, path)
         key = (cell.camera, cell.light, cell.fold, cell.seed)
         evaluations[key] = evaluation
@@ -277,7 +260,7 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
         raise PlanError(f"{study_dir}: no finished cell yet ({len(missing)} cells planned, none evaluated)")
     splits = list(dict.fromkeys(split for e in evaluations.values() for split in e["splits"]))
     throughput_path = study_dir / THROUGHPUT
-    throughput = json.loads(throughput_path.read_text()) if throughput_path.is_file() else []
+    throughput = read_record(throughput_path) if throughput_path.is_file() else []
     parts = {split: _split_record(plan, evaluations, run_s, steady_s, split, resamples, block) for split in splits}
     return {"study": plan["name"], "directory": str(study_dir), "reference": plan["reference"], "level": LEVEL,
             "folds": plan.get("folds", "none"), "sequences": plan.get("sequences", []), "block_frames": block,

@@ -180,13 +180,40 @@ class BusySampler:
         return [sum(sample[i] for sample in self.samples) / len(self.samples) / 100 for i in range(len(self.gpus))]
 
 
+def read_record(path: Path):
+    """The JSON file ``path`` of a study directory (its plan, throughput, a cell's evaluation, the Slurm jobs); where
+    it cannot be read or parsed, a one-line PlanError naming it (json's own message names no file)."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as error:  # ValueError: JSONDecodeError, UnicodeDecodeError
+        raise PlanError(f"{path}: unreadable: {error}") from None
+
+
+def read_plan_record(study_dir: Path) -> dict:
+    """The plan a study directory holds (`PLAN_RECORD`, as `record_plan` wrote it); a one-line PlanError naming the
+    directory where it holds none, or the file where it is unreadable or not a plan."""
+    study_dir = Path(study_dir)
+    path = study_dir / PLAN_RECORD
+    if not study_dir.is_dir():
+        raise PlanError(f"{study_dir}: no such study directory")
+    if not path.is_file():
+        raise PlanError(f"{study_dir}: not a study directory (no {PLAN_RECORD}); run `warpsense study run PLAN "
+                        f"--out {study_dir}` first")
+    record = read_record(path)
+    try:
+        Plan.from_dict(record)
+    except (KeyError, TypeError, ValueError, AttributeError) as error:
+        raise PlanError(f"{path}: not a study plan record ({type(error).__name__}: {error})") from None
+    return record
+
+
 def record_throughput(out: Path, finished: int, seconds: float, gpus: list[str] | None, per_gpu: int,
                       busy: list[float] | None, mps: bool = False) -> dict:
     """Append this invocation's throughput to <out>/`THROUGHPUT` and print it in one line."""
     entry = {"cells_finished": finished, "seconds": seconds, "cells_per_hour": finished * 3600 / max(seconds, 1e-9),
              "gpus": list(gpus or []), "per_gpu": per_gpu if gpus else 1, "gpu_busy_fraction": busy, "mps": mps}
     path = Path(out) / THROUGHPUT
-    history = json.loads(path.read_text()) if path.is_file() else []
+    history = read_record(path) if path.is_file() else []
     write_json(path, history + [entry])
     print(f"study: {throughput_line(entry)}", flush=True)
     return entry
@@ -214,7 +241,7 @@ def evaluation_path(out: Path, cell: Cell) -> Path:
 
 
 def read_evaluation(out: Path, cell: Cell) -> dict:
-    return json.loads(evaluation_path(out, cell).read_text())
+    return read_record(evaluation_path(out, cell))
 
 
 def cell_state(out: Path, cell: Cell) -> str:
@@ -246,7 +273,7 @@ def record_plan(plan: Plan, out: Path) -> None:
     path = out / PLAN_RECORD
     record = {key: value for key, value in plan.to_dict().items() if key != "source"}
     if path.is_file():
-        saved = json.loads(path.read_text())
+        saved = read_plan_record(out)
         saved.pop("source", None)
         saved.setdefault("folds", "none")  # a plan recorded before studies had folds
         saved.setdefault("sequences", [])

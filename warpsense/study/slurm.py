@@ -34,7 +34,7 @@ from pathlib import Path
 
 from warpsense.files import write_json
 from warpsense.study import runner
-from warpsense.study.plan import Cell, Plan, PlanError
+from warpsense.study.plan import Cell, Plan
 from warpsense.train.run_dir import RunLock
 
 try:
@@ -236,7 +236,7 @@ class CellTask(Checkpointable):
 def read_jobs(out: Path) -> list[dict]:
     """The study directory's Slurm submissions (`JOBS`), oldest first."""
     path = Path(out) / JOBS
-    return json.loads(path.read_text())["submissions"] if path.is_file() else []
+    return runner.read_record(path)["submissions"] if path.is_file() else []
 
 
 def latest_jobs(out: Path) -> dict[str, str]:
@@ -393,13 +393,7 @@ def print_status(study_dir: str | Path) -> int:
     """`warpsense study status DIR`: one line per cell (pending, running, done or failed, from the directory and the
     scheduler) and the counts."""
     out = Path(study_dir)
-    path = out / runner.PLAN_RECORD
-    if not out.is_dir():
-        raise PlanError(f"{out}: no such study directory")
-    if not path.is_file():
-        raise PlanError(f"{out}: not a study directory (no {runner.PLAN_RECORD}); run `warpsense study run PLAN "
-                        f"--out {out}` first")
-    plan = Plan.from_dict(json.loads(path.read_text()))
+    plan = Plan.from_dict(runner.read_plan_record(out))
     statuses, answered = study_status(out, plan)
     submissions = read_jobs(out)
     jobs = f" (Slurm job{'s' if len(submissions) > 1 else ''} {', '.join(s['job_id'] for s in submissions)})" \
