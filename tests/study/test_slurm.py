@@ -179,6 +179,30 @@ def test_status_of_a_stopped_cell_names_the_epoch_it_resumes_after(tmp_path):
                                       "start")
 
 
+def test_a_local_run_refuses_cells_that_slurm_tasks_hold(tmp_path, monkeypatch, capsys):
+    """`study run` without --executor slurm on a study whose cells are queued or running on Slurm trained them here
+    too, into the same run directories (the run lock sees processes of this machine only); it is refused in one line
+    naming the cells and their tasks, before anything is written. A task that has ended holds nothing."""
+    from warpsense.study import runner
+
+    plan = load_plan("smoke", FAST)
+    out = tmp_path / "study"
+    runner.record_plan(plan, out)
+    cells = plan.cells()
+    (out / "slurm").mkdir()
+    (out / slurm.JOBS).write_text(json.dumps({"submissions": [{"job_id": "7", "cells": {
+        cells[0].id: "7_0", cells[1].id: "7_1", cells[2].id: "7_2"}}]}))
+    monkeypatch.setattr(slurm, "queue_states", lambda: {"7_0": ("RUNNING", "None"), "7_1": ("PENDING", "Priority")})
+    run = ["study", "run", "smoke", "--out", str(out), "--gpus", "none", *SETS]
+    assert_clean_failure(capsys, run, (f"{cells[0].id} (job 7_0)", f"{cells[1].id} (job 7_1)", "queued or running"),
+                         watched=tmp_path)
+    assert cells[2].id not in capsys.readouterr().err
+    assert_clean_failure(capsys, [*run, "--cell", cells[1].id], (f"{cells[1].id} (job 7_1)",), watched=tmp_path)
+    monkeypatch.setattr(slurm, "queue_states", lambda: None)  # no squeue here: said, and not refused
+    slurm.check_not_queued(out, cells)
+    assert "squeue does not answer" in capsys.readouterr().err
+
+
 # -- a real Slurm -----------------------------------------------------------------------------------------------------
 
 

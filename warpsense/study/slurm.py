@@ -34,7 +34,7 @@ from pathlib import Path
 
 from warpsense.files import write_json
 from warpsense.study import runner
-from warpsense.study.plan import Cell, Plan
+from warpsense.study.plan import Cell, Plan, PlanError
 from warpsense.train.run_dir import RunLock
 
 try:
@@ -265,6 +265,35 @@ def queue_states() -> dict[str, tuple[str, str]] | None:
     return states
 
 
+def queued_cells(out: Path, cells: list[Cell]) -> dict[Cell, str] | None:
+    """The cells of ``cells`` whose latest Slurm task (`latest_jobs`) squeue lists as queued or running (`ACTIVE`),
+    with that task's id: cells no other run may train now. Empty where none was submitted; None where some were
+    and squeue does not answer."""
+    jobs = latest_jobs(out)
+    if not any(cell.id in jobs for cell in cells):
+        return {}
+    queue = queue_states()
+    if queue is None:
+        return None
+    return {cell: jobs[cell.id] for cell in cells if cell.id in jobs and jobs[cell.id] in queue
+            and queue[jobs[cell.id]][0] in ACTIVE}
+
+
+def check_not_queued(out: Path, cells: list[Cell]) -> None:
+    """Refuse to train here (the local executor) cells that Slurm tasks of this study hold, queued or running: the
+    two would write one run directory, and the run lock cannot see a process on another node. One-line PlanError
+    naming them and their tasks; where squeue does not answer, a warning and no refusal (a copy of the study on a
+    machine without Slurm)."""
+    queued = queued_cells(out, cells)
+    if queued is None:
+        print(f"study: warning: squeue does not answer; {out / JOBS} lists Slurm tasks, which may still train some "
+              "of these cells", file=sys.stderr, flush=True)
+    elif queued:
+        held = ", ".join(f"{cell.id} (job {job})" for cell, job in queued.items())
+        raise PlanError(f"{out}: {len(queued)} cell(s) are queued or running on Slurm: {held}; not trained here as "
+                        f"well: follow them with `warpsense study status {out}`, or cancel them (scancel) first")
+
+
 def _epochs(out: Path, cell: Cell) -> str:
     """"epoch k of n": the epochs the cell's run has finished, of its config's; "" before its first epoch."""
     from warpsense.train.run_dir import METRICS, read_metrics
@@ -444,12 +473,9 @@ def submit_study(plan: Plan, out: Path, options: SlurmOptions, cells: list[Cell]
     cells = all_cells if cells is None else cells
     require_slurm()
     finished = runner.finished_runs(list(reuse or []))  # a bad --reuse directory is refused before anything is written
-    jobs = latest_jobs(out)
-    queue = queue_states() if jobs else {}
-    if queue is None:
+    queued = queued_cells(out, cells)
+    if queued is None:
         raise ValueError("--executor slurm: squeue does not answer (is the Slurm controller up?)")
-    queued = {cell: jobs[cell.id] for cell in cells if cell.id in jobs and jobs[cell.id] in queue
-              and queue[jobs[cell.id]][0] in ACTIVE}
     todo = [cell for cell in cells if cell not in queued and runner.cell_state(out, cell) != "done"]
     gpus = options.gpus_per_cell if options.gpus_per_cell is not None else default_gpus(plan, out, todo or cells)
     if todo:
