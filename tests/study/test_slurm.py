@@ -203,6 +203,26 @@ def test_a_local_run_refuses_cells_that_slurm_tasks_hold(tmp_path, monkeypatch, 
     assert "squeue does not answer" in capsys.readouterr().err
 
 
+def test_submitting_refuses_cells_a_local_run_trains_now(tmp_path, monkeypatch, capsys):
+    """--executor slurm submitted a cell that a local `study run` of this machine was training (its run lock held by
+    a live process): the task, on another node, would have taken the run directory over. Refused in one line naming
+    the cell and the process; nothing submitted or written."""
+    from warpsense.study import runner
+
+    plan = load_plan("smoke", FAST)
+    out = tmp_path / "study"
+    runner.record_plan(plan, out)
+    busy = plan.cells()[1]
+    runner.run_dir(out, busy).mkdir(parents=True)
+    (runner.run_dir(out, busy) / "train.lock").write_text(str(os.getpid()))  # a live process holds it
+    monkeypatch.setattr(slurm, "require_slurm", lambda: None)
+    monkeypatch.setattr(slurm, "check_submission", lambda *args: pytest.fail("asked Slurm"))
+    monkeypatch.setattr(slurm, "submit", lambda *args: pytest.fail("submitted"))
+    assert_clean_failure(capsys, ["study", "run", "smoke", "--out", str(out), "--executor", "slurm", *SETS],
+                         (f"{busy.id} (process {os.getpid()})", "training on this machine", "nothing submitted"),
+                         watched=tmp_path)
+
+
 # -- a real Slurm -----------------------------------------------------------------------------------------------------
 
 

@@ -477,6 +477,13 @@ def submit_study(plan: Plan, out: Path, options: SlurmOptions, cells: list[Cell]
     if queued is None:
         raise ValueError("--executor slurm: squeue does not answer (is the Slurm controller up?)")
     todo = [cell for cell in cells if cell not in queued and runner.cell_state(out, cell) != "done"]
+    # a cell a local `study run` trains now: a task on another node would take its run directory over (the run lock
+    # holds a pid, which that node cannot check)
+    training = {cell: pid for cell in todo if (pid := RunLock(runner.run_dir(out, cell)).holder()) is not None}
+    if training:
+        held = ", ".join(f"{cell.id} (process {pid})" for cell, pid in training.items())
+        raise ValueError(f"--executor slurm: {len(training)} cell(s) are training on this machine now: {held}; "
+                         "nothing submitted: let that run finish or stop it (Ctrl-C), then submit again")
     gpus = options.gpus_per_cell if options.gpus_per_cell is not None else default_gpus(plan, out, todo or cells)
     if todo:
         check_submission(options, gpus, len(todo))
