@@ -223,6 +223,22 @@ def test_submitting_refuses_cells_a_local_run_trains_now(tmp_path, monkeypatch, 
                          watched=tmp_path)
 
 
+def test_the_job_array_holds_the_longest_cells_first(tmp_path, monkeypatch, capsys):
+    """Slurm starts an array's tasks by index: the cells go in longest first (`runner.cell_work`), ties in plan order,
+    so that with fewer nodes than cells the short ones fill the end (as the local pool hands them out)."""
+    from warpsense.study import runner
+
+    frames = {"rggb": 1, "rccb": 3, "learned": 2}
+    monkeypatch.setattr(runner, "cell_work", lambda plan, cells: {cell: frames[cell.camera] for cell in cells})
+    monkeypatch.setattr(slurm, "require_slurm", lambda: None)
+    monkeypatch.setattr(slurm, "check_submission", lambda *args: None)
+    submitted = []
+    monkeypatch.setattr(slurm, "submit", lambda plan, out, cells, options, gpus: submitted.extend(cells) or "7")
+    assert main(["study", "run", "smoke", "--out", str(tmp_path / "study"), "--executor", "slurm", *SETS]) == 0
+    assert [cell.id for cell in submitted] == ["rccb/night/0", "rccb/night/1", "learned/night/0", "learned/night/1",
+                                               "rggb/night/0", "rggb/night/1"]
+
+
 # -- a real Slurm -----------------------------------------------------------------------------------------------------
 
 

@@ -501,7 +501,10 @@ def submit_study(plan: Plan, out: Path, options: SlurmOptions, cells: list[Cell]
         elif cell not in todo:
             print(f"{prefix}: finished earlier, skipped", flush=True)
     if todo:
-        array = submit(plan, out, todo, options, gpus)
+        # the longest cells first: Slurm starts an array's tasks by index, so with fewer nodes (or
+        # --array-parallelism) than cells the short ones fill the end, as the local pool hands them out
+        work = runner.cell_work(plan, todo)
+        array = submit(plan, out, sorted(todo, key=lambda cell: -work[cell]), options, gpus)
         resumed = sum(runner.cell_state(out, cell) == "partial" for cell in todo)
         print(f"study: submitted {len(todo)} cell(s) ({resumed} resuming from a checkpoint) as Slurm job {array} "
               f"({_described(options, gpus)}); logs in {out / 'slurm'}", flush=True)
