@@ -142,8 +142,8 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     from warpsense.study.mps import MPSError
     from warpsense.study.mps import check_mode as check_mps_mode
     from warpsense.study.plan import load_plan
-    from warpsense.study.runner import cell_worker, check_reuse_dirs, plan_commands, run_cells
-    from warpsense.study.slurm import slurm_options, submit_study
+    from warpsense.study.runner import cell_state, cell_worker, check_reuse_dirs, plan_commands, run_cells
+    from warpsense.study.slurm import check_not_queued, slurm_options, submit_study
 
     # every option is checked here, whichever path follows (worker, plan-only, one cell, pool, Slurm)
     if per_gpu != "auto" and (not isinstance(per_gpu, int) or per_gpu < 1):
@@ -168,6 +168,8 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         return 0
     if cluster is not None:
         return submit_study(plan, Path(out), cluster, None if cell is None else [plan.cell(cell)], reuse_dirs)
+    local = plan.cells() if cell is None else [plan.cell(cell)]
+    check_not_queued(Path(out), [each for each in local if cell_state(Path(out), each) != "done"])
     if cell is not None:  # here, on this process's cuda:0 or the CPU; GPUs named without 0: a worker on the first
         elsewhere = devices[:1] if devices and "0" not in devices else None
         if elsewhere:

@@ -394,9 +394,6 @@ def run_cells(plan: Plan, out: Path, cells: list[Cell] | None = None, gpus: list
     cells = plan.cells() if cells is None else cells
     shared = bool(gpus) and mps_wanted(mps, per_gpu)  # a bad mode, or "on" without MPS, before anything is written
     finished = finished_runs(list(reuse or []))  # a bad directory is refused before anything is written
-    from warpsense.study.slurm import check_not_queued  # here: slurm imports this module
-
-    check_not_queued(out, [cell for cell in cells if cell_state(out, cell) != "done"])
     record_plan(plan, out)
     reused = reuse_cells(plan, out, cells, finished)
     pending = [cell for cell in cells if cell_state(out, cell) != "done"]
