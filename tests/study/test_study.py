@@ -69,6 +69,14 @@ def test_smoke_study_runs_resumes_skips_failures_and_reports(tmp_path, monkeypat
 
     trained.clear()
     assert run_cells(plan, out) == 1 and [name for name, _ in trained] == ["broken.night.seed0", "broken.night.seed1"]
+    capsys.readouterr()
+    # study status says which cells failed and why (a local run's failure was "pending, not started")
+    assert main(["study", "status", str(out)]) == 0
+    lines = [line.split(None, 2) for line in capsys.readouterr().out.splitlines() if "/night/" in line]
+    states = {cell: (state, detail) for cell, state, detail in lines}
+    failure = "ValueError: the fixed ISP needs an R/G/B layout, got [['R', 'C'], ['C', 'B']]; not started"
+    assert states["broken/night/0"] == states["broken/night/1"] == ("failed", failure)
+    assert [state for state, _ in states.values()] == ["done"] * 3 + ["failed"] + ["done"] * 3 + ["failed"]
 
     record = study_record(out, resamples=100)
     assert record["missing"] == ["broken/night/0", "broken/night/1"] and len(record["cells"]) == 6
@@ -237,6 +245,14 @@ def test_a_worker_that_cannot_start_fails_its_cells_and_the_pool_goes_on(tmp_pat
     assert run_cells(plan, tmp_path / "study", cells, gpus=["0", "1"], per_gpu=2) == 1
     err = capsys.readouterr().err
     assert err.count(": FAILED (") == len(cells) and f"{len(cells)} of {len(cells)} cells failed" in err
+    # each failure is recorded for `study status` until the cell trains again
+    assert all("no-such-worker" in runner.recorded_failure(tmp_path / "study", cell) for cell in cells)
+    import sys
+
+    monkeypatch.setattr(runner, "worker_command",
+                        lambda plan, out, progress=False: [sys.executable, "-c", FAKE_WORKER, str(out)])
+    assert run_cells(plan, tmp_path / "study", cells, gpus=["0", "1"], per_gpu=2) == 0
+    assert [runner.recorded_failure(tmp_path / "study", cell) for cell in cells] == [None] * len(cells)
 
 
 def test_the_local_pool_trains_its_cells_on_one_worker_process_per_slot(tmp_path, capsys):

@@ -23,8 +23,9 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
     status = subcommands.add_parser(
         "status", help="each cell pending, running, done or failed",
         description="One line per cell of a study directory: done (evaluated), running, pending (queued, or not "
-        "submitted yet) or failed (its last Slurm task ended without finishing it: run the study again to resume "
-        "it), from the directory and, for cells submitted with --executor slurm, from squeue.")
+        "submitted yet) or failed (its last Slurm task ended without finishing it, or a local run failed it, with "
+        "the reason: run the study again to resume it), from the directory and, for cells submitted with "
+        "--executor slurm, from squeue.")
     status.add_argument("study_dir", metavar="DIR", help="a study directory (warpsense study run --out)")
     report = subcommands.add_parser(
         "report", help="per camera and light: mIoU with intervals, differences to the reference",

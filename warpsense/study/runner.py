@@ -26,7 +26,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from warpsense.errors import first_line
-from warpsense.files import write_json
+from warpsense.files import atomic_write, write_json
 from warpsense.study.mps import mps_daemon
 from warpsense.study.mps import wanted as mps_wanted
 from warpsense.study.plan import Cell, Plan, PlanError
@@ -244,6 +244,28 @@ def read_evaluation(out: Path, cell: Cell) -> dict:
     return read_record(evaluation_path(out, cell))
 
 
+def failure_path(out: Path, cell: Cell) -> Path:
+    """Where a local run records why ``cell`` failed (<out>/logs/<cell>.failed, one line), for `warpsense study
+    status`; removed when the cell trains again."""
+    return out / "logs" / f"{cell.run_name}.failed"
+
+
+def record_failure(out: Path, cell: Cell, reason: str) -> None:
+    """Record why ``cell`` failed (`failure_path`)."""
+    path = failure_path(out, cell)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path) as temporary:
+        temporary.write_text(reason.replace("\n", " ") + "\n")
+
+
+def recorded_failure(out: Path, cell: Cell) -> str | None:
+    """Why ``cell``'s last local run failed (`record_failure`), or None."""
+    try:
+        return failure_path(out, cell).read_text().strip() or None
+    except OSError:
+        return None
+
+
 def cell_state(out: Path, cell: Cell) -> str:
     """"done" (evaluated), "partial" (a checkpoint to resume) or "new"."""
     from warpsense.train.run_dir import LAST
@@ -441,6 +463,7 @@ def _in_process(plan, out, pending, numbering, total, progress) -> list[Cell] | 
         started = time.perf_counter()
         prefix = f"[{numbering[cell]}/{total}] {cell.id}"
         print(f"{prefix}: {'resuming' if cell_state(out, cell) == 'partial' else 'training'}", flush=True)
+        failure_path(out, cell).unlink(missing_ok=True)
         try:
             record = train_cell(plan, out, cell, progress)
         except TrainingInterrupted:
@@ -449,7 +472,9 @@ def _in_process(plan, out, pending, numbering, total, progress) -> list[Cell] | 
             return None
         except Exception as error:  # noqa: BLE001 - a failed cell is reported and the study goes on
             failed.append(cell)
-            print(f"{prefix}: FAILED: {type(error).__name__}: {first_line(error)}", file=sys.stderr, flush=True)
+            reason = f"{type(error).__name__}: {first_line(error)}"
+            record_failure(out, cell, reason)
+            print(f"{prefix}: FAILED: {reason}", file=sys.stderr, flush=True)
             continue
         print(f"{prefix}: done in {time.perf_counter() - started:.0f} s, {score_line(record)}", flush=True)
     return failed
@@ -608,6 +633,7 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None,
         prefix = f"[{numbering[cell]}/{total}] {cell.id}"
         log = logs / f"{cell.run_name}.log"
         print(f"{prefix}: started on GPU {gpu} (log {log})", flush=True)
+        failure_path(out, cell).unlink(missing_ok=True)
         started = time.perf_counter()
         process = process or start(gpu)
         try:
@@ -636,6 +662,7 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None,
         """Record ``cell`` as failed and say so: "FAILED (why)", then ": detail" where given."""
         with lock:
             failed.append(cell)
+        record_failure(out, cell, why + (f": {detail}" if detail else ""))
         print(f"[{numbering[cell]}/{total}] {cell.id}: FAILED ({why})" + (f": {detail}" if detail else ""),
               file=sys.stderr, flush=True)
 

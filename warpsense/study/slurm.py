@@ -355,8 +355,9 @@ def cell_status(out: Path, cell: Cell, job_id: str | None, queue: dict[str, tupl
     Returns:
         "done" where its evaluation is written; "running" or "pending" while squeue lists its task so (or, never
         submitted, while a process of this machine holds its run directory); "failed" where its task is gone
-        without finishing it; else "pending" (not started; stopped, which the next run resumes from its last
-        checkpoint, or trains from the start where it stopped before its first; or the scheduler does not answer).
+        without finishing it, or a local run recorded its failure (`runner.record_failure`); else "pending" (not
+        started; stopped, which the next run resumes from its last checkpoint, or trains from the start where it
+        stopped before its first; or the scheduler does not answer).
     """
     state = runner.cell_state(out, cell)
     progress = _epochs(out, cell)
@@ -380,19 +381,26 @@ def cell_status(out: Path, cell: Cell, job_id: str | None, queue: dict[str, tupl
     pid = RunLock(runner.run_dir(out, cell)).holder()  # never submitted: perhaps training here (the local executor)
     if pid is not None:
         return CellStatus(cell, "running", f"process {pid} on this machine" + (f", {progress}" if progress else ""))
-    # never submitted and no process here holds it: not started, or stopped (a local run interrupted), which the next
-    # `study run` or `study submit` resumes from its last checkpoint: with train.checkpoint_every > 1 (the camvid
-    # presets: 5) that can lie epochs before the last one metrics.jsonl records, and before the first there is none
+    # never submitted and no process here holds it: not started, or stopped (a local run interrupted or failed), which
+    # the next `study run` resumes from its last checkpoint: with train.checkpoint_every > 1 (the camvid presets: 5)
+    # that can lie epochs before the last one metrics.jsonl records, and before the first there is none
+    detail = _stopped(out, cell, state, progress)
+    reason = runner.recorded_failure(out, cell)  # a local run's failure (Slurm's are its tasks' states, above)
+    return CellStatus(cell, "pending", detail) if reason is None else CellStatus(cell, "failed", f"{reason}; {detail}")
+
+
+def _stopped(out: Path, cell: Cell, state: str, progress: str) -> str:
+    """Where a cell that runs nowhere stands: not started, or stopped at an epoch and what the next run resumes."""
     if not progress:
-        return CellStatus(cell, "pending", "not started")
+        return "not started"
     if state != "partial":
-        return CellStatus(cell, "pending", f"stopped at {progress} before its first checkpoint, trains from the start")
+        return f"stopped at {progress} before its first checkpoint, trains from the start"
     saved = _checkpoint_epochs(out, cell)
     if saved is None:
-        return CellStatus(cell, "pending", f"stopped at {progress}, resumes from its last checkpoint")
+        return f"stopped at {progress}, resumes from its last checkpoint"
     if progress.startswith(f"epoch {saved} of "):
-        return CellStatus(cell, "pending", f"stopped at {progress}, resumes there")
-    return CellStatus(cell, "pending", f"stopped at {progress}, resumes after epoch {saved} (its last checkpoint)")
+        return f"stopped at {progress}, resumes there"
+    return f"stopped at {progress}, resumes after epoch {saved} (its last checkpoint)"
 
 
 def _checkpoint_epochs(out: Path, cell: Cell) -> int | None:
