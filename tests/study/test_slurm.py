@@ -179,6 +179,24 @@ def test_status_of_a_stopped_cell_names_the_epoch_it_resumes_after(tmp_path):
                                       "start")
 
 
+def test_status_names_a_cell_whose_metrics_are_damaged_and_shows_the_others(tmp_path, capsys):
+    """A damaged line inside one cell's metrics.jsonl (not its torn last line) failed the whole `study status`."""
+    from warpsense.study import runner
+
+    plan = load_plan("smoke", FAST)
+    out = tmp_path / "study"
+    runner.record_plan(plan, out)
+    damaged, other = plan.cells()[:2]
+    for cell, text in ((damaged, '{"epoch": 0}\nnot json\n{"epoch": 2}\n'), (other, '{"epoch": 0}\n')):
+        runner.run_dir(out, cell).mkdir(parents=True)
+        (runner.run_dir(out, cell) / "metrics.jsonl").write_text(text)
+    assert main(["study", "status", str(out)]) == 0
+    printed = capsys.readouterr().out
+    metrics = runner.run_dir(out, damaged) / "metrics.jsonl"
+    assert f"stopped at epoch ? ({metrics}:2: not a JSON record)" in printed
+    assert "stopped at epoch 1 of " in printed  # the other cell's own line
+
+
 def test_a_local_run_refuses_cells_that_slurm_tasks_hold(tmp_path, monkeypatch, capsys):
     """`study run` without --executor slurm on a study whose cells are queued or running on Slurm trained them here
     too, into the same run directories (the run lock sees processes of this machine only); it is refused in one line

@@ -299,7 +299,10 @@ def _epochs(out: Path, cell: Cell) -> str:
     from warpsense.train.run_dir import METRICS, read_metrics
 
     folder = runner.run_dir(out, cell)
-    records = read_metrics(folder / METRICS) if (folder / METRICS).is_file() else []
+    try:
+        records = read_metrics(folder / METRICS) if (folder / METRICS).is_file() else []
+    except ValueError as error:  # a damaged line in one cell's record: that cell's status says so, not every cell's
+        return f"epoch ? ({error})"
     if not records:
         return ""
     try:
