@@ -129,9 +129,9 @@ def step_pixels(plan: Plan) -> int:
 def cell_work(plan: Plan, cells: list[Cell]) -> dict[Cell, int]:
     """Each cell's training work, epochs x training frames x crop pixels: what the pool balances over its GPUs and
     hands out longest first (`_pool`). A fold's training frames are the other sequences' (163-406 of CamVid's, so
-    its cells run 1.2-2.5x as long as each other). Every cell counts 1 where a training set cannot be read (the cells
+    its cells run 1.1-2.5x as long as each other). Every cell counts 1 where a training set cannot be built (the cells
     then go in plan order; the cell reports the error when it trains)."""
-    from warpsense.data import DatasetError, build_training
+    from warpsense.data import build_training
 
     sizes = {}  # training frames by data config: folds and cameras share them
     work = {}
@@ -141,7 +141,7 @@ def cell_work(plan: Plan, cells: list[Cell]) -> dict[Cell, int]:
         if key not in sizes:
             try:
                 sizes[key] = len(build_training(config.data, config.run.seed))
-            except (DatasetError, OSError, KeyError):
+            except Exception:  # noqa: BLE001 - any cell's own error is its to report when it trains, not the order's
                 return dict.fromkeys(cells, 1)
         work[cell] = config.train.epochs * sizes[key] * config.data.crop_height * config.data.crop_width
     return work
@@ -213,9 +213,15 @@ def record_throughput(out: Path, finished: int, seconds: float, gpus: list[str] 
     entry = {"cells_finished": finished, "seconds": seconds, "cells_per_hour": finished * 3600 / max(seconds, 1e-9),
              "gpus": list(gpus or []), "per_gpu": per_gpu if gpus else 1, "gpu_busy_fraction": busy, "mps": mps}
     path = Path(out) / THROUGHPUT
-    history = read_record(path) if path.is_file() else []
-    write_json(path, history + [entry])
     print(f"study: {throughput_line(entry)}", flush=True)
+    try:
+        history = read_record(path) if path.is_file() else []
+        if not isinstance(history, list):
+            raise PlanError(f"{path}: not a list of runs")
+    except ValueError as error:  # the cells are trained: a damaged history costs this entry, not the study
+        print(f"study: warning: {error}; this run's throughput is not recorded there", file=sys.stderr, flush=True)
+        return entry
+    write_json(path, history + [entry])
     return entry
 
 
@@ -251,11 +257,13 @@ def failure_path(out: Path, cell: Cell) -> Path:
 
 
 def record_failure(out: Path, cell: Cell, reason: str) -> None:
-    """Record why ``cell`` failed (`failure_path`)."""
+    """Record why ``cell`` failed (`failure_path`), best effort: a record that cannot be written (a full disk) must
+    not stop the study, which has reported the failure already."""
     path = failure_path(out, cell)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_write(path) as temporary:
-        temporary.write_text(reason.replace("\n", " ") + "\n")
+    with contextlib.suppress(OSError):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_write(path) as temporary:
+            temporary.write_text(reason.replace("\n", " ") + "\n")
 
 
 def recorded_failure(out: Path, cell: Cell) -> str | None:
@@ -655,7 +663,9 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None,
             process = None
         lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()] \
             if log.is_file() else []
-        fail(cell, answer, lines[-1] if lines else "no output")
+        reason = answer.removeprefix(f"failed {cell.id} ")  # the worker's own line: "Type: message"
+        detail = lines[-1] if lines else "no output"
+        fail(cell, reason, None if detail == reason else detail)
         return process
 
     def fail(cell: Cell, why: str, detail: str | None = None) -> None:
