@@ -76,9 +76,9 @@ def plot_format(path: str | Path) -> str:
 
 
 def check_output_folder(path: str | Path, what: str) -> None:
-    """Refuse an output folder that is empty text (an unset shell variable: Path("") is the current folder), a file,
-    or under a non-writable folder (it may not exist yet)."""
-    if not str(path).strip():
+    """Refuse an output folder named by empty text (an unset shell variable: Path("") is the current folder), a
+    file, or under a non-writable folder (it may not exist yet)."""
+    if not str(path):
         raise ValueError(f"{what} is empty: name a folder ('.' for the current one)")
     path = Path(path)
     if path.exists() and not path.is_dir():

@@ -130,6 +130,8 @@ def test_a_colour_label_image_is_refused_and_a_grey_one_saved_as_rgb_is_read(tmp
     label = tmp_path / "valannot" / "0016E5_00001.png"
     Image.fromarray(np.repeat(indices[..., None], 3, axis=2)).save(label)
     assert torch.equal(CamVid(tmp_path, "val")[0][1], grey)
+    Image.fromarray(np.stack([indices, np.full_like(indices, 255)], axis=2), mode="LA").save(label)  # grey + alpha
+    assert torch.equal(CamVid(tmp_path, "val")[0][1], grey)
     colours = np.stack([indices, indices, (indices + 1) % 12], axis=2)  # blue differs
     Image.fromarray(colours).save(label)
     with pytest.raises(DatasetError, match=f"^{label}: a colour label image \\(its channels differ\\)"):

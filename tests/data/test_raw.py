@@ -1,5 +1,7 @@
 """Raw conversion validated against rawpy/LibRaw on the real captures in ../shared/data/dng."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -265,6 +267,13 @@ def test_convert_run_again_keeps_up_to_date_outputs_and_goes_on_after_an_interru
     assert "(1 up to date from an earlier run, kept)" in capsys.readouterr().out
     calls.clear()
     assert main([*command, "--force"]) == 0 and calls == ["a.dng", "b.dng"]
+
+    def unreadable(self):
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "read_bytes", unreadable)  # a source that cannot be read any more
+    with pytest.raises(RawFileError, match=f"^{tmp_path / 'a.dng'}: cannot read it \\(\\[Errno 13\\]"):
+        raw.up_to_date(tmp_path / "a.dng", out / "a.safetensors")
 
 
 @pytest.mark.parametrize("white", [64, 40])

@@ -239,6 +239,16 @@ def test_submitting_refuses_cells_a_local_run_trains_now(tmp_path, monkeypatch, 
     assert_clean_failure(capsys, ["study", "run", "smoke", "--out", str(out), "--executor", "slurm", *SETS],
                          (f"{busy.id} (process {os.getpid()})", "training on this machine", "nothing submitted"),
                          watched=tmp_path)
+    # a cell submitted before, whose task is gone: its lock is the killed task's (a pid of another node), not a local
+    # run's, and the cell is submitted again
+    (out / slurm.JOBS).parent.mkdir()
+    (out / slurm.JOBS).write_text(json.dumps({"submissions": [{"job_id": "7", "cells": {busy.id: "7_1"}}]}))
+    monkeypatch.setattr(slurm, "queue_states", lambda: {})
+    monkeypatch.setattr(slurm, "check_submission", lambda *args: None)
+    submitted = []
+    monkeypatch.setattr(slurm, "submit", lambda plan, out, cells, options, gpus: submitted.extend(cells) or "8")
+    assert main(["study", "run", "smoke", "--out", str(out), "--executor", "slurm", *SETS]) == 0
+    assert busy in submitted
 
 
 def test_the_job_array_holds_the_longest_cells_first(tmp_path, monkeypatch, capsys):

@@ -173,7 +173,7 @@ class PairDataset(Dataset):
         label (e.g. CamVid's original colour-coded labels), which would have been scored as garbage: DatasetError
         naming it."""
         if label.ndim == 3:
-            colours = label[..., :3]
+            colours = label[..., :3] if label.shape[-1] >= 3 else label[..., :1]  # grey + alpha (LA): the grey
             if not (colours == colours[..., :1]).all():
                 raise DatasetError(f"{label_path}: a colour label image (its channels differ): expected one class "
                                    "index a pixel (a grey PNG such as the SegNet release's CamVid labels)")

@@ -278,7 +278,10 @@ def up_to_date(path: Path, target: Path) -> bool:
             recorded = json.loads((handle.metadata() or {}).get("warpsense", "{}")).get("source_sha256")
     except Exception:  # noqa: BLE001 - a foreign, truncated or unreadable output is converted again
         return False
-    return recorded == hashlib.sha256(path.read_bytes()).hexdigest()
+    try:
+        return recorded == hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as error:  # reported as the source's, not as "cannot write its output"
+        raise RawFileError(f"{path}: cannot read it ({error})") from None
 
 
 def convert_files(inputs: list[str], out_dir: str | Path, progress: bool = True,

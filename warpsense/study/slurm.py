@@ -489,8 +489,11 @@ def submit_study(plan: Plan, out: Path, options: SlurmOptions, cells: list[Cell]
         raise ValueError("--executor slurm: squeue does not answer (is the Slurm controller up?)")
     todo = [cell for cell in cells if cell not in queued and runner.cell_state(out, cell) != "done"]
     # a cell a local `study run` trains now: a task on another node would take its run directory over (the run lock
-    # holds a pid, which that node cannot check)
-    training = {cell: pid for cell in todo if (pid := RunLock(runner.run_dir(out, cell)).holder()) is not None}
+    # holds a pid, which that node cannot check). Only cells never submitted: a submitted cell's lock may be its
+    # killed task's, a pid of another node that means nothing here
+    submitted = latest_jobs(out)
+    training = {cell: pid for cell in todo if cell.id not in submitted
+                and (pid := RunLock(runner.run_dir(out, cell)).holder()) is not None}
     if training:
         held = ", ".join(f"{cell.id} (process {pid})" for cell, pid in training.items())
         raise ValueError(f"--executor slurm: {len(training)} cell(s) are training on this machine now: {held}; "
