@@ -319,14 +319,14 @@ def test_smoke_study_on_slurm_killed_and_preempted_tasks_resume(cluster, tmp_pat
         # the task's training process (its step 0) killed mid-run, as the kernel's OOM killer would: the task ends,
         # failed. Sent to the process itself: a `scancel --signal KILL` of the step made slurmstepd drain the one
         # node ("Kill task failed") once when the process took longer than UnkillableStepTimeout to go
-        os.kill(int((out / "runs" / cell.run_name / "train.lock").read_text()), signal.SIGKILL)
+        os.kill(int((out / "runs" / cell.run_name / "train.lock").read_text().split()[0]), signal.SIGKILL)
 
     def preempt(cell):
         # preemption, or a time limit near: Slurm signals the task (USR2, as submitit's sbatch --signal asks), and
         # submitit checkpoints it and requeues it. The signal goes straight to the training process (its run
         # directory's lock holds its pid): `scancel --signal USR2` retries while submitit requeues the task, and
         # signals the requeued task again.
-        os.kill(int((out / "runs" / cell.run_name / "train.lock").read_text()), signal.SIGUSR2)
+        os.kill(int((out / "runs" / cell.run_name / "train.lock").read_text().split()[0]), signal.SIGUSR2)
 
     actions = {killed: kill, preempted: preempt}  # each as soon as its cell's first epoch is written
     deadline = time.time() + 60

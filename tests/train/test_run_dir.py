@@ -3,6 +3,7 @@ metrics line, the run lock, and Ctrl-C."""
 
 import json
 import os
+import socket
 import subprocess
 import sys
 
@@ -113,9 +114,24 @@ def test_run_lock_refuses_a_second_training_and_takes_over_a_stale_lock(tmp_path
         with pytest.raises(FileExistsError, match="in use by process"):
             RunLock(tmp_path).acquire()
     assert not (tmp_path / "train.lock").exists()
-    (tmp_path / "train.lock").write_text(dead.stdout.strip())  # left by a process that has exited
+    (tmp_path / "train.lock").write_text(dead.stdout.strip())  # left by a process that has exited (a pid alone)
     with RunLock(tmp_path):
-        assert (tmp_path / "train.lock").read_text() == str(os.getpid())
+        assert (tmp_path / "train.lock").read_text() == f"{os.getpid()} {socket.gethostname()}"
+
+
+def test_run_lock_of_another_host_is_refused_naming_it_and_taken_over_by_a_slurm_task(tmp_path, monkeypatch):
+    """A lock of another node (a run directory on a shared disk) holds a pid that means nothing here: checked
+    against this machine's processes, a Slurm task requeued after its first was killed was refused whenever that pid
+    happened to be in use here (or took over a live run's lock elsewhere). Now: refused naming the host, except by a
+    Slurm task (its cell's task runs once: the lock is the killed one's); `holder` does not name a remote pid."""
+    monkeypatch.delenv("SLURM_JOB_ID", raising=False)
+    (tmp_path / "train.lock").write_text(f"{os.getpid()} another-node")  # a pid that is alive here
+    assert RunLock(tmp_path).holder() is None
+    with pytest.raises(FileExistsError, match=f"locked by process {os.getpid()} on another-node"):
+        RunLock(tmp_path).acquire()
+    monkeypatch.setenv("SLURM_JOB_ID", "7")
+    with RunLock(tmp_path):
+        assert (tmp_path / "train.lock").read_text() == f"{os.getpid()} {socket.gethostname()}"
 
 
 def test_ctrl_c_prints_the_resume_command_and_releases_the_lock(tmp_path, monkeypatch, capsys):

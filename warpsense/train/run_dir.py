@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import socket
 from pathlib import Path
 
 from warpsense.config import Config, ConfigError, config_from_dict, flatten_keys
@@ -119,8 +120,10 @@ def read_metrics(path: Path, up_to_epoch: int | None = None) -> list[dict]:
 
 
 class RunLock:
-    """An exclusive lock on a run directory (a file holding the owner's pid, created atomically). A lock left by a
-    process that no longer runs is taken over."""
+    """An exclusive lock on a run directory: a file holding the owner's pid and host name, created atomically. A lock
+    left by a process of this machine that no longer runs is taken over. A lock of another host (a run directory on
+    a shared disk) cannot be checked from here: a Slurm task takes it over (the scheduler runs a cell's task once, so
+    it is the lock of that task, killed on its node), anything else is refused naming the host."""
 
     def __init__(self, run_dir: Path):
         self.path = Path(run_dir) / LOCK
@@ -132,13 +135,16 @@ class RunLock:
                 descriptor = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
                 owner = self._owner()
-                if owner is not None and _alive(owner):
-                    raise FileExistsError(f"run directory {self.path.parent} is in use by process {owner} "
-                                       f"(remove {self.path} if that process is not training)") from None
+                if owner is not None and _elsewhere(owner[1]) and "SLURM_JOB_ID" not in os.environ:
+                    raise FileExistsError(f"run directory {self.path.parent} is locked by process {owner[0]} on "
+                                          f"{owner[1]} (remove {self.path} if that process is not training)") from None
+                if owner is not None and not _elsewhere(owner[1]) and _alive(owner[0]):
+                    raise FileExistsError(f"run directory {self.path.parent} is in use by process {owner[0]} "
+                                          f"(remove {self.path} if that process is not training)") from None
                 self.path.unlink(missing_ok=True)  # stale: its owner is gone
                 continue
             with os.fdopen(descriptor, "w") as handle:
-                handle.write(str(os.getpid()))
+                handle.write(f"{os.getpid()} {socket.gethostname()}")
             self.held = True
             return self
         raise FileExistsError(f"cannot lock run directory {self.path.parent}")
@@ -155,15 +161,22 @@ class RunLock:
         self.release()
 
     def holder(self) -> int | None:
-        """The pid of the live process of this machine that holds the lock, if any (a stale lock's is None)."""
+        """The pid of the live process of this machine that holds the lock, if any (a stale lock's, or another
+        host's, is None)."""
         owner = self._owner()
-        return owner if owner is not None and _alive(owner) else None
+        return owner[0] if owner is not None and not _elsewhere(owner[1]) and _alive(owner[0]) else None
 
-    def _owner(self) -> int | None:
+    def _owner(self) -> tuple[int, str | None] | None:
+        """(pid, host) of the lock's owner; host None for a lock of the older form (a pid alone: this machine's)."""
         try:
-            return int(self.path.read_text().strip())
-        except (OSError, ValueError):
+            words = self.path.read_text().split()
+            return int(words[0]), (words[1] if len(words) > 1 else None)
+        except (OSError, ValueError, IndexError):
             return None
+
+
+def _elsewhere(host: str | None) -> bool:
+    return host is not None and host != socket.gethostname()
 
 
 def _alive(pid: int) -> bool:
