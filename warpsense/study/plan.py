@@ -166,7 +166,7 @@ class Plan:
         """Every cell, light by light, seed by seed, fold by fold, camera by camera (so a partial study run in this
         order has whole comparisons: every fold of seed 0 before seed 1). The local pool and the Slurm executor hand
         them out longest first instead (`warpsense.study.runner.cell_work`), the order that finishes a study
-        soonest; the cameras of one fold and seed keep this order among themselves."""
+        soonest; cells of equal work (the cameras of one fold and seed, as a rule) keep this order."""
         folds = self.sequences if self.folds == "sequence" else ("",)
         return [Cell(camera.name, light.name, seed, fold) for light in self.lights for seed in self.seeds
                 for fold in folds for camera in self.cameras if not light.cameras or camera.name in light.cameras]
