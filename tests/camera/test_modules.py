@@ -119,6 +119,25 @@ def test_learnable_optics_gets_gradient_and_caches_when_frozen():
     assert optics.psf() is first  # frozen: rendered once
 
 
+def test_a_copied_or_pickled_learnable_optics_renders_what_it_loads():
+    """The cached PSF grid is dropped by load_state_dict of the module itself: a deepcopy's load refreshed the
+    original's cache and kept its own stale grid, and pickling (torch.save of a camera) failed on the hook."""
+    import copy
+    import pickle
+
+    source = Optics(Lens.from_json("phone_68deg", learnable=True), learnable=True).eval()
+    source.lens.spec.pupil_samples = 24
+    other = copy.deepcopy(source)
+    with torch.no_grad():
+        other.lens.offset.add_(0.5)
+    image = torch.rand(1, 3, 16, 16)
+    for copied in (copy.deepcopy(source), pickle.loads(pickle.dumps(source))):
+        with torch.no_grad():
+            copied(image)  # caches the grid of the design it starts at
+            copied.load_state_dict(other.state_dict())
+            torch.testing.assert_close(copied(image), other(image))
+
+
 def test_camera_constructs_only_enabled_stages():
     config = load_config(None, ["noise.enabled=false", "quantize.enabled=false", "exposure.enabled=false"])
     camera = Camera.from_config(config)

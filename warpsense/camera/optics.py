@@ -82,7 +82,13 @@ class Optics(Stage):
 
         self._cached_psf: torch.Tensor | None = None
         self._cache_valid = False
-        self._register_load_state_dict_pre_hook(lambda *args, **kwargs: self.invalidate_cache())
+        # a bound method, not a closure over self: a lambda cannot be pickled (torch.save of the module), and
+        # copy.deepcopy keeps it as it is, so a copy's load_state_dict invalidated the original's cache, not its own
+        self._register_load_state_dict_pre_hook(self._invalidate_on_load)
+
+    def _invalidate_on_load(self, *args, **kwargs) -> None:
+        """load_state_dict pre-hook: the loaded design renders its PSF grid anew."""
+        self.invalidate_cache()
 
     @classmethod
     def from_config(cls, section) -> "Optics":
