@@ -11,6 +11,7 @@ from warpsense.camera import Camera
 from warpsense.camera.bounds import BOUND_MARGIN, FIXED_LOGIT, log_bounded, log_bounded_parameter
 from warpsense.camera.exposure import Exposure
 from warpsense.camera.noise import SensorNoise
+from warpsense.camera.optics import Optics
 from warpsense.config import ConfigError, load_config
 from warpsense.system import check_config
 from warpsense.train.engine import train
@@ -149,8 +150,11 @@ def test_a_start_outside_its_bounds_is_one_config_error_naming_the_key(overrides
 
 
 def test_the_stage_constructors_refuse_what_the_config_check_refuses():
+    config = load_config(None, F_NUMBER + ["optics.f_number=9.0"])
     with pytest.raises(ValueError, match=r"^optics.f_number = 9.0 must lie within \[optics.f_number_min"):
-        Camera.from_config(load_config(None, F_NUMBER + ["optics.f_number=9.0"]))
+        Optics.from_config(config.optics)  # the stage alone (Camera.from_config runs the config check first)
+    with pytest.raises(ValueError, match=r"^Camera.from_config: optics.f_number = 9.0 must lie within"):
+        Camera.from_config(config)
     with pytest.raises(ValueError, match=r"^photons.analog_gain = 0.5 must lie within \[1, photons.gain_max\]"):
         log_bounded_parameter(0.5, 1.0, 64.0, key="photons.analog_gain", bound_keys=("1", "photons.gain_max"))
 

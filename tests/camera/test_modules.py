@@ -249,6 +249,17 @@ def test_camera_from_a_preset_name_path_or_dict_equals_from_its_config(tmp_path)
         Camera.from_config(42)
 
 
+@pytest.mark.parametrize("sections, message", [
+    ({"photons": {"enabled": True}}, "photons.enabled states the noise from electrons: set noise.enabled = false"),
+    ({"noise": {"read_electrons": 2.0}}, "noise.read_electrons needs noise.full_well_electrons"),
+])
+def test_camera_from_config_refuses_what_the_stages_refuse(sections, message):
+    """Camera.from_config runs the stages' checks (`Camera.check_config`), as the system does: it built a photon
+    budget beside the noise and exposure stages it replaces (noise drawn twice), and ignored read_electrons."""
+    with pytest.raises(ValueError, match=f"^Camera.from_config: {message}"):
+        Camera.from_config(sections)
+
+
 def test_gumbel_cfa_explores_one_hot_choices_and_learns_straight_through():
     torch.manual_seed(0)
     module = CFA("RGGB", 2, "gumbel", init_logit=0.0, candidates="RGBCY").train()  # uniform start

@@ -133,8 +133,14 @@ class Camera(nn.Module):
             config: a `warpsense.config.Config` (or any object with one attribute per stage section), a preset name
                 ("camvid_codesign") or TOML path (read with `load_config`), or a dict of sections (as
                 `Config.to_dict()` gives; keys left out keep their defaults, unknown keys are errors).
+
+        Raises:
+            ValueError: a section the stages refuse (`check_config`), e.g. photons.enabled with noise.enabled.
         """
         config = cls._resolve(config)
+        # the stages' own checks, as the system runs them: without them a photon budget was built beside the noise
+        # and exposure stages it replaces (noise drawn twice), and noise.read_electrons without a full well ignored
+        cls.check_config(config, "Camera.from_config")
         sections = {name: getattr(config, stage.config_section, None) for name, stage in STAGES.items()}
         return cls(**{name: stage.from_config(sections[name]) for name, stage in STAGES.items()
                       if sections[name] is not None and sections[name].enabled})
