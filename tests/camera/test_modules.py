@@ -193,6 +193,27 @@ def test_eval_noise_keyed_by_dataset_index():
     assert not torch.equal(camera(radiance[:2], torch.arange(0, 2)), whole[:2])
 
 
+@pytest.mark.parametrize("radiance, index, error, message", [
+    (torch.rand(1, 3, 6, 6).numpy(), None, TypeError, "camera: radiance must be a torch.Tensor, got ndarray"),
+    (torch.rand(1, 1, 6, 6), None, ValueError, r"camera: radiance must be \[B, 3, H, W\] \(linear RGB\), got "
+                                               r"\(1, 1, 6, 6\)"),
+    (torch.rand(3, 6, 6), None, ValueError, r"camera: radiance must be a non-empty \[B, 3, H, W\] tensor"),
+    (torch.randint(0, 256, (1, 3, 6, 6)), None, TypeError, "camera: radiance must be floating point, got "
+                                                           "torch.int64"),
+    (torch.rand(2, 3, 6, 6), 3, TypeError, r"camera: image_index must be an integer tensor \[B\], got int"),
+    (torch.rand(2, 3, 6, 6), torch.tensor([3.0, 4.0]), TypeError, "image_index must be an integer tensor"),
+    (torch.rand(2, 3, 6, 6), torch.tensor([3]), ValueError, r"camera: image_index must be \[B\] = \(2,\), one "
+                                                            r"index per image, got \(1,\)"),
+])
+def test_camera_names_a_wrong_radiance_or_image_index(radiance, index, error, message):
+    """One line naming the camera's argument: a numpy array and an int index were AttributeErrors from inside, an
+    index per batch of the wrong length was 'sensor_capture: seed must be ...', a float index truncated."""
+    camera = Camera.from_config(load_config(None, [])).eval()
+    with pytest.raises(error, match=message) as raised:
+        camera(radiance, index)
+    assert "\n" not in str(raised.value)
+
+
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
 def test_nan_policy_camera_rejects_non_finite_radiance(bad):
     """Issue 15 D10: one bad pixel is refused at the camera input with a clear error, for the full camera (the

@@ -20,6 +20,7 @@ from warpsense.camera.optics import Optics
 from warpsense.camera.photons import PhotonBudget
 from warpsense.camera.quantizer import Quantizer
 from warpsense.camera.stage import SensorArguments, Stage
+from warpsense.ops.arguments import check_indices, check_tensor
 from warpsense.ops.cfa import cfa_mosaic
 from warpsense.ops.sensor import sensor_capture
 
@@ -314,6 +315,13 @@ class Camera(nn.Module):
 
     def forward(self, radiance: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance [B, 3, H, W] -> RAW [B, 1, H, W]; ``image_index`` [B] (dataset indices) keys the eval noise."""
+        # named here, in the camera's words: the stages' ops named their own arguments (rgb, image, seed), a numpy
+        # array or an int index failed with an AttributeError from inside
+        check_tensor("camera", "radiance", radiance, 4, "[B, 3, H, W] tensor")
+        if radiance.shape[1] != 3:
+            raise ValueError(f"camera: radiance must be [B, 3, H, W] (linear RGB), got {tuple(radiance.shape)}")
+        if image_index is not None:
+            check_indices("camera", "image_index", image_index, radiance.shape[0])
         # one reduction and one host read: a NaN or inf anywhere makes the sum non-finite (a sum that overflows
         # from finite values is counted exactly and passes); detached, since reading a graph-carrying tensor as a
         # number makes torch warn, and gradients with respect to the scene are a normal use

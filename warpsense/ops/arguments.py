@@ -56,6 +56,16 @@ def check_class_maps(op: str, name: str, maps, labels) -> tuple[int, int, int, i
     return batch, classes, height, width
 
 
+def check_indices(op: str, name: str, value, batch: int) -> None:
+    """``value`` must be an integer tensor [``batch``]: one index per image of a batch (any device)."""
+    if not isinstance(value, torch.Tensor) or value.is_floating_point() or value.is_complex() \
+            or value.dtype == torch.bool:
+        raise TypeError(f"{op}: {name} must be an integer tensor [B], got "
+                        f"{value.dtype if isinstance(value, torch.Tensor) else type(value).__name__}")
+    if tuple(value.shape) != (batch,):
+        raise ValueError(f"{op}: {name} must be [B] = ({batch},), one index per image, got {tuple(value.shape)}")
+
+
 def check_same_device(op: str, **tensors: torch.Tensor) -> None:
     devices = {name: tensor.device for name, tensor in tensors.items()}
     if len(set(devices.values())) > 1:
