@@ -17,6 +17,7 @@ from warpsense.config import (
     load_config,
     parse_override,
     preset_names,
+    with_overrides,
 )
 
 if sys.version_info >= (3, 11):
@@ -94,6 +95,17 @@ def test_unknown_keys_and_types_are_errors(tmp_path):
         load_config(bad)
     with pytest.raises(ConfigError, match="no such file or preset"):
         load_config("nope")
+
+
+def test_overrides_given_as_one_string_are_a_type_error_showing_the_list():
+    """A string is a sequence too: read one character at a time, its first letter was refused as "--set 'n':
+    expected section.key=value"."""
+    with pytest.raises(TypeError, match=r"^load_config: overrides must be a list of 'section.key=value' strings, "
+                                        r"got 'noise.shot=0.1' \(write \['noise.shot=0.1'\]\)$"):
+        load_config(None, "noise.shot=0.1")
+    with pytest.raises(TypeError, match="^with_overrides: overrides must be a list"):
+        with_overrides(Config(), "noise.shot=0.1")
+    assert load_config(None, ("noise.shot=0.1",)).noise.shot == 0.1  # a tuple, as the annotation says
 
 
 def test_int_accepted_for_float_and_save_round_trip(tmp_path):

@@ -485,6 +485,14 @@ def _apply_file(config: Config, name_or_path: str | Path, depth: int) -> None:
     _apply(config, data, label)
 
 
+def _check_overrides(overrides, function: str) -> None:
+    """``overrides`` must be a sequence of strings: a single string would be read one character at a time (its
+    first letter refused as "--set 'n': expected section.key=value")."""
+    if not isinstance(overrides, (list, tuple)) or not all(isinstance(text, str) for text in overrides):
+        raise TypeError(f"{function}: overrides must be a list of 'section.key=value' strings, got "
+                        f"{overrides!r}" + (f" (write [{overrides!r}])" if isinstance(overrides, str) else ""))
+
+
 def load_config(config: str | Path | list | tuple | None = None,
                 overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """Resolve a config: dataclass defaults, then a preset or TOML file, then ``--set`` overrides.
@@ -492,8 +500,9 @@ def load_config(config: str | Path | list | tuple | None = None,
     Args:
         config: a preset name (see `preset_names()`), a path to a TOML file, a list of them (applied in order, each
             over the last), or None for the defaults.
-        overrides: ``section.key=value`` strings applied in order.
+        overrides: ``section.key=value`` strings applied in order (a list or tuple of them).
     """
+    _check_overrides(overrides, "load_config")
     resolved = Config()
     files = [] if config is None else list(config) if isinstance(config, (list, tuple)) else [config]
     for name_or_path in files:
@@ -505,6 +514,7 @@ def load_config(config: str | Path | list | tuple | None = None,
 
 def with_overrides(config: Config, overrides: list[str] | tuple[str, ...]) -> Config:
     """A copy of ``config`` with ``section.key=value`` overrides applied (validated like `load_config`)."""
+    _check_overrides(overrides, "with_overrides")
     resolved = copy.deepcopy(config)
     for text in overrides:
         _apply(resolved, parse_override(text), f"--set {text}")
