@@ -51,6 +51,11 @@ def test_exception():
         softmax_cross_entropy(logits, labels, torch.ones(4))
     with pytest.raises(ValueError, match=r"\[B, K, H, W\]"):
         softmax_cross_entropy(logits[0], labels)
+    # a list of weights failed on weights.shape (AttributeError); ignore_index None in int()
+    with pytest.raises(TypeError, match=r"^softmax_cross_entropy: weights must be a \[K\] tensor or None, got list"):
+        softmax_cross_entropy(logits, labels, [1.0] * logits.shape[1])
+    with pytest.raises(TypeError, match="^softmax_cross_entropy: ignore_index must be an int, got NoneType"):
+        softmax_cross_entropy(logits, labels, ignore_index=None)
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 1, 1), (2, 11, 3, 7), (3, 2, 5, 1)])

@@ -54,6 +54,13 @@ def test_exception():
         lovasz_softmax(probabilities[0], labels)
     with pytest.raises(ValueError, match=f"at most {MAX_CLASSES} classes"):
         lovasz_softmax(torch.rand(1, MAX_CLASSES + 1, 2, 2), torch.zeros(1, 2, 2, dtype=torch.long))
+    # ignore_index went through int(): None was "int() argument must be ...", a float was truncated
+    for bad in (None, 2.0, True):
+        with pytest.raises(TypeError, match=f"^lovasz_softmax: ignore_index must be an int, got {type(bad).__name__}"):
+            lovasz_softmax(probabilities, labels, bad)
+    with pytest.raises(ValueError, match="^lovasz_softmax: ignore_index must fit in int32"):
+        lovasz_softmax(probabilities, labels, 2**40)
+    assert lovasz_softmax(probabilities, labels, np.int64(255)) == lovasz_softmax(probabilities, labels, 255)
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 1, 1), (2, 11, 3, 7), (3, 2, 6, 1), (1, 3, 70, 2)])

@@ -13,6 +13,7 @@ Value policy (documented per op):
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 
@@ -64,6 +65,16 @@ def check_indices(op: str, name: str, value, batch: int) -> None:
                         f"{value.dtype if isinstance(value, torch.Tensor) else type(value).__name__}")
     if tuple(value.shape) != (batch,):
         raise ValueError(f"{op}: {name} must be [B] = ({batch},), one index per image, got {tuple(value.shape)}")
+
+
+def check_ignore_index(op: str, value) -> int:
+    """A label value that marks unlabelled pixels: an integer (a Python or numpy int, not a bool) in int32's
+    range, which the kernels compare labels with; returned as an int."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{op}: ignore_index must be an int, got {type(value).__name__} {value!r}")
+    if not -2**31 <= value < 2**31:
+        raise ValueError(f"{op}: ignore_index must fit in int32 (the labels' kernel type), got {value!r}")
+    return int(value)
 
 
 def check_same_device(op: str, **tensors: torch.Tensor) -> None:

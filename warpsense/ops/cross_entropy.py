@@ -7,7 +7,7 @@ import torch
 
 from warpsense.kernels import cross_entropy as kernels
 from warpsense.ops._warp import arithmetic_dtype, element_dtype, launch, warp_op
-from warpsense.ops.arguments import check_class_maps
+from warpsense.ops.arguments import check_class_maps, check_ignore_index
 
 
 def _backward_fake(probabilities, labels, weights, ignore_index, grad_probabilities, grad_losses, dtype):
@@ -76,9 +76,13 @@ def softmax_cross_entropy(logits: torch.Tensor, labels: torch.Tensor, weights: t
     classes = check_class_maps(op, "logits", logits, labels)[1]
     logits = logits.to(element_dtype(logits.dtype))
     arithmetic = arithmetic_dtype(logits.dtype)
+    ignore_index = check_ignore_index(op, ignore_index)
     if weights is None:
         weights = torch.ones(classes, dtype=arithmetic, device=logits.device)
+    elif not isinstance(weights, torch.Tensor):
+        raise TypeError(f"{op}: weights must be a [K] tensor or None, got {type(weights).__name__} (torch.as_tensor "
+                        "converts lists)")
     elif tuple(weights.shape) != (classes,):
         raise ValueError(f"{op}: weights must be [K] = [{classes}], got {tuple(weights.shape)}")
     return _softmax_cross_entropy(logits, labels.to(torch.int32), weights.to(device=logits.device, dtype=arithmetic),
-                                  int(ignore_index))
+                                  ignore_index)

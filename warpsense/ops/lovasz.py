@@ -9,7 +9,7 @@ import torch
 
 from warpsense.kernels import lovasz as kernels
 from warpsense.ops._warp import launch, warp_op
-from warpsense.ops.arguments import check_class_maps
+from warpsense.ops.arguments import check_class_maps, check_ignore_index
 
 TILE = {"cuda": 256, "cpu": 32}
 """Sorted keys per block of the counting and gradient kernels, by device type (a tile is one block)."""
@@ -96,6 +96,7 @@ def lovasz_softmax(probabilities: torch.Tensor, labels: torch.Tensor, ignore_ind
                          f"{batch * height * width}")
     if probabilities.dtype not in (torch.float32, torch.float64):
         probabilities = probabilities.float()
-    losses, foreground, _ = _lovasz_terms(probabilities, labels.to(torch.int32), int(ignore_index))
+    losses, foreground, _ = _lovasz_terms(probabilities, labels.to(torch.int32),
+                                           check_ignore_index(op, ignore_index))
     present = (foreground > 0).to(losses.dtype)
     return (losses * present).sum() / present.sum().clamp_min(1)
