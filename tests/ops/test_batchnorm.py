@@ -38,6 +38,9 @@ def test_exception():
         batch_norm_relu(activations(2, 4, 3, 3, dtype=torch.bfloat16), *affine(4, torch.float64))
     with pytest.raises(ValueError, match="momentum must be in"):
         batch_norm_relu(activations(2, 4, 3, 3), *affine(4), momentum=1.5)
+    with pytest.raises(TypeError, match="^batch_norm_relu: momentum must be a float, got NoneType None \\(torch's "
+                                        "cumulative average is not supported\\)$"):
+        batch_norm_relu(activations(2, 4, 3, 3), *affine(4), momentum=None)  # was "'<=' not supported"
     with pytest.raises(TypeError, match="x must be floating point"):
         batch_norm_relu(torch.ones(2, 4, 3, 3, dtype=torch.int64), *affine(4))
 

@@ -108,6 +108,11 @@ def batch_norm_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, r
     batch, channels, height, width = check_channel_pairs(op, x)
     if batch * height * width < 2:
         raise ValueError(f"{op}: batch statistics need more than one value per channel, got x {tuple(x.shape)}")
+    # momentum None (nn.BatchNorm2d's cumulative average) failed in the comparison: "'<=' not supported ..."
+    for name, value in (("momentum", momentum), ("eps", eps)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise TypeError(f"{op}: {name} must be a float, got {type(value).__name__} {value!r}"
+                            + (" (torch's cumulative average is not supported)" if value is None else ""))
     if not 0.0 <= momentum <= 1.0 or not eps > 0.0:
         raise ValueError(f"{op}: momentum must be in [0, 1] and eps > 0, got {momentum!r} and {eps!r}")
     dtype = element_dtype(x.dtype)
