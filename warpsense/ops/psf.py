@@ -300,7 +300,8 @@ def psf_conv(image: torch.Tensor, psf: torch.Tensor, method: str = "auto") -> to
             seams; an approximation for comparison).
 
     Returns:
-        [B, C, H, W] in the image's float type. A point source at pixel q renders as PSF_q centred at q (not
+        [B, C, H, W], float64 for a float64 image, else float32 (a float16 or bfloat16 image's result is float32,
+        as it is computed). A point source at pixel q renders as PSF_q centred at q (not
         flipped); borders clamp to edge. Differentiable w.r.t. image and psf for every method.
     """
     _check(image, psf, method)
