@@ -1,6 +1,8 @@
 """`warpsense simulate` (warpsense/simulate.py): images through a camera to RAW safetensors, DNG and a preview,
 checked against a numpy reference of the camera (sRGB curve, Bayer sampling, 10-bit rounding) and against rawpy."""
 
+import re
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -180,3 +182,18 @@ def test_help_says_the_camera_is_required_without_a_checkpoint(capsys):
         main(["simulate", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "required unless --checkpoint" in text and "default: configs/default.toml" not in text
+
+
+@pytest.mark.parametrize("shape", [(2, 3, 8, 8), (1, 3, 1, 1), (1, 1, 8, 8)])
+def test_simulate_image_takes_one_image_of_at_least_a_tile(shape):
+    """A batch of two was refused as the camera's image_index of the wrong length, and a 1 x 1 image as the empty
+    crop (1, 3, 0, 0) it became; both are one line naming simulate_image's radiance."""
+    import torch
+
+    from warpsense.simulate import load_camera, simulate_image
+
+    sim = load_camera("camvid")
+    with pytest.raises(ValueError, match=r"^simulate_image: radiance must be one image \[1, 3, H, W\] of at least "
+                                         r"the CFA tile \(2 x 2 pixels\), got " + re.escape(str(shape))):
+        simulate_image(sim, torch.rand(shape))
+    assert simulate_image(sim, torch.rand(1, 3, 3, 5)).shape == (2, 4)  # cropped to whole tiles

@@ -168,7 +168,15 @@ def simulate_image(sim: SimulatedCamera, radiance: torch.Tensor, key: int = 0) -
     """The normalised RAW mosaic [H', W'] float32 (units of the white level; ADC units before a photon budget's
     digital gain, as a real capture's file holds them) of radiance [1, 3, H, W]; the image is cropped to a multiple
     of the CFA tile (top-left kept) so that the mosaic's layout is the camera's."""
+    from warpsense.ops.arguments import check_tensor
+
+    # checked here: the camera saw a batch of 2 as an image_index of the wrong length (the one key is this
+    # function's), and an image under one tile as the empty crop it had become, (1, 3, 0, 0)
+    check_tensor("simulate_image", "radiance", radiance, 4, "[1, 3, H, W] tensor")
     tile = sim.camera.tile
+    if radiance.shape[:2] != (1, 3) or min(radiance.shape[-2:]) < tile:
+        raise ValueError(f"simulate_image: radiance must be one image [1, 3, H, W] of at least the CFA tile "
+                         f"({tile} x {tile} pixels), got {tuple(radiance.shape)}")
     height, width = radiance.shape[-2] // tile * tile, radiance.shape[-1] // tile * tile
     radiance = radiance[..., :height, :width]
     raw = sim.camera(radiance.float(), torch.tensor([key]))
