@@ -53,6 +53,20 @@ def test_cfa_layouts_tiles_and_errors():
     assert not any(p.requires_grad for p in CFA("RGGB", 2, "fixed").parameters())
 
 
+def test_letters_to_phi_refuses_a_flat_layout_and_names_the_filters():
+    """A flat "RGGB" (as LearnedCamera.cfa_layout spells it) was read as four rows of one letter, a [4, 1, 3]
+    tensor; an unknown letter was a bare KeyError 'X'."""
+    from warpsense.camera import layout_letters, letters_to_phi
+
+    with pytest.raises(TypeError, match=r"^letters_to_phi: letters must be rows of letters .* got the string 'RGGB'"):
+        letters_to_phi("RGGB")
+    with pytest.raises(KeyError, match="unknown filter letter 'X'; filters: R, G, B, C, Y"):
+        letters_to_phi([["R", "X"], ["G", "B"]])
+    assert torch.equal(letters_to_phi(layout_letters("RGGB", 2)),
+                       torch.tensor([[[1.0, 0, 0], [0, 1, 0]], [[0, 1, 0], [0, 0, 1]]]))
+    assert letters_to_phi([list("RGBC")]).shape == (1, 4, 3)  # one row of candidates, as the CFA stage uses it
+
+
 def test_noise_module_equals_functional_and_seeds():
     module = SensorNoise(0.015, 0.002, eval_seed=42).eval()
     raw = torch.rand(2, 1, 5, 5)

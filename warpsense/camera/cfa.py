@@ -40,8 +40,25 @@ def layout_letters(pattern: str, tile: int) -> list[list[str]]:
 
 
 def letters_to_phi(letters: list[list[str]]) -> torch.Tensor:
-    """[T, T, 3] responses of a layout given as letters (`FILTERS`)."""
-    return torch.tensor([[FILTERS[letter] for letter in row] for row in letters], dtype=torch.float32)
+    """[T, T, 3] responses of a layout given as rows of letters (`FILTERS`), e.g. [["R", "G"], ["G", "B"]] (any
+    rows x columns: [1, K, 3] for one row of K candidates).
+
+    Raises:
+        TypeError: one string: a flat "RGGB", as `LearnedCamera.cfa_layout` spells a layout, was read as four rows
+            of one letter ([4, 1, 3]); `layout_letters` gives the rows.
+        ValueError: rows of different lengths.
+        KeyError: a letter that is not a filter, naming the filters.
+    """
+    if isinstance(letters, str):
+        raise TypeError(f"letters_to_phi: letters must be rows of letters (e.g. [['R', 'G'], ['G', 'B']]), got the "
+                        f"string {letters!r} (layout_letters({letters!r}, 2) gives its rows)")
+    rows = [list(row) for row in letters]
+    if len({len(row) for row in rows}) > 1:
+        raise ValueError(f"letters_to_phi: rows of letters must be equally long, got {letters!r}")
+    unknown = sorted({letter for row in rows for letter in row} - set(FILTERS), key=str)
+    if unknown:
+        raise KeyError(f"letters_to_phi: unknown filter letter {unknown[0]!r}; filters: {', '.join(FILTERS)}")
+    return torch.tensor([[FILTERS[letter] for letter in row] for row in rows], dtype=torch.float32)
 
 
 def check_candidates(candidates: str, pattern: str, mode: str) -> str | None:
