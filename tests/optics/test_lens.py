@@ -321,6 +321,20 @@ def test_lens_prints_what_it_is():
     assert text == ("Lens('phone_68deg', f=4.2 mm, f/1.9, 68 deg, pitch 1.4 um, K=15, grid=5x5, learnable=False)")
 
 
+def test_psf_grid_refuses_an_even_kernel_or_an_empty_grid():
+    """An even K rendered each PSF half a pixel off its kernel's centre (centroid 7.995 in a 16-pixel kernel), which
+    psf_conv then refused; a 0 x 3 grid failed inside the FFT library. Both are one line naming the argument, as the
+    lens file's psf_kernel_size and psf_grid are."""
+    lens = Lens.from_json("phone_68deg")
+    with pytest.raises(ValueError, match=r"^Lens.psf_at: kernel_size must be an odd int >= 1 .*got 16$"):
+        lens.psf_grid((1, 1), kernel_size=16)
+    with pytest.raises(ValueError, match=r"^Lens.psf_grid: grid must be \(Gy, Gx\) with ints >= 1, got \(0, 3\)$"):
+        lens.psf_grid((0, 3))
+    psf = lens.psf_grid((1, 1), kernel_size=15)[1, 0, 0]
+    rows = torch.arange(15, dtype=psf.dtype)
+    assert float((psf.sum(1) * rows).sum()) == pytest.approx(7.0)  # on-axis PSF centred on the middle pixel
+
+
 def test_fast_fft_size_is_the_next_5_smooth_number():
     from warpsense.optics.lens import fast_fft_size
 

@@ -357,6 +357,10 @@ class Lens(nn.Module):
         pitch = sample_pitch_um or spec.pixel_pitch_um
         size = kernel_size or spec.psf_kernel_size
         factor = oversampling or spec.oversampling
+        # as the lens file's psf_kernel_size: an even K rendered the PSF half a pixel off its kernel's centre
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1 or size % 2 == 0:
+            raise ValueError(f"Lens.psf_at: kernel_size must be an odd int >= 1 (the PSF centred on the middle "
+                             f"pixel), got {size!r}")
         coefficients = self.field_coefficients(field_height).to(dtype)
         stopped = f_number is not None
         if not stopped:
@@ -392,6 +396,8 @@ class Lens(nn.Module):
         """[3, Gy, Gx, K, K] PSFs at the grid nodes (corners included, `field_points`), each summing to 1 (float64).
         ``options`` (kernel_size, oversampling, sample_pitch_um) go to `psf_at`."""
         grid_y, grid_x = grid or self.spec.psf_grid
+        if not all(isinstance(g, int) and not isinstance(g, bool) and g >= 1 for g in (grid_y, grid_x)):
+            raise ValueError(f"Lens.psf_grid: grid must be (Gy, Gx) with ints >= 1, got {grid!r}")
         height, azimuth = self.field_points((grid_y, grid_x))
         psf = self.psf_at(height, azimuth, **options)
         size = psf.shape[-1]
