@@ -207,6 +207,17 @@ def test_eval_noise_keyed_by_dataset_index():
     assert not torch.equal(camera(radiance[:2], torch.arange(0, 2)), whole[:2])
 
 
+@pytest.mark.parametrize("config", [{}, "camvid_codesign", "camvid_photons"])
+def test_camera_on_the_meta_device_gives_the_raw_shape(config):
+    """A camera moved to the meta device (shape inference) runs without host reads: the finite check's .item()
+    failed on the meta tensor, and the Warp ops had no meta device."""
+    camera = Camera.from_config(config).to("meta")
+    for mode in (camera.eval, camera.train):
+        mode()
+        raw = camera(torch.empty(2, 3, 33, 47, device="meta"))
+        assert raw.shape == (2, 1, 33, 47) and raw.is_meta
+
+
 @pytest.mark.parametrize("radiance, index, error, message", [
     (torch.rand(1, 3, 6, 6).numpy(), None, TypeError, "camera: radiance must be a torch.Tensor, got ndarray"),
     (torch.rand(1, 1, 6, 6), None, ValueError, r"camera: radiance must be \[B, 3, H, W\] \(linear RGB\), got "

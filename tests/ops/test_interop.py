@@ -71,6 +71,20 @@ def test_feature_dispatcher_where_torch_needs_it(op_calls):
     assert seen == [False]
 
 
+@pytest.mark.parametrize("method", ["direct", "conv2d", "auto"])
+def test_feature_meta_tensors_take_the_fake_implementation(op_calls, method):
+    """Meta tensors (shape inference, a model built on the meta device) give the shapes without running a kernel:
+    the direct call handed them to Warp ("Unsupported Torch device type meta"), and psf_conv's autocast guard
+    refused the meta device ("unsupported scalarType")."""
+    image = torch.empty(2, 3, 5, 7, device="meta")
+    for grid in [(1, 1)] if method == "conv2d" else [(1, 1), (2, 3)]:
+        out = psf_conv(image, torch.empty(3, *grid, 5, 5, device="meta"), method=method)
+        assert out.shape == image.shape and out.is_meta
+    assert quantize_ste(image, 8).is_meta
+    raw = sensor_capture(image, torch.empty(2, 2, 3, device="meta"), 0.01, 0.001, 0, 10)
+    assert raw.shape == (2, 1, 5, 7) and raw.is_meta
+
+
 def test_feature_jit_trace_records_the_op():
     """torch.jit.trace records the custom op, not what its implementation runs around the kernel (a direct call
     would leave the kernel out of the trace)."""

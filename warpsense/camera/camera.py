@@ -75,9 +75,9 @@ class LearnedCamera:
 
 
 def _tracing(x: torch.Tensor) -> bool:
-    """Whether torch.compile or torch.jit.trace is tracing or x's CUDA stream is being captured: no host reads, no
-    cached tensors."""
-    return (torch.compiler.is_compiling() or torch._C._get_tracing_state() is not None
+    """Whether torch.compile or torch.jit.trace is tracing, x's CUDA stream is being captured or x is a meta tensor
+    (shapes only): no host reads, no cached tensors."""
+    return (torch.compiler.is_compiling() or torch._C._get_tracing_state() is not None or x.is_meta
             or (x.is_cuda and torch.cuda.is_current_stream_capturing()))
 
 

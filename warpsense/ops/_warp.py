@@ -235,6 +235,11 @@ class WarpOp:
         if (torch._C._autograd._profiler_enabled() or forward_ad._current_level >= 0
                 or not plain_eager(args)):
             return False
+        # meta tensors (shape inference, models built on the meta device) take the op's fake implementation: Warp
+        # has no meta device ("Unsupported Torch device type meta"). The ops' inputs share one device (checked
+        # before the call), and each op's first argument is a tensor: one look
+        if args and isinstance(args[0], torch.Tensor) and args[0].is_meta:
+            return False
         return not torch.is_grad_enabled() or not any(
             x.requires_grad for x in args if isinstance(x, torch.Tensor))
 

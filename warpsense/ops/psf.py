@@ -8,6 +8,7 @@ edges), pixel q's centre at (q + 0.5) / size; between nodes the PSF is bilinear.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import time
 import weakref
@@ -306,7 +307,8 @@ def psf_conv(image: torch.Tensor, psf: torch.Tensor, method: str = "auto") -> to
     """
     _check(image, psf, method)
     compute_dtype = torch.float64 if image.dtype == torch.float64 else torch.float32
-    with torch.autocast(image.device.type, enabled=False):
+    # autocast has no meta device ("unsupported scalarType"); meta tensors take the ops' fake implementations
+    with torch.autocast(image.device.type, enabled=False) if not image.is_meta else contextlib.nullcontext():
         image, psf = image.to(compute_dtype), psf.to(compute_dtype)
         invariant = psf.shape[1] == psf.shape[2] == 1
         if method == "auto":
