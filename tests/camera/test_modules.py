@@ -216,6 +216,8 @@ def test_camera_on_the_meta_device_gives_the_raw_shape(config):
         mode()
         raw = camera(torch.empty(2, 3, 33, 47, device="meta"))
         assert raw.shape == (2, 1, 33, 47) and raw.is_meta
+    with pytest.raises(ValueError, match=r"^camera: radiance is on cpu, the camera on meta; move one to the other"):
+        camera(torch.rand(1, 3, 8, 8))  # was 'sensor_capture: inputs must be on one device, got rgb on cpu, ...'
 
 
 @pytest.mark.parametrize("radiance, index, error, message", [

@@ -322,6 +322,9 @@ class Camera(nn.Module):
             raise ValueError(f"camera: radiance must be [B, 3, H, W] (linear RGB), got {tuple(radiance.shape)}")
         if image_index is not None:
             check_indices("camera", "image_index", image_index, radiance.shape[0])
+        if radiance.device != self.mono_phi.device:  # else the sensor op named its own arguments (rgb, phi)
+            raise ValueError(f"camera: radiance is on {radiance.device}, the camera on {self.mono_phi.device}; move "
+                             f"one to the other (camera.to(radiance.device))")
         # one reduction and one host read: a NaN or inf anywhere makes the sum non-finite (a sum that overflows
         # from finite values is counted exactly and passes); detached, since reading a graph-carrying tensor as a
         # number makes torch warn, and gradients with respect to the scene are a normal use
