@@ -225,8 +225,9 @@ def test_camera_on_the_meta_device_gives_the_raw_shape(config):
     (torch.rand(1, 1, 6, 6), None, ValueError, r"camera: radiance must be \[B, 3, H, W\] \(linear RGB\), got "
                                                r"\(1, 1, 6, 6\)"),
     (torch.rand(3, 6, 6), None, ValueError, r"camera: radiance must be a non-empty \[B, 3, H, W\] tensor"),
-    (torch.randint(0, 256, (1, 3, 6, 6)), None, TypeError, "camera: radiance must be floating point, got "
-                                                           "torch.int64"),
+    (torch.randint(0, 256, (1, 3, 6, 6)), None, TypeError, r"camera: radiance must be floating point \(linear\), "
+                                                           r"got torch.int64; an sRGB frame is decoded by "
+                                                           r"warpsense.data.color.srgb_to_linear"),
     (torch.rand(2, 3, 6, 6), 3, TypeError, r"camera: image_index must be an integer tensor \[B\], got int"),
     (torch.rand(2, 3, 6, 6), torch.tensor([3.0, 4.0]), TypeError, "image_index must be an integer tensor"),
     (torch.rand(2, 3, 6, 6), torch.tensor([3]), ValueError, r"camera: image_index must be \[B\] = \(2,\), one "

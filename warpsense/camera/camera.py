@@ -317,6 +317,9 @@ class Camera(nn.Module):
         """Radiance [B, 3, H, W] -> RAW [B, 1, H, W]; ``image_index`` [B] (dataset indices) keys the eval noise."""
         # named here, in the camera's words: the stages' ops named their own arguments (rgb, image, seed), a numpy
         # array or an int index failed with an AttributeError from inside
+        if isinstance(radiance, torch.Tensor) and not radiance.is_floating_point():  # most likely an sRGB frame
+            raise TypeError(f"camera: radiance must be floating point (linear), got {radiance.dtype}; an sRGB frame "
+                            "is decoded by warpsense.data.color.srgb_to_linear (SensingModel does it for uint8)")
         check_tensor("camera", "radiance", radiance, 4, "[B, 3, H, W] tensor")
         if radiance.shape[1] != 3:
             raise ValueError(f"camera: radiance must be [B, 3, H, W] (linear RGB), got {tuple(radiance.shape)}")
