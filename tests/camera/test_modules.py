@@ -181,6 +181,18 @@ def test_fixed_isp_reconstructs_smooth_colour():
         FixedISP([["R", "C"], ["C", "C"]])
 
 
+@pytest.mark.parametrize("size", [(1, 1), (1, 6), (5, 1)])
+def test_fixed_isp_takes_an_image_one_pixel_high_or_wide(size):
+    """Reflect padding has nothing to reflect on a side of one pixel: torch refused it ('Padding size should be
+    less than the corresponding input dimension'), so a fixed-ISP model failed on a 1 x 1 frame. Such a side now
+    repeats its pixel: each colour whose sites the image holds is reconstructed exactly."""
+    isp = FixedISP([["R", "G"], ["G", "B"]], gamma=1.0)
+    colour = torch.tensor([0.2, 0.5, 0.8]).view(1, 3, 1, 1).expand(1, 3, *size).contiguous()
+    rgb = isp(cfa_mosaic(colour, CFA("RGGB", 2, "fixed").phi()))
+    present = {(1, 1): [0], (1, 6): [0, 1], (5, 1): [0, 1]}[size]  # R at (0, 0); G beside or below it
+    torch.testing.assert_close(rgb[:, present], colour[:, present], atol=1e-6, rtol=0)
+
+
 def test_camera_fused_equals_per_stage_chain_with_gradients():
     """The fused sensor kernel and the per-stage ops (taken for exact Poisson / max quantization) agree."""
     config = load_config(None, ["noise.learnable=true"])

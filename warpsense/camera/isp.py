@@ -32,7 +32,9 @@ class FixedISP(nn.Module):
         reps = (-(-height // self.tile), -(-width // self.tile))
         masks = self.site_masks.repeat(1, *reps)[:, :height, :width].unsqueeze(0).to(raw.dtype)
         sparse = raw * masks
-        numerator = F.conv2d(F.pad(sparse, (1, 1, 1, 1), mode="reflect"), self.kernel.to(raw.dtype), groups=3)
-        denominator = F.conv2d(F.pad(masks, (1, 1, 1, 1), mode="reflect"), self.kernel.to(raw.dtype), groups=3)
+        # a side of one pixel has nothing to reflect (torch refuses it): that side's border repeats its pixel
+        mode = "reflect" if min(height, width) > 1 else "replicate"
+        numerator = F.conv2d(F.pad(sparse, (1, 1, 1, 1), mode=mode), self.kernel.to(raw.dtype), groups=3)
+        denominator = F.conv2d(F.pad(masks, (1, 1, 1, 1), mode=mode), self.kernel.to(raw.dtype), groups=3)
         rgb = numerator / denominator.clamp_min(1e-6)
         return rgb.clamp(1e-6, 1).pow(1.0 / self.gamma)  # clamp away from 0: pow has an infinite slope there
