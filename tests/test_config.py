@@ -108,6 +108,15 @@ def test_overrides_given_as_one_string_are_a_type_error_showing_the_list():
     assert load_config(None, ("noise.shot=0.1",)).noise.shot == 0.1  # a tuple, as the annotation says
 
 
+@pytest.mark.parametrize("config, shown", [({"noise": {"shot": 0.1}}, r"dict \(a dict of sections: config_from_dict\)"),
+                                           (3, "int"), (["camvid", 3.0], "float")])
+def test_a_config_that_is_no_name_or_path_is_a_type_error_naming_it(config, shown):
+    """Path() refused it from inside: "expected str, bytes or os.PathLike object, not dict"."""
+    with pytest.raises(TypeError, match=f"^load_config: config must be a preset name, a TOML path or a list of "
+                                        f"them, got {shown}$"):
+        load_config(config)
+
+
 def test_int_accepted_for_float_and_save_round_trip(tmp_path):
     config = load_config(None, ["noise.shot=1", "run.name=\"x y\""])
     assert config.noise.shot == 1.0 and isinstance(config.noise.shot, float)

@@ -505,6 +505,11 @@ def load_config(config: str | Path | list | tuple | None = None,
     _check_overrides(overrides, "load_config")
     resolved = Config()
     files = [] if config is None else list(config) if isinstance(config, (list, tuple)) else [config]
+    for name_or_path in files:  # else Path() failed: "expected str, bytes or os.PathLike object, not dict"
+        if not isinstance(name_or_path, (str, Path)):
+            hint = " (a dict of sections: config_from_dict)" if isinstance(name_or_path, dict) else ""
+            raise TypeError(f"load_config: config must be a preset name, a TOML path or a list of them, got "
+                            f"{type(name_or_path).__name__}{hint}")
     for name_or_path in files:
         _apply_file(resolved, name_or_path, depth=0)
     for text in overrides:
