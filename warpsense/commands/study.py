@@ -175,7 +175,7 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         elsewhere = devices[:1] if devices and "0" not in devices else None
         if elsewhere:
             check_local_gpus(devices)
-        return run_cells(plan, Path(out), [plan.cell(cell)], gpus=elsewhere, mps="off",
+        return run_cells(plan, Path(out), local, gpus=elsewhere, mps="off",
                          progress=progress, record=False, reuse=reuse_dirs)
     def run_pool(per_gpu: int, mps: str) -> int:
         # in this process where that is one cell at a time on its own cuda:0 (or the CPU); one worker process

@@ -672,9 +672,9 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None,
         """Record ``cell`` as failed and say so: "FAILED (why)", then ": detail" where given."""
         with lock:
             failed.append(cell)
-        record_failure(out, cell, why + (f": {detail}" if detail else ""))
-        print(f"[{numbering[cell]}/{total}] {cell.id}: FAILED ({why})" + (f": {detail}" if detail else ""),
-              file=sys.stderr, flush=True)
+        more = f": {detail}" if detail else ""
+        record_failure(out, cell, why + more)
+        print(f"[{numbering[cell]}/{total}] {cell.id}: FAILED ({why}){more}", file=sys.stderr, flush=True)
 
     threads = [threading.Thread(target=slot, args=(gpu,), daemon=True) for gpu in gpus for _ in range(per_gpu)]
     for thread in threads:
