@@ -77,8 +77,41 @@ def _terminate_as_interrupt() -> Iterator[list[int]]:
 
 def main(argv: list[str] | None = None) -> int:
     """Parse ``argv`` (default: the process's arguments) and run the command; returns its exit code, 2 (with a
-    one-line error on stderr) where it failed on bad input, 130 after Ctrl-C, and 2 with the help when no command
-    is given."""
+    one-line error on stderr) where it failed on bad input, 130 after Ctrl-C, 2 with the help when no command is
+    given, and 141 without a word where the reader of stdout went away (`quiet_broken_pipe`)."""
+    with quiet_broken_pipe() as status:
+        status.append(_main(argv))
+    return status[-1]
+
+
+@contextlib.contextmanager
+def quiet_broken_pipe() -> Iterator[list[int]]:
+    """Where stdout's reader closes early (``warpsense train --print-config | head``, ``less`` quit), end quietly
+    with 141 (128 + SIGPIPE, what the shell reports for git or cat killed by the signal): Python ignores SIGPIPE, so
+    the write raised BrokenPipeError, which the command's bad-input handler printed as "error: [Errno 32] Broken
+    pipe" with exit 2, or, where the output still sat in stdout's buffer, the interpreter printed "Exception ignored
+    ... BrokenPipeError" at exit. stdout is flushed inside the block (argparse's --help exits with its text still
+    buffered), then pointed at /dev/null so that nothing is written to the closed pipe at exit. Yields a list the
+    block appends its exit code to; on a broken pipe 141 is appended."""
+    status: list[int] = []
+    try:
+        try:
+            yield status
+        finally:  # --help and --version leave by SystemExit with their text in the buffer
+            sys.stdout.flush()
+    except BrokenPipeError:
+        with contextlib.suppress(OSError, ValueError):  # no stdout descriptor (an embedding host): nothing to point
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            os.close(devnull)
+        status.append(128 + BROKEN_PIPE_SIGNAL)
+
+
+BROKEN_PIPE_SIGNAL = 13
+"""SIGPIPE's number (POSIX); `signal.SIGPIPE` is missing on Windows."""
+
+
+def _main(argv: list[str] | None) -> int:
     _cpu_thread_defaults()  # before anything imports torch, which loads the OpenMP runtime that reads them once
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -100,6 +133,8 @@ def _run(args: argparse.Namespace) -> int:
 
     try:
         return COMMANDS[args.command].run(args)
+    except BrokenPipeError:  # stdout's reader went away: `main` ends quietly
+        raise
     except (ConfigError, DatasetError, LensFileError, PlanError, OSError, KeyError, ValueError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         # a bad file read by a DataLoader worker (data.num_workers > 0) comes back with the worker's traceback
