@@ -197,3 +197,48 @@ def test_simulate_image_takes_one_image_of_at_least_a_tile(shape):
                                          r"the CFA tile \(2 x 2 pixels\), got " + re.escape(str(shape))):
         simulate_image(sim, torch.rand(shape))
     assert simulate_image(sim, torch.rand(1, 3, 3, 5)).shape == (2, 4)  # cropped to whole tiles
+
+
+@pytest.mark.parametrize("choice", [["--device", "cuda"], ["--set", "run.device=cuda"]])
+def test_cuda_without_a_cuda_gpu_is_refused_before_any_output(tmp_path, capsys, monkeypatch, choice):
+    """Before: simulate had no --device, never read run.device and ran on the CPU with exit 0 where train, eval and
+    predict refuse cuda without CUDA."""
+    import torch
+
+    from tests.reliability.conftest import assert_clean_failure
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    _png(tmp_path / "a.png")
+    assert_clean_failure(capsys, ["simulate", str(tmp_path / "a.png"), "--config", "configs/default.toml", *choice,
+                                  "--out", str(tmp_path / "out")], ("device cuda", "use cpu or auto"),
+                         watched=tmp_path)
+
+
+@pytest.mark.parametrize("device", [pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_the_camera_on_cuda_gives_the_cpus_raw(tmp_path, device):
+    _png(tmp_path / "a.png", 32, 48)
+    for name, choice in (("cpu", "cpu"), ("other", device)):
+        assert main(["simulate", str(tmp_path / "a.png"), "--config", "configs/default.toml", "--device", choice,
+                     "--out", str(tmp_path / name)]) == 0
+    np.testing.assert_allclose(load_raw(tmp_path / "other" / "a.safetensors")[0].numpy(),
+                               load_raw(tmp_path / "cpu" / "a.safetensors")[0].numpy(), atol=2 / 1023)
+
+
+def test_an_image_cropped_to_whole_cfa_tiles_is_said(tmp_path, capsys):
+    """Before: a 101x157 image became a 100x156 RAW without a word (predict says its crop)."""
+    _png(tmp_path / "odd.png", 101, 157)
+    _png(tmp_path / "even.png", 100, 156)
+    assert main(["simulate", str(tmp_path / "odd.png"), str(tmp_path / "even.png"), *CLEAN, "--device", "cpu",
+                 "--out", str(tmp_path / "out")]) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if "cropped" in line]
+    assert notes == [f"warpsense simulate: {tmp_path / 'odd.png'}: cropped 101x157 to 100x156 (HxW, top-left kept): "
+                     "whole 2 x 2 CFA tiles"]
+    assert load_raw(tmp_path / "out" / "odd.safetensors")[0].shape == (1, 100, 156)
+
+
+def test_help_gives_a_set_example_the_command_reads(capsys):
+    """Before: simulate's --set help said "e.g. --set train.epochs=5", a key simulate never reads."""
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--set quantize.bits=8" in text and "train." not in text

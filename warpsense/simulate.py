@@ -18,6 +18,7 @@ names and renamed together, so a failure leaves none of them.
 
 from __future__ import annotations
 
+import itertools
 import sys
 import zlib
 from dataclasses import dataclass
@@ -48,6 +49,12 @@ class SimulatedCamera:
     source: str
 
     @property
+    def device(self) -> torch.device:
+        """Where the camera runs (its parameters' and buffers' device; the CPU for a camera without any)."""
+        tensor = next(itertools.chain(self.camera.parameters(), self.camera.buffers()), None)
+        return tensor.device if tensor is not None else torch.device("cpu")
+
+    @property
     def letters(self) -> str | None:
         """The exported CFA letters row by row ("RGGB"), None for a monochrome sensor."""
         layout = self.camera.layout_letters()
@@ -76,12 +83,17 @@ class SimulatedCamera:
 
 
 def load_camera(config: str | None = None, overrides: list[str] | tuple[str, ...] = (),
-                checkpoint: str | None = None) -> SimulatedCamera:
+                checkpoint: str | None = None, device: str | None = None) -> SimulatedCamera:
     """The camera of a config (file or preset, with ``section.key=value`` overrides) or of a checkpoint, in eval
-    mode on the CPU; exactly one of ``config`` and ``checkpoint``."""
+    mode on ``device``; exactly one of ``config`` and ``checkpoint``.
+
+    Args:
+        device: "auto", "cpu" or "cuda" (`warpsense.system.resolve_device`: cuda where torch has none is a one-line
+            ValueError, as in train, eval and predict); None: the config's run.device, "auto" for a checkpoint (as
+            eval and predict)."""
     from warpsense.camera import Camera
     from warpsense.config import load_config
-    from warpsense.system import load_system
+    from warpsense.system import load_system, resolve_device
     from warpsense.system.build import check_config
 
     if (config is None) == (checkpoint is None):
@@ -89,11 +101,13 @@ def load_camera(config: str | None = None, overrides: list[str] | tuple[str, ...
     if checkpoint is not None:
         if overrides:
             raise ValueError("--set changes a config: with --checkpoint the camera is the checkpoint's")
-        model, _, _ = load_system(checkpoint, torch.device("cpu"))
+        model, _, _ = load_system(checkpoint, resolve_device(device or "auto"))
         return SimulatedCamera(model.camera.eval(), str(checkpoint))
     resolved = load_config(config, overrides)
     check_config(resolved, f"config {config}")
-    return SimulatedCamera(Camera.from_config(resolved).eval(), str(config))
+    # before: run.device was never read and the camera stayed on the CPU ("cuda" without CUDA ran with exit 0)
+    torch_device = resolve_device(device or resolved.run.device)
+    return SimulatedCamera(Camera.from_config(resolved).eval().to(torch_device), str(config))
 
 
 def read_image(path: str | Path, linear: bool = False) -> torch.Tensor:
@@ -179,11 +193,12 @@ def simulate_image(sim: SimulatedCamera, radiance: torch.Tensor, key: int = 0) -
                          f"({tile} x {tile} pixels), got {tuple(radiance.shape)}")
     height, width = radiance.shape[-2] // tile * tile, radiance.shape[-1] // tile * tile
     radiance = radiance[..., :height, :width]
-    raw = sim.camera(radiance.float(), torch.tensor([key]))
+    device = sim.device
+    raw = sim.camera(radiance.float().to(device), torch.tensor([key], device=device))
     digital_gain = sim.camera.learned().digital_gain
     if digital_gain is not None:
         raw = raw / digital_gain
-    return (raw[0, 0] / sim.white_level).float().numpy()
+    return (raw[0, 0] / sim.white_level).float().cpu().numpy()
 
 
 def preview(mosaic: np.ndarray, letters: str | None) -> np.ndarray:
@@ -277,6 +292,10 @@ def simulate_files(inputs: list[str], out_dir: str | Path, sim: SimulatedCamera,
             mosaic = simulate_image(sim, radiance, noise_key(path, seed))
             out_dir.mkdir(parents=True, exist_ok=True)
             written_files = write_outputs(sim, mosaic, path, out_dir)
+            if mosaic.shape != tuple(radiance.shape[-2:]):  # said, as predict says its crop: the outputs are smaller
+                print(f"warpsense simulate: {path}: cropped {radiance.shape[-2]}x{radiance.shape[-1]} to "
+                      f"{mosaic.shape[0]}x{mosaic.shape[1]} (HxW, top-left kept): whole {sim.camera.tile} x "
+                      f"{sim.camera.tile} CFA tiles", file=sys.stderr)
             if not note and not any(file.suffix == ".dng" for file in written_files):
                 print(f"warpsense simulate: {path}: no DNG: its {mosaic.shape[0]}x{mosaic.shape[1]} mosaic is under "
                       f"the {LIBRAW_MIN_SIDE} pixels a side LibRaw reads", file=sys.stderr)

@@ -8,13 +8,14 @@ import sys
 
 
 def add_config_options(parser: argparse.ArgumentParser,
-                       default: str = "default: configs/default.toml") -> None:
+                       default: str = "default: configs/default.toml", example: str = "train.epochs=5") -> None:
     """``--config`` and ``--set``: the config a command builds (`warpsense.config.load_config`); ``default`` says
-    what the command does without ``--config``."""
+    what the command does without ``--config``, ``example`` is a ``section.key=value`` the command reads (the
+    help's example of --set)."""
     parser.add_argument("--config", metavar="FILE_OR_PRESET",
                         help=f"a TOML file or a preset name (configs/presets/); {default}")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                        help="override one config key (repeatable), e.g. --set train.epochs=5")
+                        help=f"override one config key (repeatable), e.g. --set {example}")
 
 
 def count(minimum: int):

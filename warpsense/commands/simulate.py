@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from warpsense.choices import DEVICES
 from warpsense.commands.options import add_config_options, count
 from warpsense.files import check_output_folder
 
@@ -17,7 +18,7 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
         "`warpsense predict` reads), <stem>.dng (where the CFA is a 2x2 Bayer layout) and <stem>.preview.png. A bad "
         "file is reported and the others go on (exit 2 at the end).")
     parser.add_argument("images", nargs="+", help="image files")
-    add_config_options(parser, default="the camera: required unless --checkpoint")
+    add_config_options(parser, default="the camera: required unless --checkpoint", example="quantize.bits=8")
     parser.add_argument("--checkpoint", metavar="CKPT", help="use a trained checkpoint's camera instead of --config")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--linear", action="store_true",
@@ -25,6 +26,9 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
     parser.add_argument("--seed", type=count(0), default=0, metavar="N",
                         help="noise seed offset (with the camera's eval seed and the file name; default: "
                         "%(default)s)")
+    parser.add_argument("--device", choices=DEVICES, default=None,
+                        help="where the camera runs; cuda without a CUDA GPU is an error (default: the config's "
+                        "run.device, auto with --checkpoint)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -33,12 +37,15 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--checkpoint brings its own camera: leave out --config and --set")
     if not args.checkpoint and not args.config:
         raise ValueError("give the camera: --config FILE_OR_PRESET (with --set) or --checkpoint CKPT")
-    return run_simulate(args.images, args.out, args.config, args.overrides, args.checkpoint, args.linear, args.seed)
+    return run_simulate(args.images, args.out, args.config, args.overrides, args.checkpoint, args.linear, args.seed,
+                        args.device)
 
 
 def run_simulate(inputs: list[str], out_dir: str, config: str | None = None, overrides: list[str] = (),
-                 checkpoint: str | None = None, linear: bool = False, seed: int = 0) -> int:
-    """Simulate every input into ``out_dir`` (`warpsense.simulate`).
+                 checkpoint: str | None = None, linear: bool = False, seed: int = 0,
+                 device: str | None = None) -> int:
+    """Simulate every input into ``out_dir`` (`warpsense.simulate`) with the camera on ``device`` (None: the
+    config's run.device, auto for a checkpoint; `warpsense.simulate.load_camera`).
 
     Returns:
         The exit status: 2 when any input failed (each reported on stderr, the others written), else 0.
@@ -46,5 +53,5 @@ def run_simulate(inputs: list[str], out_dir: str, config: str | None = None, ove
     from warpsense.simulate import load_camera, simulate_files
 
     check_output_folder(out_dir, "--out")
-    camera = load_camera(config, overrides, checkpoint)
+    camera = load_camera(config, overrides, checkpoint, device)
     return 2 if simulate_files(inputs, out_dir, camera, linear=linear, seed=seed) else 0
