@@ -153,6 +153,25 @@ def model_latency(model, device, height: int, width: int, batch: int, repeats: i
     return result
 
 
+LATENCY_ROWS = (("sensor + network", "sensor_plus_network_ms"), ("network alone", "network_ms"),
+                ("sensor + network, CUDA graph", "sensor_plus_network_graph_ms"),
+                ("network alone, CUDA graph", "network_graph_ms"))
+"""The figures of a `model_latency` record, in the order `latency_lines` prints them, with their row names."""
+
+
+def latency_lines(record: dict) -> list[str]:
+    """`model_latency`'s record as a small table: a head naming the input and device, then one row per figure it
+    holds (median ms and frames per second), the CUDA-graph rows only where it has them."""
+    frames = record["batch"]
+    lines = [f"latency: batch {frames} of {record['height']}x{record['width']} (HxW) on {record['device']}, "
+             f"median per batch{', camera cached' if record.get('camera_cached') else ''}"]
+    rows = [(name, record[key]) for name, key in LATENCY_ROWS if record.get(key) is not None]
+    width = max(len(name) for name, _ in rows)
+    lines += [f"  {name:<{width}s}  {ms:9.3f} ms  {1000 * frames / ms:9.1f} frames/s" if ms > 0 else
+              f"  {name:<{width}s}  {ms:9.3f} ms" for name, ms in rows]
+    return lines
+
+
 def write_kernel_table(function, device, out: str, warmup: int = 3, rows: int = 60) -> None:
     """Run ``function()`` once under `torch.profiler` (after ``warmup`` calls) and write its kernels by total time,
     GPU time on CUDA, CPU time otherwise, ``rows`` of them, to the text file ``out``."""

@@ -1,4 +1,5 @@
-"""`warpsense bench`: kernel microbenchmarks and the training suite against the plain-torch baseline."""
+"""`warpsense bench`: the benchmark suites (kernels, accuracy, train, time-to-accuracy, study) against the
+plain-torch baseline and against themselves."""
 
 from __future__ import annotations
 
@@ -36,8 +37,12 @@ def seed_list(text: str) -> tuple[int, ...]:
 
 def register(commands: argparse._SubParsersAction, name: str) -> None:
     """Add the command's parser to ``commands`` (the top-level subparsers) under ``name``."""
-    parser = commands.add_parser(name, help="kernel microbenchmarks: error against run time",
-                                 description="Benchmark every Warp kernel against its plain-torch reference.")
+    parser = commands.add_parser(name, help="benchmarks: kernels, accuracy, training step, time to accuracy, "
+                                 "study throughput",
+                                 description="Benchmark warpsense, one suite at a time (--suite): the Warp kernels "
+                                 "against their plain-torch references, their error against run time, the training "
+                                 "step and latency against the plain-torch baseline, the wall time to mIoU levels, or "
+                                 "a study's cells per GPU-hour. Measured figures: docs/benchmarks.md.")
     parser.add_argument("--device", default="cpu", choices=DEVICES[1:],
                         help="device to benchmark (default: %(default)s)")
     parser.add_argument("--suite", default="kernels", choices=BENCH_SUITES,

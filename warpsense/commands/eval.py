@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 from pathlib import Path
 
 from warpsense.bench import parse_size
@@ -115,7 +114,7 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
              plot_out: str | None = None, flip: bool = False, progress: bool = True) -> dict:
     """The `warpsense eval` command as a function; returns the JSON payload. ``latency`` alone (without
     ``sweep``) only times the model: no dataset is read and no mIoU computed."""
-    from warpsense.bench.timing import model_latency
+    from warpsense.bench.timing import latency_lines, model_latency
     from warpsense.data import HELDOUT_SPLIT, DatasetError, build_dataset, build_fold, frame_sequences
     from warpsense.data.datasets import split_parts
     from warpsense.system import load_system, resolve_device
@@ -126,7 +125,8 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
     if latency and not sweep:
         payload = {"checkpoint": str(checkpoint), "latency": model_latency(model, torch_device, *latency_size,
                                                                            latency_batch)}
-        print("latency (no scoring; run without --latency for mIoU):", json.dumps(payload["latency"]))
+        print("\n".join(latency_lines(payload["latency"])))
+        print("(no scoring; run without --latency for mIoU)")
         if json_out:
             write_json(json_out, payload)
         return payload
@@ -191,7 +191,7 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
                                        f"{metrics['num_images']} images")
     if latency:
         payload["latency"] = model_latency(model, torch_device, *latency_size, latency_batch)
-        print("latency:", json.dumps(payload["latency"]))
+        print("\n".join(latency_lines(payload["latency"])))
     if json_out:
         write_json(json_out, payload)
     return payload
