@@ -49,6 +49,20 @@ def run(args: argparse.Namespace) -> int:
                      extend=args.extend, progress=show_progress(args), print_config=args.print_config)
 
 
+def check_device_keys(config, source: str = "") -> None:
+    """The keys that need the run's device to be a CUDA GPU, checked before the run folder is made, the data read or
+    the model built (train.cuda_graph failed only when the training step was set up, after the run directory was
+    printed and the model built). ``source`` prefixes the message (a continued run's config.json)."""
+    from warpsense.system import resolve_device
+
+    if config.train.cuda_graph:
+        device = resolve_device(config.run.device)  # cuda without CUDA is its own one-line error
+        if device.type != "cuda":
+            raise ConfigError(f"{source}train.cuda_graph = true needs a CUDA device; run.device = "
+                              f"{config.run.device!r} is {device} here: add --set train.cuda_graph=false (the camvid "
+                              "presets are GPU recipes)")
+
+
 def trained_epochs(run_dir: Path) -> int:
     """How many epochs the run's last checkpoint holds."""
     from warpsense.system.checkpoint import read_checkpoint, resume_state
@@ -118,6 +132,10 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
                 raise
             # say where train.epochs came from: the user did not set it
             raise ConfigError(f"{error} (--extend {extend}: train.epochs = {trained} trained + {extend})") from None
+    if config is not None:
+        check_device_keys(config)
+    elif (Path(run_dir) / LAST).is_file():  # continued with its own config (train() says where none is to resume)
+        check_device_keys(resumed_config(run_dir, None), f"{Path(run_dir) / 'config.json'}: ")
     # train() checks the rest (a change of task, the stages' checks, the files the run needs) before it writes
     try:
         train(config, resume=run_dir, progress=progress, allow_config_change=allow_config_change)
