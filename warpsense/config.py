@@ -87,6 +87,9 @@ class DataConfig:
     num_workers: int = _field(0, minimum=0, maximum=256)
     holdout_prefix: str = ""
     holdout_sequence: str = ""
+    holdout_block: int = _field(0, minimum=0)
+    holdout_blocks: int = _field(5, minimum=2, maximum=1000)
+    block_buffer: int = _field(30, minimum=0)
     on_device: str = _field("auto", choices=ON_DEVICE_MODES)
     on_device_max_mb: int = _field(2048, minimum=0)
     max_train_images: int = _field(0, minimum=0)
@@ -295,8 +298,14 @@ def validate(config: "Config", source: str) -> "Config":
     if config.data.classes_file and config.data.dataset != "folder":
         raise ConfigError(f"{source}: data.classes_file = {config.data.classes_file!r} is read by data.dataset = "
                           f"\"folder\" only (the dataset is {config.data.dataset!r}, with its own classes)")
-    if config.data.holdout_sequence and config.data.holdout_prefix:
-        raise ConfigError(f"{source}: data.holdout_sequence and data.holdout_prefix both hold frames out; set one")
+    held_out = [f"data.{key}" for key in ("holdout_sequence", "holdout_block", "holdout_prefix")
+                if getattr(config.data, key)]
+    if len(held_out) > 1:
+        raise ConfigError(f"{source}: {' and '.join(held_out)} {'both' if len(held_out) == 2 else 'all'} hold frames "
+                          "out; set one")
+    if config.data.holdout_block > config.data.holdout_blocks:
+        raise ConfigError(f"{source}: data.holdout_block = {config.data.holdout_block}: the folds are 1.."
+                          f"{config.data.holdout_blocks} (data.holdout_blocks)")
     sequence = config.data.holdout_sequence
     if sequence != sequence.strip() or "/" in sequence or "\\" in sequence:
         raise ConfigError(f"{source}: data.holdout_sequence must be a sequence name, got {sequence!r}")

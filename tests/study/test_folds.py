@@ -81,20 +81,33 @@ def test_holdout_sequence_config_checks():
         load_config(None, ['data.holdout_sequence="a/b"'])
 
 
-def test_camvid_cameras_plan_lists_a_cell_per_drive_and_seed(shared_data, capsys):
-    assert main(["study", "run", "camvid_cameras", "--out", "unused", "--plan-only",
-                 "--set", f'data.root="{shared_data / "camvid"}"']) == 0
-    cells = [line.split("--cell ")[1].split()[0] for line in capsys.readouterr().out.splitlines()]
+def test_camvid_cameras_plan_lists_a_cell_per_drive_and_seed_with_sequence_folds(shared_data, tmp_path, capsys):
+    """The drive folds stay for a user with many drives: the shipped plan by sequence folds prints each fold's regime
+    (the third trains on 35% of the frames: why CamVid's default is block folds) and a cell per drive and seed."""
+    root = f'data.root="{shared_data / "camvid"}"'
+    assert main(["study", "run", "camvid_cameras", "--out", "unused", "--plan-only", "--set", "study.folds=sequence",
+                 "--set", root]) == 2
+    assert 'study.blocks: block folds\' blocks needs folds = "blocks"' in capsys.readouterr().err
+    text = (CONFIG_DIR / "studies" / "camvid_cameras.toml").read_text()
+    plan = tmp_path / "plan.toml"
+    plan.write_text(text.replace("\nblocks = 5 ", "\n# ").replace("\nblock_buffer = 30 ", "\n# "))
+    assert main(["study", "run", str(plan), "--out", str(tmp_path / "s"), "--plan-only", "--set",
+                 "study.folds=sequence", "--set", root]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[:3] == ["# fold 0001TP: train 406 frames (87% of the labelled frames), judge 62 frames",
+                         "# fold 0006R0: train 367 frames (78% of the labelled frames), judge 101 frames",
+                         "# fold 0016E5: train 163 frames (35% of the labelled frames), judge 305 frames"]
+    cells = [line.split("--cell ")[1].split()[0] for line in lines[3:]]
     night = {cell for cell in cells if cell.startswith("fixed_isp/night/")}
     assert night == {f"fixed_isp/night/{drive}/{seed}" for drive in ("0001TP", "0006R0", "0016E5") for seed in range(3)}
-    assert len(cells) == (8 + 4) * 3 * 3  # 8 cameras at night, 4 by day
-    assert not Path("unused").exists()
+    assert len(cells) == (10 + 4) * 3 * 3  # 10 cameras at night (the control and the twin among them), 4 by day
+    assert not Path("unused").exists() and not (tmp_path / "s").exists()
 
 
 @pytest.mark.parametrize(("study", "overrides", "message"), [
     ('folds = "sequence"\nsequences = ["train0", "nowhere"]\n', [],
      "study.sequences: 'nowhere' holds no frame of the labelled splits (train, val); sequences: train0, val0"),
-    ('folds = "loo"\n', [], "study.folds: 'loo' is not a protocol; valid: none, sequence"),
+    ('folds = "loo"\n', [], "study.folds: 'loo' is not a protocol; valid: none, blocks, sequence"),
     ('sequences = ["train0"]\n', [], "study.sequences: held-out sequences need folds = \"sequence\""),
     ('folds = "sequence"\n', ["data.holdout_prefix=train"], "data.holdout_sequence and data.holdout_prefix both"),
     ("", ["study.folds=sequence", "data.dataset=camvid", "data.root=ROOT"], 'study.folds = "sequence" lists'),
@@ -164,7 +177,7 @@ def test_smoke_study_by_sequence_folds_runs_resumes_and_reports(tmp_path, monkey
     comparison = part["comparisons"][0]
     assert comparison["paired"]["seeds"] == [("train0", 0), ("val0", 0)] and comparison["bootstrap"]["block"] == 3
     text = render_text(record)
-    assert "per held-out sequence" in text and "night/train0" in text and "night/val0" in text
+    assert "per fold (held-out block or sequence)" in text and "night/train0" in text and "night/val0" in text
     assert "paired over (fold, seed)" in text
     with pytest.raises(SystemExit) as exited:
         main(["study", "report", str(out), "--resamples", "0"])
@@ -243,5 +256,5 @@ def test_placeholders_give_each_cell_its_fold_and_seed(tmp_path):
     assert teachers == {(fold, seed): f"teachers/{fold}/seed{seed}.safetensors"
                         for fold in plan.sequences for seed in (0, 1)}
     assert {plan.config(cell, tmp_path).loss.teacher for cell in plan.cells() if cell.camera == "rggb"} == {""}
-    with pytest.raises(PlanError, match=r"\{fold\} in a set .* study.folds = \"sequence\""):
+    with pytest.raises(PlanError, match=r"\{fold\} in a set .* study.folds = \"blocks\" or \"sequence\""):
         load_plan(_plan_file(tmp_path, extra), ["study.folds=none"])

@@ -115,7 +115,7 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
     """The `warpsense eval` command as a function; returns the JSON payload. ``latency`` alone (without
     ``sweep``) only times the model: no dataset is read and no mIoU computed."""
     from warpsense.bench.timing import latency_lines, model_latency
-    from warpsense.data import HELDOUT_SPLIT, DatasetError, build_dataset, build_fold, frame_sequences
+    from warpsense.data import HELDOUT_SPLIT, DatasetError, build_dataset, build_fold, fold_name, frame_sequences
     from warpsense.data.datasets import split_parts
     from warpsense.system import load_system, resolve_device
     from warpsense.train.evaluate import evaluate, robustness_sweep
@@ -148,14 +148,18 @@ def run_eval(checkpoint: str, data: str | None, data_root: str | None, split: st
     if data == "scenes":
         config.data.scenes_val = limit or config.data.scenes_val
     fold = config.data.holdout_sequence
-    if split == HELDOUT_SPLIT:  # a sequence-fold checkpoint's own judge: the frames of the sequence it never saw
-        if not fold:
-            raise ValueError(f"--split {HELDOUT_SPLIT}: the checkpoint was not trained on a sequence fold "
-                             "(its data.holdout_sequence is empty); name a split, e.g. --split val")
+    if split == HELDOUT_SPLIT:  # a fold checkpoint's own judge: the frames it never saw nor sat beside
+        if not fold_name(config.data):
+            raise ValueError(f"--split {HELDOUT_SPLIT}: the checkpoint was not trained on a fold (its "
+                             "data.holdout_sequence and data.holdout_block are empty); name a split, e.g. --split val")
         dataset = build_fold(config.data, train=False, seed=config.run.seed)
     else:
         dataset = build_dataset(config.data, split, train=False, seed=config.run.seed)
         seen = set()
+        if config.data.holdout_block and data == trained_on and split in (config.data.train_split,
+                                                                            config.data.val_split):
+            print(f"note: the checkpoint trained on most frames of {split} (its fold held out "
+                  f"{fold_name(config.data)}); --split {HELDOUT_SPLIT} scores the frames it did not train on")
         if fold and data == trained_on:
             with contextlib.suppress(DatasetError):  # frames without sequence names: nothing to say
                 seen = set(frame_sequences(dataset)) - {fold}

@@ -74,8 +74,13 @@ def _add_run(subcommands: argparse._SubParsersAction) -> None:
     parser.add_argument("--cell", metavar="CAMERA/LIGHT/[FOLD/]SEED",
                         help="run this cell only (what --plan-only prints), in this process; where --gpus names "
                         "GPUs but not 0, in a worker process given the first it names")
+    parser.add_argument("--cells", action="append", default=[], metavar="PATTERN",
+                        help="run only the cells whose id matches this shell pattern, e.g. 'fixed_isp/*' or "
+                        "'*/night/block1/*' (repeatable: any pattern; the study directory records the whole plan, so "
+                        "runs of other cells, here or on other machines, complete the same study)")
     parser.add_argument("--plan-only", action="store_true",
-                        help="print one command per cell, for a scheduler (a Slurm job array, ...), and exit")
+                        help="print each fold's size (lines starting with '#': what each fold trains on and is judged "
+                        "on) and one command per cell, for a scheduler (a Slurm job array, ...), and exit")
     parser.add_argument("--gpus", default="auto",
                         help="GPUs of the local pool: auto (all torch sees), none (this process), or ids 0,1 "
                              "counted within CUDA_VISIBLE_DEVICES as torch's cuda:N (default: %(default)s)")
@@ -126,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
                  "extra": args.slurm_option, "wait": args.wait}
         return run_study(args.plan, args.out, args.overrides, args.cell, args.plan_only, args.gpus, args.per_gpu,
                          progress=args.progress, worker=args.worker, reuse=args.reuse, mps=args.mps,
-                         executor=args.executor, slurm=slurm)
+                         executor=args.executor, slurm=slurm, patterns=args.cells)
     if args.study_command == "status":
         return status_study(args.study_dir)
     return report_study(args.study_dir, args.json, args.plot, args.split, args.resamples, args.block_frames)
@@ -135,15 +140,23 @@ def run(args: argparse.Namespace) -> int:
 def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None = None, plan_only: bool = False,
               gpus: str = "auto", per_gpu: int | str = "auto", progress: bool = False, worker: bool = False,
               reuse: list[str] | None = None, executor: str = "local", slurm: dict | None = None,
-              mps: str = "auto") -> int:
+              mps: str = "auto", patterns: list[str] | None = None) -> int:
     """The `warpsense study run` command; returns the exit code. ``worker``: be one of the local pool's worker
     processes (`warpsense.study.runner.cell_worker`, cell ids on stdin). ``executor`` "slurm": submit the cells to
     Slurm (`warpsense.study.slurm.submit_study`) with ``slurm``, the keyword arguments of
-    `warpsense.study.slurm.slurm_options` (None: not given)."""
+    `warpsense.study.slurm.slurm_options` (None: not given). ``patterns``: shell patterns of the cell ids to run
+    (`warpsense.study.plan.Plan.select`; none: every cell)."""
     from warpsense.study.mps import MPSError
     from warpsense.study.mps import check_mode as check_mps_mode
-    from warpsense.study.plan import load_plan
-    from warpsense.study.runner import cell_state, cell_worker, check_reuse_dirs, plan_commands, run_cells
+    from warpsense.study.plan import fold_lines, fold_sizes, load_plan
+    from warpsense.study.runner import (
+        cell_state,
+        cell_worker,
+        check_runnable,
+        check_reuse_dirs,
+        plan_commands,
+        run_cells,
+    )
     from warpsense.study.slurm import check_not_queued, slurm_options, submit_study
 
     # every option is checked here, whichever path follows (worker, plan-only, one cell, pool, Slurm)
@@ -159,17 +172,25 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     check_output_folder(out, "--out")
     check_reuse_dirs(reuse or [])  # here, not only when the cells run: --plan-only and --cell too
     plan = load_plan(plan_name, overrides)
+    if cell is not None and patterns:
+        raise ValueError("--cell runs one cell, --cells those matching patterns: give one of them")
     if cell is not None:
         plan.cell(cell)  # an unknown --cell is refused on every path, --plan-only and --worker included
     if worker:
         return cell_worker(plan, Path(out), progress)
+    chosen_cells = [plan.cell(cell)] if cell is not None else plan.select(patterns or [])
     reuse_dirs = [Path(path) for path in reuse or []]
+    folds = fold_lines(fold_sizes(plan))
     if plan_only:
-        print("\n".join(plan_commands(plan, Path(out), reuse_dirs)))
+        print("\n".join([*(f"# {line}" for line in folds),
+                         *plan_commands(plan, Path(out), reuse_dirs, chosen_cells)]))
         return 0
+    check_runnable(plan, chosen_cells, local=cluster is None)  # a device it cannot have: before anything is written
+    print("\n".join(f"study: {line}" for line in folds), flush=True)
     if cluster is not None:
-        return submit_study(plan, Path(out), cluster, None if cell is None else [plan.cell(cell)], reuse_dirs)
-    local = plan.cells() if cell is None else [plan.cell(cell)]
+        return submit_study(plan, Path(out), cluster, None if cell is None and not patterns else chosen_cells,
+                            reuse_dirs)
+    local = chosen_cells
     check_not_queued(Path(out), [each for each in local if cell_state(Path(out), each) != "done"])
     if cell is not None:  # here, on this process's cuda:0 or the CPU; GPUs named without 0: a worker on the first
         elsewhere = devices[:1] if devices and "0" not in devices else None
@@ -181,7 +202,7 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         # in this process where that is one cell at a time on its own cuda:0 (or the CPU); one worker process
         # for another single GPU (--gpus 1): this process's training would take cuda:0 whatever --gpus says
         here = not devices or (devices == ["0"] and per_gpu == 1)
-        return run_cells(plan, Path(out), gpus=None if here else devices, per_gpu=per_gpu,
+        return run_cells(plan, Path(out), local, gpus=None if here else devices, per_gpu=per_gpu,
                          progress=progress, sample_gpus=devices, reuse=reuse_dirs, mps=mps)
 
     chosen = per_gpu == "auto"

@@ -5,7 +5,17 @@ from __future__ import annotations
 from pathlib import Path
 
 from warpsense.choices import SCENE_SPLITS
-from warpsense.data.datasets import KITTI360, CamVid, Cityscapes, DatasetError, Frames, frame_sequences, sequence_fold
+from warpsense.data.datasets import (
+    KITTI360,
+    CamVid,
+    Cityscapes,
+    DatasetError,
+    Frames,
+    block_fold,
+    frame_numbers,
+    frame_sequences,
+    sequence_fold,
+)
 from warpsense.data.folder import FolderDataset
 from warpsense.data.scenes import StreetScenes
 from warpsense.data.transforms import Augmented, paste_class_ids
@@ -15,7 +25,22 @@ DATASETS = {"camvid": CamVid, "cityscapes": Cityscapes, "kitti360": KITTI360, "s
 
 
 HELDOUT_SPLIT = "heldout"
-"""The name a run's evaluation gives the held-out sequence's frames (``data.holdout_sequence``)."""
+"""The name a run's evaluation gives a fold's judged frames (``data.holdout_sequence`` or ``data.holdout_block``)."""
+
+
+def holds_out_fold(data_config) -> bool:
+    """Whether a run of ``data_config`` is a fold of the labelled splits: a held-out sequence
+    (``holdout_sequence``) or a held-out block of every sequence (``holdout_block``)."""
+    return bool(data_config.holdout_sequence or data_config.holdout_block)
+
+
+def fold_name(data_config) -> str:
+    """The fold's name in words ("sequence 0016E5", "block 2 of 5"); "" without a fold."""
+    if data_config.holdout_sequence:
+        return f"sequence {data_config.holdout_sequence}"
+    if data_config.holdout_block:
+        return f"block {data_config.holdout_block} of {data_config.holdout_blocks}"
+    return ""
 
 
 def _source(data_config, split: str, train: bool, seed: int, limit: int = 0):
@@ -79,11 +104,22 @@ def sequence_names(data_config, seed: int = 0) -> list[str]:
     return sorted({name for source in labelled_sources(data_config, seed) for name in frame_sequences(source)})
 
 
+def fold_frames(data_config, seed: int = 0) -> tuple[Frames, Frames]:
+    """(the frames a fold trains on, the frames it judges), un-augmented and uncut: ``data_config.holdout_sequence``
+    (`sequence_fold`: every other sequence's frames, the held-out one's) or ``data_config.holdout_block``
+    (`block_fold`: block j of every sequence judged, the rest less a buffer of ``block_buffer`` frame numbers around
+    it trained on). DatasetError when the fold judges no frame or trains on none."""
+    sources = labelled_sources(data_config, seed)
+    if data_config.holdout_sequence:
+        return sequence_fold(sources, data_config.holdout_sequence)
+    return block_fold(sources, data_config.holdout_block, data_config.holdout_blocks, data_config.block_buffer)
+
+
 def build_fold(data_config, train: bool, seed: int = 0):
-    """The fold of ``data_config.holdout_sequence``: with ``train``, the labelled splits' frames of every other
-    sequence, augmented (at most ``max_train_images``); else the held-out sequence's frames, in order (at most
-    ``max_val_images``). DatasetError when the sequence holds no frame or every frame."""
-    rest, held = sequence_fold(labelled_sources(data_config, seed), data_config.holdout_sequence)
+    """A fold of the labelled splits (`fold_frames`): with ``train``, the frames it trains on, augmented (at most
+    ``max_train_images``); else the frames it judges, in sequence and time order (at most ``max_val_images``).
+    DatasetError when the fold judges no frame or trains on none."""
+    rest, held = fold_frames(data_config, seed)
     if not train:
         held.frames = held.frames[:data_config.max_val_images or None]
         return held
@@ -92,19 +128,20 @@ def build_fold(data_config, train: bool, seed: int = 0):
 
 
 def build_training(data_config, seed: int = 0):
-    """The augmented training set a run of ``data_config`` trains on: its sequence fold's other frames
-    (``holdout_sequence``), the train split outside the held-out prefix (``holdout_prefix``), or the train split."""
-    if data_config.holdout_sequence:
+    """The augmented training set a run of ``data_config`` trains on: its fold's training frames
+    (``holdout_sequence``, ``holdout_block``), the train split outside the held-out prefix (``holdout_prefix``), or the
+    train split."""
+    if holds_out_fold(data_config):
         return build_fold(data_config, train=True, seed=seed)
     part = "rest" if data_config.holdout_prefix else "all"
     return build_dataset(data_config, data_config.train_split, train=True, seed=seed, part=part)
 
 
 def evaluation_splits(data_config) -> list[str]:
-    """The labelled splits a finished run is judged on: the held-out sequence (`HELDOUT_SPLIT`) with
-    ``data.holdout_sequence``; else the val split, and CamVid's test split where the copy has one
-    (``<root>/test.txt``, as the SegNet release does)."""
-    if data_config.holdout_sequence:
+    """The labelled splits a finished run is judged on: the fold's judged frames (`HELDOUT_SPLIT`) with a fold
+    (`holds_out_fold`); else the val split, and CamVid's test split where the copy has one (``<root>/test.txt``, as the
+    SegNet release does)."""
+    if holds_out_fold(data_config):
         return [HELDOUT_SPLIT]
     splits = [data_config.val_split]
     if data_config.dataset == "camvid" and "test" not in splits and (Path(data_config.root) / "test.txt").is_file():
@@ -120,5 +157,6 @@ def load_raw(path):
 
 
 __all__ = ["Augmented", "CamVid", "Cityscapes", "DATASETS", "DatasetError", "FolderDataset", "Frames", "HELDOUT_SPLIT", "KITTI360",
-           "StreetScenes", "build_dataset", "build_fold", "build_training", "evaluation_splits", "frame_sequences",
-           "labelled_sources", "load_raw", "sequence_fold", "sequence_names"]
+           "StreetScenes", "block_fold", "build_dataset", "build_fold", "build_training", "evaluation_splits",
+           "fold_frames", "fold_name", "frame_numbers", "frame_sequences", "holds_out_fold", "labelled_sources",
+           "load_raw", "sequence_fold", "sequence_names"]

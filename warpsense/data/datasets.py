@@ -7,6 +7,7 @@ sRGB -> radiance conversion happen later (`warpsense.data.transforms`, `warpsens
 from __future__ import annotations
 
 import copy
+import re
 from pathlib import Path
 
 import numpy as np
@@ -35,11 +36,17 @@ class Frames(Dataset):
         self.sources, self.frames = list(sources), list(frames)
         self.classes = sources[0].classes
         self._names = [frame_sequences(source) for source in sources]
+        self._numbers = [frame_numbers(source) for source in sources]
 
     @property
     def sequences(self) -> list[str]:
         """The sequence of each chosen frame (``frames`` may be cut after construction)."""
         return [self._names[source][index] for source, index in self.frames]
+
+    @property
+    def frame_numbers(self) -> list[int]:
+        """The number of each chosen frame in its sequence (`frame_numbers` of its source)."""
+        return [self._numbers[source][index] for source, index in self.frames]
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -59,6 +66,21 @@ def frame_sequences(dataset) -> list[str]:
     return list(names)
 
 
+def frame_numbers(dataset) -> list[int]:
+    """The number of each frame of ``dataset`` in its sequence, in the sequence's time units: the dataset's own
+    (``frame_numbers``: CamVid's video frame number from the file name, 30 a second) where it has them for every
+    frame, else the frame's position among the frames of its sequence (0, 1, ...: consecutive frames one apart)."""
+    numbers = getattr(dataset, "frame_numbers", None)
+    if numbers is not None and None not in numbers:
+        return [int(number) for number in numbers]
+    seen: dict[str, int] = {}
+    positions = []
+    for name in frame_sequences(dataset):
+        positions.append(seen.get(name, 0))
+        seen[name] = positions[-1] + 1
+    return positions
+
+
 def sequence_fold(sources: list, held_out: str) -> tuple[Frames, Frames]:
     """(the frames of every other sequence, the frames of ``held_out``) of the ``sources`` joined, in order.
 
@@ -74,6 +96,45 @@ def sequence_fold(sources: list, held_out: str) -> tuple[Frames, Frames]:
     if not rest:
         raise DatasetError(f"sequence {held_out!r} holds every frame: nothing is left to train on")
     return Frames(sources, rest), Frames(sources, held)
+
+
+def block_fold(sources: list, block: int, blocks: int, buffer: int) -> tuple[Frames, Frames]:
+    """(the frames a block fold trains on, the frames it judges) of the ``sources`` joined: buffered blocked
+    cross-validation (Roberts et al. 2017, Ecography 40: 913-929).
+
+    Each sequence's frames, in the order of their numbers (`frame_numbers`), are cut into ``blocks`` contiguous
+    blocks of equal count (the first ``j * n // blocks`` frames before block j); fold ``block`` (1-based) judges
+    block ``block`` of every sequence and trains on the rest of the labelled frames, less a buffer: the frames of
+    that sequence whose number lies within ``buffer`` of the held-out block's first or last frame (neighbours of a
+    judged frame look like it, so a model that trained on them would be judged on what it has seen). The judged
+    frames are in sequence and time order, so a bootstrap can draw them in blocks.
+
+    Raises:
+        DatasetError: the fold judges no frame, or trains on none.
+    """
+    if not 1 <= block <= blocks:
+        raise DatasetError(f"block fold {block}: folds are 1..{blocks}")
+    frames = [(s, i) for s, source in enumerate(sources) for i in range(len(source))]
+    names = [name for source in sources for name in frame_sequences(source)]
+    numbers = [number for source in sources for number in frame_numbers(source)]
+    held, dropped = [], set()
+    for name in dict.fromkeys(names):
+        order = sorted((i for i, other in enumerate(names) if other == name), key=lambda i: numbers[i])
+        n = len(order)
+        chosen = order[(block - 1) * n // blocks: block * n // blocks]
+        if not chosen:
+            continue
+        first, last = numbers[chosen[0]], numbers[chosen[-1]]
+        held += chosen
+        dropped |= {i for i in order if first - buffer <= numbers[i] <= last + buffer}
+    train = [frames[i] for i in range(len(frames)) if i not in dropped]
+    if not held:
+        raise DatasetError(f"block fold {block} of {blocks}: no sequence has a frame in it (every sequence holds "
+                           f"fewer than {blocks} frames); use fewer blocks")
+    if not train:
+        raise DatasetError(f"block fold {block} of {blocks} (buffer {buffer}): nothing is left to train on; use more "
+                           f"blocks or a smaller buffer")
+    return Frames(sources, train), Frames(sources, [frames[i] for i in held])
 
 
 def _read_image(path: Path) -> np.ndarray:
@@ -150,10 +211,21 @@ class PairDataset(Dataset):
         """The sequence of each frame (`sequence_of` of its image path)."""
         return [self.sequence_of(image) for image, _ in self.pairs]
 
+    @property
+    def frame_numbers(self) -> list[int | None]:
+        """The number of each frame in its sequence (`frame_number_of` of its image path; None: not known)."""
+        return [self.frame_number_of(image) for image, _ in self.pairs]
+
     @staticmethod
     def sequence_of(image: Path) -> str:
         """The sequence a frame belongs to, from its image path (a dataset's own rule)."""
         raise DatasetError(f"{image}: this dataset's frames carry no sequence names")
+
+    @staticmethod
+    def frame_number_of(image: Path) -> int | None:
+        """The frame's number in its sequence, from its image path (a dataset's own rule; None: not known, the
+        frame's position in its sequence stands in)."""
+        return None
 
     def split_by_prefix(self, prefix: str) -> tuple["PairDataset", "PairDataset"]:
         """(pairs whose image file name does not start with ``prefix``, those that do): e.g. a CamVid sequence
@@ -210,6 +282,13 @@ class CamVid(PairDataset):
             raise DatasetError(f"{image}: no sequence prefix in the file name (CamVid names frames SEQUENCE_FRAME, "
                                f"e.g. 0016E5_07959.png)")
         return image.name.split("_", 1)[0]
+
+    @staticmethod
+    def frame_number_of(image: Path) -> int | None:
+        """The video frame number after the prefix ("0016E5_07959.png" -> 7959, "0006R0_f00930.png" -> 930; 30
+        a second), None where the name holds no digits there."""
+        digits = re.sub(r"\D", "", Path(image).stem.split("_", 1)[-1]) if "_" in Path(image).name else ""
+        return int(digits) if digits else None
 
 
 class Cityscapes(PairDataset):

@@ -139,6 +139,7 @@ class FolderDataset(PairDataset):
         self._colours_sorted = colours[self._colour_order]
 
     sequence_of = staticmethod(CamVid.sequence_of)
+    frame_number_of = staticmethod(CamVid.frame_number_of)
 
     def _bad(self, label_path: Path, values: np.ndarray, kind: str) -> DatasetError:
         shown = ", ".join(str(v) for v in values[:5]) + (" ..." if len(values) > 5 else "")

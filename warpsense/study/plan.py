@@ -8,14 +8,21 @@ A plan is a TOML file (see `configs/studies/`)::
     set = ["train.epochs=100"]      # overrides for every cell
     seeds = [0, 1, 2]
     reference = "fixed_isp"         # the camera the others are compared with, seed by seed
-    folds = "sequence"              # "sequence": a cell per held-out sequence (train on the others' frames of train +
+    folds = "blocks"                # "blocks": a cell per block fold (buffered blocked cross-validation: block j of
+                                    # every sequence of train + val judged, the rest less a buffer trained on);
+                                    # "sequence": a cell per held-out sequence (train on the others' frames of train +
                                     # val, judge on its frames); "none": train on train, judge on val
+    blocks = 5                      # with folds = "blocks": blocks per sequence, one fold each
+    block_buffer = 30               # with folds = "blocks": frame numbers around a held-out block left out of training
     sequences = []                  # with folds = "sequence": the sequences held out, one fold each (default: all)
 
     [[camera]]
     name = "fixed_isp"
     preset = "camvid_fixed_isp"     # applied over the base ("" = none)
     set = []                        # overrides of this camera
+    seed_offset = 0                 # the camera's runs train with run.seed = the cell's seed + this: a twin of another
+                                    # camera (same preset, another name, an offset) is an independent replicate of it,
+                                    # an A/A check of the verdicts (with 0 it would repeat the other's runs exactly)
 
     [[light]]
     name = "night"
@@ -37,11 +44,13 @@ A plan is a TOML file (see `configs/studies/`)::
     analog_gain = 2.0               # photons.analog_gain (optional)
     set = ["optics.exposure_ms=2.5"]  # the operating point at this level (optional)
 
-Every cell (camera x light x seed, and x fold with ``folds = "sequence"``) is one ordinary training run; its config
-is the base, the camera's preset, the study's and the camera's overrides, the light's sensor keys, the fold's
-``data.holdout_sequence``, the seed, then the command line's ``--set`` (whose ``study.KEY=VALUE`` entries change the
-plan's [study] table instead, e.g. ``--set study.folds=none``). In any of these overrides ``{fold}`` and ``{seed}``
-stand for the cell's held-out sequence and seed (`fill_placeholders`), for inputs made per fold. A sweep's point is
+Every cell (camera x light x seed, and x fold with ``folds = "blocks"`` or ``"sequence"``) is one ordinary training
+run; its config is the base, the camera's preset, the study's and the camera's overrides, the light's sensor keys, the
+fold's ``data.holdout_block`` (with ``data.holdout_blocks`` and ``data.block_buffer``) or ``data.holdout_sequence``,
+the seed (plus the camera's ``seed_offset``), then the command line's ``--set`` (whose ``study.KEY=VALUE`` entries
+change the plan's [study] table instead, e.g. ``--set study.folds=none``). In any of these overrides ``{fold}`` and
+``{seed}`` stand for the cell's fold ("block2", or the held-out sequence) and seed (`fill_placeholders`), for inputs
+made per fold. A sweep's point is
 a camera like the others (crossed with lights, folds and seeds; the reference may be one), named
 ``<name>_<label><value>_...`` in the grid's key order (``grid_f1p4_t30``): camera names hold no '.', which
 separates a run directory's parts, so a value's decimal point is written ``p`` and a minus sign ``m``. Unknown keys, wrong types, duplicate or unknown names,
@@ -52,6 +61,7 @@ naming the plan file and key, found before anything is written.
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import itertools
 import json
 from dataclasses import dataclass
@@ -72,6 +82,7 @@ class CameraSpec:
     name: str
     preset: str = ""
     set: tuple[str, ...] = ()
+    seed_offset: int = 0
 
 
 @dataclass(frozen=True)
@@ -122,14 +133,19 @@ class LightSpec:
         return [*keys, f"quantize.bits={self.bits}", *self.set]
 
 
-FOLDS = ("none", "sequence")
-"""A study's protocol: "none" (train on the train split, judge on val) or "sequence" (one fold per held-out
+FOLDS = ("none", "blocks", "sequence")
+"""A study's protocol: "none" (train on the train split, judge on val), "blocks" (one fold per block of every
+sequence of the labelled splits, buffered: `warpsense.data.block_fold`) or "sequence" (one fold per held-out
 sequence of the labelled splits)."""
+
+BLOCK_FOLD = "block"
+"""Block folds are named BLOCK_FOLD + their number: "block1" ... "block5"."""
 
 
 @dataclass(frozen=True)
 class Cell:
-    """One training run of a study; ``fold`` is the held-out sequence ("" without folds)."""
+    """One training run of a study; ``fold`` is the fold's name ("block2", the held-out sequence; "" without
+    folds)."""
 
     camera: str
     light: str
@@ -161,13 +177,30 @@ class Plan:
     folds: str = "none"  # FOLDS
     sequences: tuple[str, ...] = ()  # the held-out sequences, one fold each (folds = "sequence")
     sweeps: tuple[SweepSpec, ...] = ()  # where the cameras of [[sweep]] tables came from (they are in ``cameras``)
+    blocks: int = 5  # folds = "blocks": blocks per sequence, one fold each
+    block_buffer: int = 30  # folds = "blocks": frame numbers around a held-out block left out of training
+
+    def fold_names(self) -> tuple[str, ...]:
+        """The folds' names, in order ("block1".., the held-out sequences; one "" without folds)."""
+        if self.folds == "blocks":
+            return tuple(f"{BLOCK_FOLD}{j}" for j in range(1, self.blocks + 1))
+        return self.sequences if self.folds == "sequence" else ("",)
+
+    def fold_overrides(self, fold: str) -> list[str]:
+        """The data keys that make a run fold ``fold`` of this plan (none for "")."""
+        if not fold:
+            return []
+        if self.folds == "blocks":
+            return [f"data.holdout_block={int(fold.removeprefix(BLOCK_FOLD))}", f"data.holdout_blocks={self.blocks}",
+                    f"data.block_buffer={self.block_buffer}"]
+        return [f"data.holdout_sequence={json.dumps(fold)}"]
 
     def cells(self) -> list[Cell]:
         """Every cell, light by light, seed by seed, fold by fold, camera by camera (so a partial study run in this
         order has whole comparisons: every fold of seed 0 before seed 1). The local pool and the Slurm executor hand
         them out longest first instead (`warpsense.study.runner.cell_work`), the order that finishes a study
         soonest; cells of equal work (the cameras of one fold and seed, as a rule) keep this order."""
-        folds = self.sequences if self.folds == "sequence" else ("",)
+        folds = self.fold_names()
         return [Cell(camera.name, light.name, seed, fold) for light in self.lights for seed in self.seeds
                 for fold in folds for camera in self.cameras if not light.cameras or camera.name in light.cameras]
 
@@ -175,25 +208,45 @@ class Plan:
         for cell in self.cells():
             if cell.id == cell_id:
                 return cell
-        form = "camera/light/fold/seed" if self.folds == "sequence" else "camera/light/seed"
+        form = "camera/light/fold/seed" if self.folds != "none" else "camera/light/seed"
         raise PlanError(f"{self.source}: no cell {cell_id!r}; cells are {form}, e.g. {self.cells()[0].id}")
+
+    def select(self, patterns: list[str] | tuple[str, ...]) -> list[Cell]:
+        """The cells whose id (`Cell.id`) matches any of the shell ``patterns`` (`fnmatch`: "fixed_isp/*",
+        "*/night/block1/*"), in plan order; every cell without patterns. A pattern that matches no cell is a
+        PlanError naming it."""
+        cells = self.cells()
+        if not patterns:
+            return cells
+        for pattern in patterns:
+            if not any(fnmatch.fnmatchcase(cell.id, pattern) for cell in cells):
+                form = "camera/light/fold/seed" if self.folds != "none" else "camera/light/seed"
+                raise PlanError(f"{self.source}: --cells {pattern!r} matches no cell; cells are {form}, e.g. "
+                                f"{cells[0].id}")
+        return [cell for cell in cells if any(fnmatch.fnmatchcase(cell.id, pattern) for pattern in patterns)]
 
     def config(self, cell: Cell, output_dir: str | Path) -> Config:
         """The resolved config of ``cell``, its run directory <output_dir>/<cell.run_name>."""
         camera = next(c for c in self.cameras if c.name == cell.camera)
         light = next(light for light in self.lights if light.name == cell.light)
         files = [file for file in (self.base, camera.preset) if file]
-        fold = [f"data.holdout_sequence={json.dumps(cell.fold)}"] if cell.fold else []
-        overrides = [*self.set, *camera.set, *light.overrides(), *fold, f"run.seed={cell.seed}",
+        overrides = [*self.set, *camera.set, *light.overrides(), *self.fold_overrides(cell.fold),
+                     f"run.seed={cell.seed + camera.seed_offset}",
                      f"run.name={cell.run_name}", f"run.output_dir={output_dir}", *cell_overrides(self.overrides)]
         return load_config(files, [fill_placeholders(text, cell) for text in overrides])
 
     def to_dict(self) -> dict:
-        """The plan as JSON-ready data; ``sweeps`` only where it has some (a study directory recorded before plans
-        had sweeps holds the same plan)."""
+        """The plan as JSON-ready data; ``sweeps`` only where it has some, the block keys only with block folds and a
+        camera's ``seed_offset`` only where it is set (a study directory recorded before plans had them holds the
+        same plan)."""
         data = dataclasses.asdict(self)
         if not self.sweeps:
             del data["sweeps"]
+        if self.folds != "blocks":
+            del data["blocks"], data["block_buffer"]
+        for camera in data["cameras"]:
+            if not camera["seed_offset"]:
+                del camera["seed_offset"]
         return data
 
     @classmethod
@@ -201,8 +254,10 @@ class Plan:
         """The plan `to_dict` wrote (a study directory's plan.json)."""
         return cls(source=data.get("source", ""), name=data["name"], base=data["base"], set=tuple(data["set"]),
                    seeds=tuple(data["seeds"]), reference=data["reference"], folds=data.get("folds", "none"),
-                   sequences=tuple(data.get("sequences", ())),
-                   cameras=tuple(CameraSpec(c["name"], c["preset"], tuple(c["set"])) for c in data["cameras"]),
+                   sequences=tuple(data.get("sequences", ())), blocks=data.get("blocks", 5),
+                   block_buffer=data.get("block_buffer", 30),
+                   cameras=tuple(CameraSpec(c["name"], c["preset"], tuple(c["set"]), c.get("seed_offset", 0))
+                                 for c in data["cameras"]),
                    lights=tuple(LightSpec(x["name"], x.get("full_well_electrons"), x.get("read_electrons"),
                                           x["bits"], tuple(x["cameras"]), x.get("scene", ""),
                                           x.get("analog_gain"), tuple(x.get("set", ()))) for x in data["lights"]),
@@ -210,10 +265,11 @@ class Plan:
                    sweeps=tuple(SweepSpec.from_dict(sweep) for sweep in data.get("sweeps", ())))
 
 
-STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str, "folds": str, "sequences": list}
+STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str, "folds": str, "sequences": list,
+              "blocks": int, "block_buffer": int}
 
 
-CAMERA_KEYS = {"name": str, "preset": str, "set": list}
+CAMERA_KEYS = {"name": str, "preset": str, "set": list, "seed_offset": int}
 SWEEP_KEYS = {"name": str, "preset": str, "set": list, "grid": dict, "labels": dict}
 LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons": (int, float), "bits": int,
               "cameras": list, "scene": str, "analog_gain": (int, float), "set": list}
@@ -374,6 +430,13 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
         raise PlanError(f"{source}: study.folds: {study['folds']!r} is not a protocol; valid: {', '.join(FOLDS)}")
     if study.get("sequences") and study.get("folds", "none") != "sequence":
         raise PlanError(f"{source}: study.sequences: held-out sequences need folds = \"sequence\"")
+    for key in ("blocks", "block_buffer"):
+        if key in study and study.get("folds", "none") != "blocks":
+            raise PlanError(f"{source}: study.{key}: block folds' {key} needs folds = \"blocks\"")
+    if not study.get("blocks", 5) >= 2 or not study.get("block_buffer", 0) >= 0:
+        raise PlanError(f"{source}: study.{'blocks' if study.get('blocks', 5) < 2 else 'block_buffer'}: blocks must "
+                        f"be >= 2 (folds), block_buffer >= 0 (frame numbers), got {study.get('blocks', 5)} and "
+                        f"{study.get('block_buffer', 30)}")
     cameras, lights, sweep_tables = data.get("camera", []), data.get("light"), data.get("sweep", [])
     if not isinstance(sweep_tables, list) or not all(isinstance(table, dict) for table in sweep_tables):
         raise PlanError(f"{source}: sweep: expected [[sweep]] tables")
@@ -424,17 +487,21 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
         set=_strings(study.get("set", []), f"{source}: study.set"), seeds=tuple(seeds),
         reference=study["reference"],
         cameras=tuple(CameraSpec(c["name"], c.get("preset", ""), _strings(c.get("set", []), f"{source}: camera "
-                                                                           f"{c['name']}.set")) for c in cameras),
+                                                                           f"{c['name']}.set"),
+                                 _seed_offset(c, source)) for c in cameras),
         lights=tuple(LightSpec(x["name"], _float(x.get("full_well_electrons")), _float(x.get("read_electrons")),
                                x.get("bits", 10), tuple(x.get("cameras", [])), x.get("scene", ""),
                                _float(x.get("analog_gain")),
                                _strings(x.get("set", []), f"{source}: light {x['name']}.set")) for x in lights),
-        overrides=tuple(overrides), folds=study.get("folds", "none"), sweeps=tuple(sweeps))
+        overrides=tuple(overrides), folds=study.get("folds", "none"), sweeps=tuple(sweeps),
+        blocks=study.get("blocks", 5), block_buffer=study.get("block_buffer", 30))
     if plan.folds == "sequence":
         plan = dataclasses.replace(plan, sequences=_fold_sequences(plan, study.get("sequences", [])))
+    elif plan.folds == "blocks":
+        fold_sizes(plan)  # every fold judges and trains on frames, else a PlanError naming it
     elif any("{fold}" in text for text in _all_overrides(plan)):
-        raise PlanError(f"{source}: {{fold}} in a set stands for a cell's held-out sequence: it needs "
-                        f"study.folds = \"sequence\"")
+        raise PlanError(f"{source}: {{fold}} in a set stands for a cell's fold: it needs study.folds = \"blocks\" "
+                        f"or \"sequence\"")
     checked_data = set()
     for camera in plan.cameras:  # every cell's config resolves (seeds only change run.seed, folds the held-out name)
         for light in plan.lights:
@@ -442,8 +509,7 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                 continue
             where = f"{source}: camera {camera.name!r} at light {light.name!r}"
             try:
-                config = plan.config(Cell(camera.name, light.name, plan.seeds[0], plan.sequences[0] if
-                                          plan.sequences else ""), "runs")
+                config = plan.config(Cell(camera.name, light.name, plan.seeds[0], plan.fold_names()[0]), "runs")
                 check_config(config, "config")
             except ConfigError as error:
                 raise PlanError(f"{where}: {error}") from None
@@ -463,6 +529,61 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     return plan
 
 
+def _seed_offset(camera: dict, source: str) -> int:
+    offset = camera.get("seed_offset", 0)
+    if offset < 0:
+        raise PlanError(f"{source}: camera {camera['name']}.seed_offset: expected an integer >= 0, got {offset}")
+    return offset
+
+
+def _base_data(plan: Plan):
+    """The data section of the plan's base config with the study's and the command line's overrides (what the folds
+    are cut from), any placeholder left empty; a PlanError naming the key or file where it does not resolve."""
+    unfilled = Cell("", "", 0, "")
+    overrides = [fill_placeholders(text, unfilled) for text in [*plan.set, *cell_overrides(plan.overrides)]]
+    try:
+        return load_config([plan.base] if plan.base else None, overrides).data
+    except ConfigError as error:
+        raise PlanError(f"{plan.source}: {error}") from None
+
+
+def fold_sizes(plan: Plan) -> list[dict]:
+    """Per fold of the plan: {"fold", "train" (frames it trains on), "judged" (frames it is judged on), "labelled"
+    (frames of the labelled splits: train_split + val_split)}, from the base config's data (file lists only; before
+    ``max_train_images`` and ``max_val_images``). Without folds, one row "" of the train and val splits. A fold that
+    judges no frame or trains on none is a PlanError naming it."""
+    from warpsense.data import build_dataset, fold_frames
+
+    data = _base_data(plan)
+    rows = []
+    try:
+        if plan.folds == "none":
+            train = len(build_dataset(data, data.train_split, train=True, seed=0))
+            judged = len(build_dataset(data, data.val_split, train=False, seed=0))
+            return [{"fold": "", "train": train, "judged": judged, "labelled": train + judged}]
+        for fold in plan.fold_names():
+            keys = dict(_assignment(text) for text in plan.fold_overrides(fold))
+            train, held = fold_frames(dataclasses.replace(data, **keys))
+            rows.append({"fold": fold, "train": len(train), "judged": len(held),
+                         "labelled": len(train.sources[0]) + len(train.sources[1])})
+    except DatasetError as error:
+        where = f"study.folds = {plan.folds!r}" + (f", fold {fold}" if plan.folds != "none" else "")
+        raise PlanError(f"{plan.source}: {where}: data: {error}") from None
+    return rows
+
+
+def _assignment(text: str) -> tuple[str, object]:
+    """"data.key=value" as (key, the parsed value)."""
+    return next(iter(parse_override(text)["data"].items()))
+
+
+def fold_lines(rows: list[dict]) -> list[str]:
+    """`fold_sizes`' rows in words: "fold block1: train 372 frames (79% of the labelled frames), judge 93 frames"."""
+    return [f"{'fold ' + row['fold'] if row['fold'] else 'no folds (the train split; judged on val)'}: train "
+            f"{row['train']} frames ({row['train'] / max(row['labelled'], 1):.0%} of the labelled frames), judge "
+            f"{row['judged']} frames" for row in rows]
+
+
 def _all_overrides(plan: Plan) -> list[str]:
     """Every override string of the plan: the study's, the cameras', the lights' and the command line's."""
     return [*plan.set, *(text for camera in plan.cameras for text in camera.set),
@@ -473,25 +594,21 @@ def _fold_sequences(plan: Plan, wanted: list) -> tuple[str, ...]:
     """The held-out sequences of a ``folds = "sequence"`` plan: ``wanted`` (study.sequences) or every sequence of
     the base config's labelled splits (train_split + val_split), checked against the frames."""
     where = f"{plan.source}: study.folds"
-    try:  # the config's own errors (a bad --set, a missing data root) name their key or file, not study.folds
-        unfilled = Cell("", "", 0, "")  # the base config's data keys, with any placeholder left empty
-        overrides = [fill_placeholders(text, unfilled) for text in [*plan.set, *cell_overrides(plan.overrides)]]
-        config = load_config([plan.base] if plan.base else None, overrides)
-        names = sequence_names(config.data)
-    except ConfigError as error:
-        raise PlanError(f"{plan.source}: {error}") from None
+    data = _base_data(plan)  # the config's own errors (a bad --set, a missing data root) name their key or file
+    try:
+        names = sequence_names(data)
     except DatasetError as error:
         raise PlanError(f"{plan.source}: data: {error} (study.folds = \"sequence\" lists the labelled splits' "
                         "sequences)") from None
     if len(names) < 2:
-        raise PlanError(f"{where}: the labelled splits ({config.data.train_split}, {config.data.val_split}) hold "
+        raise PlanError(f"{where}: the labelled splits ({data.train_split}, {data.val_split}) hold "
                         f"{len(names)} sequence(s) ({', '.join(names)}): a fold needs others to train on")
     if not all(isinstance(name, str) for name in wanted) or len(set(wanted)) != len(wanted):
         raise PlanError(f"{plan.source}: study.sequences: expected distinct sequence names, got {wanted!r}")
     for name in wanted:
         if name not in names:
             raise PlanError(f"{plan.source}: study.sequences: {name!r} holds no frame of the labelled splits "
-                            f"({config.data.train_split}, {config.data.val_split}); sequences: {', '.join(names)}")
+                            f"({data.train_split}, {data.val_split}); sequences: {', '.join(names)}")
     chosen = tuple(wanted) or tuple(names)
     for name in chosen:
         if not name or not _plain(name):
