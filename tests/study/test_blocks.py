@@ -16,7 +16,7 @@ from warpsense.data import DatasetError, block_fold, build_fold, frame_numbers, 
 from warpsense.data.datasets import CamVid
 from warpsense.data.scenes import StreetScenes
 from warpsense.resources import CONFIG_DIR
-from warpsense.study import load_plan, run_cells, study_record
+from warpsense.study import load_plan, study_record
 from warpsense.study.plan import Plan, PlanError, fold_lines, fold_sizes
 from warpsense.study.report import render_text
 

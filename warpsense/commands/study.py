@@ -152,8 +152,8 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     from warpsense.study.runner import (
         cell_state,
         cell_worker,
-        check_runnable,
         check_reuse_dirs,
+        check_runnable,
         plan_commands,
         run_cells,
     )
