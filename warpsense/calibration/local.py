@@ -1,0 +1,116 @@
+"""Local noise samples of one CFA site plane: what a single capture's fit reads.
+
+The plane (the pixels of one site of the CFA tile, so that the colour pattern is no edge) is cut into 3 x 3 blocks.
+With u0 = (1, 1, 1) / sqrt 3, u1 = (1, 0, -1) / sqrt 2 and u2 = (1, -2, 1) / sqrt 6, each block gives:
+
+- its mean ``m`` (the box filter u0 u0^T, over 3): an estimate of the local signal;
+- its detail energy ``e``, the mean square of its 4 detail coefficients sum(f * block) for f = u1 u1^T, u1 u2^T,
+  u2 u1^T, u2 u2^T. The four filters are orthonormal, and orthogonal to the box, so under Gaussian noise of variance
+  v the coefficients are independent N(0, v), independent of m, and E[e] = v. Each is a product of two
+  zero-sum factors, so each annihilates every signal of the form f(x) + g(y): rows, columns, horizontal and
+  vertical edges, gradients; only corners, curvature across both axes and fine texture leak signal into e. They
+  play the part of the wavelet detail coefficients of Foi et al. 2008 (section IV).
+
+A sample is a block with its ring, the 8 blocks around it (a 9 x 9 window). The ring's mean gives the sample's
+level, and the ring's mean detail energy its roughness; neither shares a pixel with the centre block, so choosing
+samples by level and roughness does not bias the centre's energy. Samples sit on every other block position
+(stride 2): neighbouring blocks then overlap by a third, so their energies are nearly independent
+(`STRIDE_CORRELATION`), and the grid costs a quarter of every position's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+_U1 = np.array([1.0, 0.0, -1.0]) / np.sqrt(2.0)
+_U2 = np.array([1.0, -2.0, 1.0]) / np.sqrt(6.0)
+DETAILS = [np.outer(a, b) for a in (_U1, _U2) for b in (_U1, _U2)]
+"""The 4 detail filters: orthonormal, zero-sum along both axes."""
+
+CENTRE = [3]
+DEGREES = len(CENTRE)
+"""Degrees of freedom of a block's detail energy: v * chi-square(DEGREES) / DEGREES under the noise alone."""
+RING_DETAILS = [0, 1, 2, 3]
+
+STRIDE = 2
+"""Samples every STRIDE block positions along each axis."""
+
+RING = [(dy, dx) for dy in (-3, 0, 3) for dx in (-3, 0, 3) if (dy, dx) != (0, 0)]
+"""The 8 blocks around a sample's centre block (offsets in pixels): they tile its 9 x 9 window with it."""
+
+
+def _overlap_factor(stride: int) -> float:
+    """The variance of a mean of n sample energies (samples ``stride`` apart on a grid, Gaussian noise of variance
+    v) is 2 v^2 / n times this: 1 / DEGREES for independent samples, more for overlapping blocks. Under Gaussian
+    noise cov(d_k(p)^2, d_l(q)^2) = 2 v^2 c_kl(p - q)^2, c_kl the filters' cross-correlation."""
+    total = 0.0
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            if dy % stride or dx % stride:
+                continue
+            for first in (DETAILS[k] for k in CENTRE):
+                for second in (DETAILS[k] for k in CENTRE):
+                    shifted = np.zeros((7, 7))
+                    shifted[2 + dy:5 + dy, 2 + dx:5 + dx] = second
+                    padded = np.zeros((7, 7))
+                    padded[2:5, 2:5] = first
+                    total += float(np.sum(padded * shifted)) ** 2
+    return total / DEGREES**2
+
+
+STRIDE_CORRELATION = _overlap_factor(STRIDE)
+"""2 v^2 / n times this is the variance of a mean of n sample energies STRIDE apart."""
+
+
+@dataclass
+class PlaneSamples:
+    """The samples of one site plane (1-D arrays of one length): centre block ``mean`` and detail ``energy``, ring
+    ``level`` and ring ``roughness``; ``rows``, ``cols``: the centre block's top-left pixel in the plane."""
+
+    mean: np.ndarray
+    energy: np.ndarray
+    level: np.ndarray
+    roughness: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "PlaneSamples":
+        return cls(*(np.zeros(0) for _ in range(4)), np.zeros(0, int), np.zeros(0, int))
+
+    def __len__(self) -> int:
+        return int(self.mean.size)
+
+
+def plane_samples(plane: np.ndarray, lower: float, upper: float, step: float) -> PlaneSamples:
+    """Every sample of ``plane`` (float, [h, w], white-level units) whose ring is not wholly clipped.
+
+    A ring all at a clip bound (a saturated sky, a clipped shadow) carries no noise to read; it is left out by its
+    ring alone, never by the centre's own values (which would bias the centre's energy).
+    """
+    plane = np.asarray(plane, dtype=np.float64)
+    height, width = plane.shape
+    rows = np.arange(3, height - 2 - 3, STRIDE)
+    cols = np.arange(3, width - 2 - 3, STRIDE)
+    if rows.size == 0 or cols.size == 0:
+        return PlaneSamples.empty()
+    # block statistics at every top-left position (valid correlations: [h - 2, w - 2])
+    means = ndimage.uniform_filter(plane, 3, mode="constant")[1:-1, 1:-1]
+    squares = [ndimage.correlate(plane, f, mode="constant")[1:-1, 1:-1] ** 2 for f in DETAILS]
+    energies = sum(squares[k] for k in CENTRE) / DEGREES
+    rough = sum(squares[k] for k in RING_DETAILS) / len(RING_DETAILS)
+    grid_rows, grid_cols = (grid.ravel() for grid in np.meshgrid(rows, cols, indexing="ij"))
+    level = np.zeros(grid_rows.size)
+    roughness = np.zeros(grid_rows.size)
+    for dy, dx in RING:
+        level += means[grid_rows + dy, grid_cols + dx]
+        roughness += rough[grid_rows + dy, grid_cols + dx]
+    level /= len(RING)
+    roughness /= len(RING)
+    margin = 1e-6 * step + 1e-12  # every ring pixel at the clip code
+    keep = (level > lower + margin) & (level < upper - margin)
+    return PlaneSamples(means[grid_rows, grid_cols][keep], energies[grid_rows, grid_cols][keep], level[keep],
+                        roughness[keep], grid_rows[keep], grid_cols[keep])
