@@ -11,11 +11,11 @@ import sys
 from collections.abc import Iterator
 
 from warpsense import __version__
-from warpsense.commands import bench, convert, lens, predict, simulate, study, train
+from warpsense.commands import bench, calibrate, convert, lens, predict, simulate, study, train
 from warpsense.commands import eval as evaluate
 
 COMMANDS = {"train": train, "eval": evaluate, "bench": bench, "convert": convert, "predict": predict, "study": study,
-            "lens": lens, "simulate": simulate}
+            "lens": lens, "simulate": simulate, "calibrate": calibrate}
 """Each command's module, in the order `warpsense --help` lists them: its ``register(commands, name)`` adds its
 parser, its ``run(args)`` runs the parsed command and returns the exit code."""
 

@@ -66,6 +66,7 @@ BASE = {
     ("study", "report"): ["study", "report", "no_such_study"],
     ("lens",): ["lens", "phone_68deg"],
     ("simulate",): ["simulate", "no_such_image.png", "--out", "simulated", "--config", preset_names()[0]],
+    ("calibrate",): ["calibrate", "no_such_capture.dng"],
 }
 # options that a value of theirs needs beside it to be read at all
 CONTEXT = {
@@ -140,6 +141,15 @@ FREE_STRINGS = {
     "simulate --set": [("unknown_key", ["--set", "train.epoch=3"], ("train.epoch",))],
     "simulate --checkpoint": [("with_config", ["--checkpoint", "no_such.safetensors"], ("--checkpoint",))],
     "simulate --out": [("a_file", ["--out", "file.txt"], ("--out",))],
+    "calibrate captures": [("missing_file", [], ("no_such_capture.dng",))],
+    "calibrate --json": [("missing_folder", ["--json", "no_dir/c.json"], ("--json",)),
+                         ("a_folder", ["--json", "."], ("--json",))],
+    "calibrate --out": [("missing_folder", ["--out", "no_dir/p.toml"], ("--out",)),
+                        ("not_toml", ["--out", "preset.txt"], ("--out",))],
+    "calibrate --base": [("unknown_preset", ["--out", "p.toml", "--base", "no_such_preset"], ("no_such_preset",)),
+                         ("without_out", ["--base", "camvid"], ("--base",))],
+    "calibrate --plot": [("missing_folder", ["--plot", "no_dir/c.png"], ("--plot",))],
+    "calibrate --dark": [("without_series", ["--dark", "d.dng"], ("--dark",))],
 }
 # positionals whose free-string case replaces the base's value instead of adding arguments
 REPLACE = {"predict checkpoint": (CHECKPOINT, "no_such.safetensors"), "study run plan": ("smoke", "no_such_plan"),
