@@ -284,8 +284,8 @@ def test_a_flat_map_names_no_best_point(tmp_path, monkeypatch):
     assert learned["inside_best_interval"] is None  # no best point, so no best point's interval to be inside
     text = render_text(record)
     assert "best: none, 2 points tie at 0.0005 (t_exposure_ms3, t_exposure_ms10)" in text and ": *0." not in text
-    assert ("learned design 'learned' (learns optics.exposure_ms): 0.0005 [0.0005, 0.0005], +0.0000 to the tied "
-            "points; no point is best: the grid ties") in text
+    assert ("learned design 'learned' (learns optics.exposure_ms): 0.0005 [0.0005, 0.0005] (n=2, too few), +0.0000 "
+            "to the tied points; no point is best: the grid ties") in text
     assert "map of sweep 't' at night: mIoU mean over seeds [95% interval]" in text  # a plan without folds
     [(title, legend)] = _plot_texts(record, tmp_path / "flat.png", monkeypatch)
     assert title == "t at night (heldout): no best point, 2 points tie at 0.001" and "None" not in title

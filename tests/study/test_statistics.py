@@ -150,3 +150,36 @@ def test_paired_difference_over_fold_seed_pairs():
     assert result["seeds"] == [("a", 0), ("a", 1), ("b", 0)]
     assert result["mean"] == pytest.approx(1 / 15)  # as the seed-paired case by hand above
     assert result["low"] == pytest.approx(1 / 15 - T_975_2 * math.sqrt(1 / 1200) / math.sqrt(3))
+
+
+T_975_1 = 12.706204736174707  # Student t, 97.5% quantile, 1 degree of freedom (tables)
+
+
+def test_a_score_interval_is_clipped_to_its_range_and_marked_over_too_few_values():
+    """Before: the report printed '0.0723 [-0.2872, 0.4319]' for two seeds, an mIoU interval below 0, with no word
+    that two values make a t interval 12.7 times their distance wide."""
+    from warpsense.study.statistics import interval_text
+
+    two = t_interval([0.0723 - 0.0283, 0.0723 + 0.0283])
+    assert two["low"] == pytest.approx(0.0723 - T_975_1 * 0.0283)  # the record keeps the t interval as computed
+    assert interval_text(two) == f"0.0723 [0.0000, {0.0723 + T_975_1 * 0.0283:.4f}] (n=2, too few)"
+    assert interval_text(t_interval([0.5, 0.6, 0.7])) == "0.6000 [0.3516, 0.8484]"  # 3 values: as before
+    assert interval_text(t_interval([0.95, 0.999])) == f"0.9745 [{0.9745 - T_975_1 * 0.0245:.4f}, 1.0000] (n=2, too few)"
+    difference = {"mean": -0.4, "low": -1.7, "high": 0.9, "n": 2}  # a difference of scores lies in [-1, 1]
+    assert interval_text(difference, signed=True) == "-0.4000 [-1.0000, +0.9000] (n=2, too few)"
+    assert interval_text(t_interval([0.42])) == "0.4200 [n=1, no interval]"
+    # clustered by fold: the folds' means are the values, however many seeds each fold has
+    two_folds = fold_interval({("a", 0): 0.5, ("a", 1): 0.6, ("b", 0): 0.55, ("b", 1): 0.65})
+    assert interval_text(two_folds).endswith(" (2 folds, too few)")
+    assert not interval_text(fold_interval({(f, s): 0.5 + 0.01 * s + 0.02 * f for f in range(3)
+                                            for s in range(2)})).endswith("too few)")
+
+    # the report says once what the mark means, with the t quantiles that make it so; nothing where none is marked
+    from warpsense.study.statistics import few_values_note
+
+    [note] = few_values_note({"groups": [{"miou": two}, {"miou": t_interval([0.5, 0.6, 0.7])}],
+                              "per_class_iou": {"road": t_interval([0.1])}})
+    assert note.startswith("note: 'too few' marks an interval over fewer than 3 independent values")
+    assert f"{T_975_1:.2f} over 2" in note and f"at least 3 values (t {T_975_2:.2f})" in note
+    assert few_values_note({"groups": [{"miou": t_interval([0.5, 0.6, 0.7])}],
+                            "per_class_iou": {"road": two}}) == []  # per-class intervals are not printed

@@ -21,7 +21,7 @@ import numpy as np
 
 from warpsense.study.plan import Plan
 from warpsense.study.runner import run_dir
-from warpsense.study.statistics import interval_text
+from warpsense.study.statistics import bounded, interval_text
 from warpsense.train.run_dir import METRICS, read_metrics
 
 LEARNED_KEYS = {"optics.f_number": ("optics.f_number_learnable", "f_number"),
@@ -274,9 +274,29 @@ def _tick(label: str, value) -> str:
 
 
 def plot_maps(record: dict, path: str | Path, split: str | None = None) -> bool:
-    """Draw the maps of ``split`` (default: the first split with one): per sweep and light, a heatmap (two swept
-    keys) or a curve (one) of mean mIoU with its interval per grid point, the best point outlined, and each learned
-    run's path from start (o) to end (*). Returns False (nothing written) where no map has one or two keys."""
+    """Write `maps_figure` of ``split`` to ``path``. Returns False (nothing written) where no map has one or two
+    keys."""
+    import matplotlib.pyplot as plt
+
+    figure = maps_figure(record, split)
+    if figure is None:
+        return False
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return True
+
+
+SCORE_TEXT_OFFSET = 0.3
+"""How far above its grid point (in cells) a heatmap cell's score is written: a learned path starts on a grid point
+(its o) and often ends near one (its *); the score written on the point itself was covered by them."""
+
+
+def maps_figure(record: dict, split: str | None = None):
+    """The maps of ``split`` (default: the first split with one): per sweep and light, a heatmap (two swept keys) or
+    a curve (one) of mean mIoU with its interval (within [0, 1]) per grid point, the best point outlined, and each
+    learned run's path from start (o) to end (*); a heatmap cell's score is written above its grid point and over the
+    paths (`SCORE_TEXT_OFFSET`). Returns the matplotlib figure (the caller closes it), None where no map has one or
+    two keys."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -286,7 +306,7 @@ def plot_maps(record: dict, path: str | Path, split: str | None = None) -> bool:
     split = split if split is not None else (maps[0]["split"] if maps else None)
     maps = [m for m in maps if m["split"] == split]
     if not maps:
-        return False
+        return None
     figure, axes = plt.subplots(1, len(maps), figsize=(6.5 * len(maps), 5.5), squeeze=False)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for axis, entry in zip(axes[0], maps):
@@ -302,10 +322,10 @@ def plot_maps(record: dict, path: str | Path, split: str | None = None) -> bool:
                 i, j = values[0].index(point["values"][0]), values[1].index(point["values"][1])
                 if point["miou"] is not None:
                     means[j, i] = point["miou"]["mean"]
-                    low, high = point["miou"]["low"], point["miou"]["high"]
+                    low, high = (None, None) if point["miou"]["low"] is None else bounded(point["miou"])
                     text = f"{point['miou']['mean']:.3f}" + ("" if low is None else f"\n[{low:.3f}, {high:.3f}]")
-                    axis.text(i, j, text, ha="center", va="center", fontsize=7,  # dark text on viridis' bright half
-                              color="black" if point["miou"]["mean"] > middle else "white")
+                    axis.text(i, j + SCORE_TEXT_OFFSET, text, ha="center", va="center", fontsize=7, zorder=4,
+                              color="black" if point["miou"]["mean"] > middle else "white")  # dark on viridis' bright
                 if point["camera"] == best:
                     axis.add_patch(plt.Rectangle((i - 0.5, j - 0.5), 1, 1, fill=False, edgecolor="red", linewidth=2.5))
             image = axis.imshow(means, origin="lower", cmap="viridis", aspect="auto")
@@ -318,7 +338,8 @@ def plot_maps(record: dict, path: str | Path, split: str | None = None) -> bool:
                 if point["miou"] is None:
                     continue
                 miou = point["miou"]
-                error = None if miou["low"] is None else [[miou["mean"] - miou["low"]], [miou["high"] - miou["mean"]]]
+                low, high = (None, None) if miou["low"] is None else bounded(miou)
+                error = None if low is None else [[miou["mean"] - low], [high - miou["mean"]]]
                 axis.errorbar(i, miou["mean"], yerr=error, fmt="s", capsize=4,
                               color="red" if point["camera"] == best else "tab:blue")
             axis.set_xticks(range(len(values[0])), [_tick(labels[0], v) for v in values[0]])
@@ -344,9 +365,7 @@ def plot_maps(record: dict, path: str | Path, split: str | None = None) -> bool:
                        fontsize=9)
     figure.suptitle(f"study {record['study']}: design map (o start, * end of each learned run)", fontsize=10)
     figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return True
+    return figure
 
 
 def map_path(plot_path: str | Path) -> Path:

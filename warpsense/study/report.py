@@ -18,7 +18,9 @@ from warpsense.study.runner import THROUGHPUT, evaluation_path, read_plan_record
 from warpsense.study.statistics import (
     LEVEL,
     block_bootstrap_difference,
+    bounded,
     distinguishable,
+    few_values_note,
     fold_interval,
     interval_text,
     paired_difference,
@@ -333,6 +335,7 @@ def render_text(record: dict) -> str:
              f"{len(record['missing'])} missing; judged at the final epoch; {protocol}; intervals {level}"]
     if record["missing"]:
         lines.append(f"  missing: {', '.join(record['missing'])}")
+    lines += few_values_note(record, record["level"])
     over = "(fold, seed)" if folds else "seeds"
     for split, part in record["splits"].items():
         if part.get("shared_sequences"):
@@ -378,8 +381,18 @@ def render_text(record: dict) -> str:
 
 
 def plot_study(record: dict, path: str | Path, split: str | None = None) -> None:
-    """One row per light level: mIoU with intervals per camera (reference marked) and per-class IoU differences to
-    the reference camera (mean over paired seeds)."""
+    """Write `study_figure` of ``split`` (default: the first) to ``path``."""
+    import matplotlib.pyplot as plt
+
+    figure = study_figure(record, split)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def study_figure(record: dict, split: str | None = None):
+    """One row per light level: mIoU with intervals per camera (reference marked; each interval within [0, 1],
+    `warpsense.study.statistics.bounded`) and per-class IoU differences to the reference camera (mean over paired
+    seeds). Every label lies within the figure. Returns the matplotlib figure (the caller closes it)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -397,7 +410,8 @@ def plot_study(record: dict, path: str | Path, split: str | None = None) -> None
         score_axis, delta_axis = axes[row]
         for y, group in enumerate(groups):
             miou = group["miou"]
-            error = None if miou["low"] is None else [[miou["mean"] - miou["low"]], [miou["high"] - miou["mean"]]]
+            low, high = (None, None) if miou["low"] is None else bounded(miou)
+            error = None if low is None else [[miou["mean"] - low], [high - miou["mean"]]]
             colour = "tab:red" if group["camera"] == record["reference"] else "tab:blue"
             score_axis.errorbar(miou["mean"], y, xerr=error, fmt="o", color=colour, capsize=4)
         score_axis.set_yticks(range(len(groups)), [g["camera"] for g in groups])
@@ -421,11 +435,11 @@ def plot_study(record: dict, path: str | Path, split: str | None = None) -> None
             delta_axis.set_yticks(range(len(comparisons)),
                                   [f"{c['camera']} ({c['verdict']})" for c in comparisons], fontsize=8)
             delta_axis.set_xticks(range(len(classes)), classes, rotation=45, ha="right", fontsize=8)
-            figure.colorbar(image, ax=delta_axis, label="IoU difference to the reference (points x100)")
+            # short: a longer label ran past the height of a row of one comparison and was cut off
+            figure.colorbar(image, ax=delta_axis, label="IoU points x100")
             delta_axis.set_title(f"{light}: per-class IoU minus {record['reference']} (points x100)", fontsize=10)
         else:
             delta_axis.axis("off")
     figure.suptitle(f"study {record['study']}: {len(record['cells'])} runs, judged at the final epoch", fontsize=11)
     figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    return figure

@@ -40,14 +40,79 @@ def paired_difference(values: dict, reference: dict, level: float = LEVEL) -> di
             "higher": sum(d > 0 for d in differences), "lower": sum(d < 0 for d in differences)}
 
 
+FEWEST_VALUES = 3
+"""The fewest independent values (seeds; with several folds, the folds' means) whose t interval says something
+about the mean. Over 2 the 95% t quantile is 12.71: the interval is 12.7 times the two values' distance wide
+(0.0723 [-0.2872, 0.4319] for two runs 0.04 apart); over 3 it is 4.30, over 5 2.78 (1.96 with many). The text marks
+an interval over fewer (`interval_text`) and the report says what the mark means (`few_values_note`)."""
+
+SCORE_BOUNDS = (0.0, 1.0)
+"""The range of a score (mIoU, IoU); a difference of two scores lies in (-1, 1)."""
+
+
+def independent_values(record: dict) -> int:
+    """The independent values an interval record is over: the folds where it is clustered by several
+    (`fold_interval`), otherwise its n."""
+    folds = record.get("folds") or 0
+    return folds if folds > 1 else record["n"]
+
+
+def too_few_mark(record: dict) -> str:
+    """" (n=2, too few)" (" (2 folds, too few)" for a clustered one) where an interval is over fewer than
+    `FEWEST_VALUES` independent values; "" otherwise."""
+    values = independent_values(record)
+    if record["low"] is None or values >= FEWEST_VALUES:
+        return ""
+    return f" ({values} folds, too few)" if (record.get("folds") or 0) > 1 else f" (n={values}, too few)"
+
+
+def bounded(record: dict, signed: bool = False) -> tuple[float, float]:
+    """(low, high) of an interval record clipped to the range of what it bounds: a score's [0, 1], a difference's
+    [-1, 1] with ``signed``. The t interval is symmetric about the mean, so over few or spread values it crosses
+    the range (a mean mIoU of 0.07 over 2 seeds: [-0.29, 0.43]); the mean itself cannot. The record keeps the t
+    interval as computed."""
+    low, high = (-SCORE_BOUNDS[1], SCORE_BOUNDS[1]) if signed else SCORE_BOUNDS
+    return max(record["low"], low), min(record["high"], high)
+
+
 def interval_text(record: dict | None, signed: bool = False) -> str:
-    """"mean [low, high]" to 4 decimals ("+" signs with ``signed``; "-" for no record; "[n=1, no interval]")."""
+    """"mean [low, high]" of a score (or, ``signed``, a difference of scores, with "+" signs) to 4 decimals, the
+    interval clipped to the score's range (`bounded`) and marked where it is over too few values (`too_few_mark`);
+    "-" for no record; "[n=1, no interval]"."""
     if record is None:
         return "-"
     sign = "+" if signed else ""
     if record["low"] is None:
         return f"{record['mean']:{sign}.4f} [n=1, no interval]"
-    return f"{record['mean']:{sign}.4f} [{record['low']:{sign}.4f}, {record['high']:{sign}.4f}]"
+    low, high = bounded(record, signed)
+    return f"{record['mean']:{sign}.4f} [{low:{sign}.4f}, {high:{sign}.4f}]{too_few_mark(record)}"
+
+
+def _intervals(value) -> list[dict]:
+    """Every interval record (a dict with mean, low, high and n) anywhere in a nested record, but those under a
+    ``per_class...`` key (the text prints their means only)."""
+    if isinstance(value, dict):
+        if {"mean", "low", "high", "n"} <= set(value):
+            return [value]
+        return [interval for key, item in value.items() if not str(key).startswith("per_class")
+                for interval in _intervals(item)]
+    if isinstance(value, list):
+        return [interval for item in value for interval in _intervals(item)]
+    return []
+
+
+def few_values_note(record: dict, level: float = LEVEL) -> list[str]:
+    """The lines that say what `too_few_mark` means, where an interval of ``record`` (a report's, or any nested
+    record) carries it; none otherwise."""
+    counts = sorted({independent_values(i) for i in _intervals(record) if too_few_mark(i)})
+    if not counts:
+        return []
+    quantiles = {n: stats.t.ppf(0.5 + level / 2, n - 1) for n in (*counts, FEWEST_VALUES, 5)}
+    over = ", ".join(f"{quantiles[n]:.2f} over {n}" for n in counts)
+    return [f"note: 'too few' marks an interval over fewer than {FEWEST_VALUES} independent values (seeds; with "
+            f"several folds, the folds' means): its {level:.0%} t quantile is {over}, so the interval is many times "
+            f"the values' spread and says little; an interval takes at least {FEWEST_VALUES} values (t "
+            f"{quantiles[FEWEST_VALUES]:.2f}), better 5 ({quantiles[5]:.2f}): add seeds (study.seeds) or folds"]
 
 
 def distinguishable(interval: dict) -> bool | None:
