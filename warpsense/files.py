@@ -12,6 +12,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
+def located(path: str | Path) -> str:
+    """``path`` as an error names a file it looked for: a relative path with the absolute one it resolved to from the
+    working directory ("classes.toml (/home/me/run/classes.toml)"), where a path in a config or on the command line
+    is read from; an absolute path as it is."""
+    path = Path(path)
+    return str(path) if path.is_absolute() else f"{path} ({Path.cwd() / path})"
+
+
 def publish(temporary: str | Path, target: str | Path) -> None:
     """Give ``temporary`` the default mode for a new file (0666 minus the umask) and rename it onto ``target``."""
     umask = os.umask(0)

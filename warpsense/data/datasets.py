@@ -17,6 +17,7 @@ from torch.utils.data import Dataset
 
 from warpsense.data.labels import CAMVID_CLASSES, CITYSCAPES_CLASSES, IGNORE_INDEX, id_to_train_id_table
 from warpsense.errors import first_line
+from warpsense.files import located
 
 
 class DatasetError(ValueError):
@@ -185,7 +186,7 @@ def read_split_lists(root: Path, split: str, resolve, kind: str) -> list[tuple[P
     for part in split_parts(split):
         listing = root / f"{part}.txt"
         if not listing.is_file():
-            raise DatasetError(f"{listing}: {kind} split list not found (expected <root>/{part}.txt with "
+            raise DatasetError(f"{located(listing)}: {kind} split list not found (expected <root>/{part}.txt with "
                                "'image label' lines; the folder is data.root: --set data.root=DIR, or eval's "
                                "--data-root, bench's --camvid)")
         pairs += read_pair_list(listing, resolve)

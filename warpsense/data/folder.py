@@ -33,6 +33,7 @@ import numpy as np
 from warpsense.config import tomllib
 from warpsense.data.datasets import CamVid, DatasetError, PairDataset, read_split_lists
 from warpsense.data.labels import IGNORE_INDEX
+from warpsense.files import located
 
 MAX_LABEL_ID = 65535  # 16-bit label images
 
@@ -69,12 +70,18 @@ def _label_id(value, where: str) -> int:
     return value
 
 
-def read_class_table(path: str | Path) -> ClassTable:
+def read_class_table(path: str | Path, root: str | Path | None = None) -> ClassTable:
     """Read and check a class table (TOML or JSON, by suffix); every problem is a one-line DatasetError naming the
-    file and the entry."""
+    file and the entry. A relative ``path`` is read from the working directory, as every path of a config; a missing
+    one is named with the absolute path looked at, and where the dataset folder ``root`` holds a file of its name,
+    with the path that reads it."""
     path = Path(path)
     if not path.is_file():
-        raise DatasetError(f"data.classes_file {path}: no such file")
+        beside = Path(root) / path.name if root else None
+        hint = f"; the dataset folder has one: --set data.classes_file={beside}" if beside and beside.is_file() \
+            else ""
+        raise DatasetError(f"data.classes_file {located(path)}: no such file (a relative path is read from the "
+                           f"working directory){hint}")
     try:
         if path.suffix.lower() == ".json":
             data = json.loads(path.read_text())
@@ -129,7 +136,7 @@ class FolderDataset(PairDataset):
         if not classes_file:
             raise DatasetError('data.dataset = "folder" needs data.classes_file: a TOML/JSON class table (names, '
                                "label ids, colours, ignore id; see warpsense/data/folder.py)")
-        self.table = read_class_table(classes_file)
+        self.table = read_class_table(classes_file, root)
         self.classes = self.table.names
         root = Path(root)
         pairs = read_split_lists(root, split, lambda p: root / p, "folder")

@@ -27,6 +27,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from warpsense.files import located
 from warpsense.optics.zernike import noll_to_nm, radial_polynomial, zernike, zernike_nm
 from warpsense.resources import CONFIG_DIR
 
@@ -176,7 +177,7 @@ def read_lens_spec(name_or_path: str | Path) -> LensSpec:
     try:
         data = json.loads(Path(path).read_text(encoding="utf-8"))
     except OSError as error:
-        raise LensFileError(f"{path}: cannot read: {error.strerror}") from None
+        raise LensFileError(f"{located(path)}: cannot read: {error.strerror}") from None
     except UnicodeDecodeError:
         raise LensFileError(f"{path}: not UTF-8 text") from None
     except (ValueError, RecursionError) as error:  # JSONDecodeError, 5000-digit numbers, deep nesting
