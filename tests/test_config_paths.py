@@ -36,3 +36,12 @@ def test_a_missing_split_list_and_lens_file_name_the_absolute_path(tmp_path, cap
     assert_clean_failure(capsys, ["train", "--set", "optics.enabled=true", "--set", "optics.lens=mylens.json",
                                   "--set", f"run.output_dir={tmp_path / 'runs'}"],
                          (f"optics.lens: mylens.json ({tmp_path / 'mylens.json'}): cannot read",), watched=tmp_path)
+
+
+def test_a_missing_teacher_checkpoint_names_the_absolute_path(tmp_path, capsys, monkeypatch):
+    """Before: 't.safetensors: checkpoint not found'."""
+    monkeypatch.chdir(tmp_path)
+    assert_clean_failure(capsys, ["train", "--set", "loss.teacher=t.safetensors", "--set", "loss.distill_weight=0.5",
+                                  "--set", "data.scenes_train=8", "--set", "data.scenes_val=4", "--set",
+                                  f"run.output_dir={tmp_path / 'runs'}"],
+                         (f"t.safetensors ({tmp_path / 't.safetensors'}): checkpoint not found",), watched=tmp_path)

@@ -16,7 +16,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from warpsense.errors import first_line
-from warpsense.files import atomic_write, write_json
+from warpsense.files import atomic_write, located, write_json
 
 METADATA_KEY = "warpsense"
 
@@ -53,7 +53,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
         raise FileNotFoundError(f"{path}: is a folder; name its checkpoint file (e.g. {path}/checkpoint_best"
                                 ".safetensors)")
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: checkpoint not found")
+        raise FileNotFoundError(f"{located(path)}: checkpoint not found")
     if path.suffix.lower() == ".json" and path.with_suffix(".safetensors").is_file():
         raise CheckpointError(f"{path}: the readable copy of a checkpoint; name {path.with_suffix('.safetensors')}")
     try:
