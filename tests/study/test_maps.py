@@ -229,8 +229,9 @@ def test_a_one_key_sweep_is_a_curve_with_the_learned_path_at_its_score(tmp_path)
     scores = {"t_exposure_ms3": {("", 0): 0.2, ("", 1): 0.3}, "t_exposure_ms30": {("", 0): 0.5, ("", 1): 0.6},
               "learned": {("", 0): 0.4, ("", 1): 0.4}, "fixed": {("", 0): 0.1, ("", 1): 0.1}}
     _fabricate(tmp_path / "study", plan, scores, {key: [12.0, 14.0] for key in keys})
-    (tmp_path / "study" / "runs" / "learned.night.seed0" / "metrics.jsonl").write_text(
-        '{"epoch": 0, "exposure_ms": 12.0}\n{"epoch": 1, "exposure_ms": 14.0}\n')
+    for seed in (0, 1):  # the learned exposure time in every epoch's record (a record without it is refused)
+        (tmp_path / "study" / "runs" / f"learned.night.seed{seed}" / "metrics.jsonl").write_text(
+            '{"epoch": 0, "exposure_ms": 12.0}\n{"epoch": 1, "exposure_ms": 14.0}\n')
     record = study_record(tmp_path / "study", resamples=20, block=2)
     [entry] = record["maps"]
     assert entry["labels"] == ["exposure_ms"] and entry["best"]["camera"] == "t_exposure_ms30"

@@ -13,14 +13,13 @@ figure (a curve for one swept key, a heatmap for two; grids of more keys are in 
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from warpsense.study.plan import Plan
-from warpsense.study.runner import run_dir
+from warpsense.study.plan import Plan, PlanError
+from warpsense.study.runner import read_record, run_dir
 from warpsense.study.statistics import bounded, interval_text
 from warpsense.train.run_dir import METRICS, read_metrics
 
@@ -69,9 +68,9 @@ def trajectory(directory: Path, parameters, config: dict) -> dict | None:
         for key in parameters:
             value = _lookup(config, key)
             if key in learned and record is not None:
-                value = record.get(LEARNED_KEYS[key][1])
+                value = _learned_value(directory, epoch, record, key)
             elif key in learned and not value:  # f_number 0: the lens file's, known from the first record
-                value = by_epoch[min(by_epoch)].get(LEARNED_KEYS[key][1])
+                value = _learned_value(directory, min(by_epoch), by_epoch[min(by_epoch)], key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 return None
             point.append(float(value))
@@ -80,11 +79,26 @@ def trajectory(directory: Path, parameters, config: dict) -> dict | None:
     return {"epochs": epochs, "path": path}
 
 
-def _read_config(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
+def _learned_value(directory: Path, epoch: int, record: dict, key: str) -> float:
+    """The learned value of swept ``key`` in a run's metrics record of ``epoch``; a one-line PlanError naming the
+    file, epoch and field where it is missing or not a finite number (a damaged record: the path would otherwise
+    be left off the map without a word)."""
+    field = LEARNED_KEYS[key][1]
+    value = record.get(field)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise PlanError(f"{directory / METRICS}: epoch {epoch}: {field}: expected the learned value (a finite "
+                        f"number), got {value!r}")
+    return value
+
+
+def _read_config(path: Path) -> dict:
+    """A finished run's config.json (`CONFIG`), its sections objects; a one-line PlanError naming the file and
+    section where it is missing or damaged: a learned camera is never left off a map without a word."""
+    config = read_record(path, dict)
+    for section, value in config.items():
+        if not isinstance(value, dict):
+            raise PlanError(f"{path}: [{section}]: expected an object of keys, got {value!r}")
+    return config
 
 
 def _inside(interval: dict | None, value: float | None) -> bool | None:
@@ -151,7 +165,7 @@ def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: di
                         if cell.camera != camera.name or cell.light != light.name or cell.id not in finished:
                             continue
                         directory = run_dir(study_dir, cell)
-                        path = trajectory(directory, sweep.parameters, _read_config(directory / CONFIG) or config)
+                        path = trajectory(directory, sweep.parameters, _read_config(directory / CONFIG))
                         if path is not None:
                             runs.append({"cell": cell.id, "fold": cell.fold, "seed": cell.seed,
                                          "miou": finished[cell.id]["miou"].get(split), **path})

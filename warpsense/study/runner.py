@@ -12,6 +12,7 @@ import collections
 import contextlib
 import functools
 import json
+import math
 import os
 import re
 import shlex
@@ -180,13 +181,49 @@ class BusySampler:
         return [sum(sample[i] for sample in self.samples) / len(self.samples) / 100 for i in range(len(self.gpus))]
 
 
-def read_record(path: Path):
-    """The JSON file ``path`` of a study directory (its plan, throughput, a cell's evaluation, the Slurm jobs); where
-    it cannot be read or parsed, a one-line PlanError naming it (json's own message names no file)."""
+def read_record(path: Path, kind: type | None = None):
+    """The JSON file ``path`` of a study directory (its plan, throughput, a cell's evaluation, a run's config, the
+    Slurm jobs); where it cannot be read or parsed, or (with ``kind``, dict or list) holds another JSON type, a
+    one-line PlanError naming it (json's own message names no file)."""
     try:
-        return json.loads(Path(path).read_text())
-    except (OSError, ValueError) as error:  # ValueError: JSONDecodeError, UnicodeDecodeError
-        raise PlanError(f"{path}: unreadable: {error}") from None
+        record = json.loads(Path(path).read_text())
+    except (OSError, ValueError, RecursionError) as error:  # ValueError: JSONDecodeError, UnicodeDecodeError
+        raise PlanError(f"{path}: unreadable: {first_line(error)}") from None
+    if kind is not None and not isinstance(record, kind):
+        expected = "a JSON object" if kind is dict else "a JSON list"
+        raise PlanError(f"{path}: unreadable: expected {expected}, got {type(record).__name__}")
+    return record
+
+
+THROUGHPUT_FIELDS = {"cells_finished": int, "seconds": float, "cells_per_hour": float, "gpus": list, "per_gpu": int}
+"""The fields of a `THROUGHPUT` entry that its line (`throughput_line`) reads, and their types."""
+
+
+def read_throughput(path: Path) -> list[dict]:
+    """The entries of a study directory's `THROUGHPUT` file (none where it is absent), each checked for the fields
+    `throughput_line` reads: a one-line PlanError naming the file, entry and field otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    entries = read_record(path, list)
+    for number, entry in enumerate(entries, start=1):
+        if not isinstance(entry, dict):
+            raise PlanError(f"{path}: entry {number}: expected a JSON object, got {type(entry).__name__}")
+        for field, kind in THROUGHPUT_FIELDS.items():
+            value = entry.get(field)
+            if not (_finite_number(value) if kind is float else isinstance(value, kind) and not isinstance(value, bool)):
+                expected = "a finite number" if kind is float else kind.__name__
+                raise PlanError(f"{path}: entry {number}: {field}: expected {expected}, got {value!r}")
+        busy = entry.get("gpu_busy_fraction")
+        if busy is not None and not (isinstance(busy, list) and all(_finite_number(value) for value in busy)):
+            raise PlanError(f"{path}: entry {number}: gpu_busy_fraction: expected null or a list of numbers, got "
+                            f"{busy!r}")
+    return entries
+
+
+def _finite_number(value) -> bool:
+    """Whether a JSON value is a finite number (not a bool, whose JSON is true / false)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def read_plan_record(study_dir: Path) -> dict:
@@ -215,9 +252,7 @@ def record_throughput(out: Path, finished: int, seconds: float, gpus: list[str] 
     path = Path(out) / THROUGHPUT
     print(f"study: {throughput_line(entry)}", flush=True)
     try:
-        history = read_record(path) if path.is_file() else []
-        if not isinstance(history, list):
-            raise PlanError(f"{path}: not a list of runs")
+        history = read_throughput(path)
     except ValueError as error:  # the cells are trained: a damaged history costs this entry, not the study
         print(f"study: warning: {error}; this run's throughput is not recorded there", file=sys.stderr, flush=True)
         return entry
@@ -340,7 +375,9 @@ def finished_runs(study_dirs: list[Path]) -> dict[str, Path]:
     a config (`warpsense.config.config_from_dict`): a key added since takes its default, which is the behaviour the
     run had (a new key's default keeps the old behaviour), and a key since retired at the value of the behaviour that
     stayed is dropped; a run whose config this version cannot read (a key it does not know, a retired behaviour)
-    matches no cell."""
+    matches no cell. A damaged config.json or evaluation (torn, not a JSON object) is a one-line PlanError naming
+    it, before anything is written: which cell the run trained cannot be told, and a copied run would count as done
+    with a record no report can read."""
     from warpsense.config import ConfigError, config_from_dict
     from warpsense.train.engine import EVALUATION
 
@@ -352,10 +389,11 @@ def finished_runs(study_dirs: list[Path]) -> dict[str, Path]:
             if not ((run / EVALUATION).is_file() and saved.is_file()):
                 continue
             try:
-                config = config_from_dict(json.loads(saved.read_text()), str(saved))
+                config = config_from_dict(read_record(saved, dict), str(saved))
             except ConfigError as error:
                 print(f"--reuse: {run} not considered: {error}")
                 continue
+            read_record(run / EVALUATION, dict)
             found.setdefault(_training_key(config.to_dict()), run)
     return found
 

@@ -234,9 +234,21 @@ class CellTask(Checkpointable):
 
 
 def read_jobs(out: Path) -> list[dict]:
-    """The study directory's Slurm submissions (`JOBS`), oldest first."""
+    """The study directory's Slurm submissions (`JOBS`), oldest first; a one-line PlanError naming the file and
+    field where it is damaged (each submission: its array's job_id and the task id of every cell)."""
     path = Path(out) / JOBS
-    return runner.read_record(path)["submissions"] if path.is_file() else []
+    if not path.is_file():
+        return []
+    submissions = runner.read_record(path, dict).get("submissions")
+    if not isinstance(submissions, list):
+        raise PlanError(f"{path}: submissions: expected a list of Slurm submissions, got {submissions!r}")
+    for number, submission in enumerate(submissions, start=1):
+        cells = submission.get("cells") if isinstance(submission, dict) else None
+        if not isinstance(cells, dict) or not all(isinstance(task, str) for task in cells.values()):
+            raise PlanError(f"{path}: submission {number}: cells: expected an object of cell -> task id, got {cells!r}")
+        if not isinstance(submission.get("job_id"), str):
+            raise PlanError(f"{path}: submission {number}: job_id: expected a job id, got {submission.get('job_id')!r}")
+    return submissions
 
 
 def latest_jobs(out: Path) -> dict[str, str]:
@@ -305,11 +317,16 @@ def _epochs(out: Path, cell: Cell) -> str:
         return f"epoch ? ({error})"
     if not records:
         return ""
+    epoch = records[-1].get("epoch")
+    if isinstance(epoch, bool) or not isinstance(epoch, int):  # the cell's status names the damage, not every cell's
+        return f"epoch ? ({folder / METRICS}: last record: epoch: expected an integer, got {epoch!r})"
     try:
-        total = json.loads((folder / "config.json").read_text())["train"]["epochs"]
-    except (OSError, ValueError, KeyError):
-        total = "?"
-    return f"epoch {records[-1]['epoch'] + 1} of {total}"
+        total = runner.read_record(folder / "config.json", dict)["train"]["epochs"]
+    except PlanError as error:  # one cell's damaged config: its status says so, as for its metrics above
+        total = f"? ({error})"
+    except (KeyError, TypeError):
+        total = f"? ({folder / 'config.json'}: train.epochs: missing)"
+    return f"epoch {epoch + 1} of {total}"
 
 
 def _submitit_job(out: Path, job_id: str):

@@ -77,6 +77,9 @@ def load_system(checkpoint: str | Path, device) -> tuple[torch.nn.Module, object
     num_classes = meta["state"].get("num_classes")
     if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 1:
         raise CheckpointError(f"{checkpoint}: state.num_classes must be a positive int, got {num_classes!r}")
+    names = meta["state"].get("class_names")  # eval and predict name the classes by it
+    if names is not None and not (isinstance(names, list) and all(isinstance(name, str) for name in names)):
+        raise CheckpointError(f"{checkpoint}: state.class_names must be a list of class names, got {names!r}")
     model = build_system(config, num_classes)
     restore(tensors, model, source=checkpoint)
     return model.to(device).eval(), config, meta["state"]

@@ -68,11 +68,14 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
         sidecar = path.with_suffix(".json")
         if not sidecar.is_file():
             raise CheckpointError(f"{path}: no run metadata inside and no {sidecar.name} beside it")
-        text, source = sidecar.read_text(), str(sidecar)
+        try:
+            text, source = sidecar.read_text(), str(sidecar)
+        except (OSError, UnicodeDecodeError) as error:
+            raise CheckpointError(f"{sidecar}: unreadable ({first_line(error)})") from None
     try:
         meta = json.loads(text)
-    except json.JSONDecodeError as error:
-        raise CheckpointError(f"{source}: invalid JSON ({error})") from None
+    except (ValueError, RecursionError) as error:  # JSONDecodeError; a 5000-digit number, deep nesting
+        raise CheckpointError(f"{source}: invalid JSON ({first_line(error)})") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict) or not isinstance(meta.get("state"), dict):
         raise CheckpointError(f"{source}: expected an object with 'config' and 'state' objects")
     if not any(name.startswith("model.") for name in tensors):

@@ -540,8 +540,13 @@ def run_summary(run_dir: Path, config) -> str:
     """The closing lines of a run: the best checkpoint's score and epoch, and where everything went."""
     best_json = run_dir / Path(BEST).with_suffix(".json")
     lines = [f"done: {run_dir}"]
-    if best_json.is_file():
-        best = json.loads(best_json.read_text())["state"]["record"]
+    try:
+        best = json.loads(best_json.read_text())["state"]["record"] if best_json.is_file() else None
+    except (OSError, ValueError, KeyError, TypeError) as error:  # the run is trained: name the damage, go on
+        best = None
+        lines.append(f"  best: {BEST} (its readable copy {best_json} is damaged: {type(error).__name__}: "
+                     f"{first_line(error)})")
+    if best is not None:
         if "selection_miou" in best:
             score = f"held-out {config.data.holdout_prefix} mIoU {best['selection_miou']:.4f}, val {best['val_miou']:.4f}"
         elif config.data.holdout_sequence:

@@ -4,12 +4,14 @@ its metrics log, and a lock so that two trainings never write into one run."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import socket
 from pathlib import Path
 
 from warpsense.config import Config, ConfigError, config_from_dict, flatten_keys
+from warpsense.errors import first_line
 
 LAST = "checkpoint_last.safetensors"
 METRICS = "metrics.jsonl"  # one JSON record per epoch
@@ -74,11 +76,14 @@ def resumed_config(run_dir: Path, requested: Config | None, allow_change: bool =
     old -> new). Reads only; writes nothing."""
     path = run_dir / "config.json"
     try:
-        saved = config_from_dict(json.loads(path.read_text()), str(path))
+        data = json.loads(path.read_text())
     except OSError as error:
         raise ConfigError(f"{path}: cannot read the run's config: {error.strerror}") from None
-    except json.JSONDecodeError as error:
-        raise ConfigError(f"{path}: invalid JSON: {error}") from None
+    except (ValueError, RecursionError) as error:  # JSONDecodeError, UnicodeDecodeError (a torn or foreign file)
+        raise ConfigError(f"{path}: invalid JSON: {first_line(error)}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a JSON object of config sections, got {type(data).__name__}")
+    saved = config_from_dict(data, str(path))
     if requested is None:
         return saved
     changes = config_changes(saved, requested)
@@ -100,23 +105,49 @@ def resumed_config(run_dir: Path, requested: Config | None, allow_change: bool =
     return requested
 
 
+METRIC_SECONDS = ("wall_s", "setup_s", "setup_data_s", "epoch_time_s", "capture_s")
+"""The times of a metrics record that readers add up (the report's run times, the study suite's)."""
+
+
 def read_metrics(path: Path, up_to_epoch: int | None = None) -> list[dict]:
     """The records of metrics.jsonl up to ``up_to_epoch`` (None: all of them); a torn (unparsable) last line, left by
-    a kill while it was written, is dropped. A torn line elsewhere is an error naming the file and line."""
+    a kill while it was written, is dropped. A torn line elsewhere, a line that is not a JSON object, an epoch that
+    is not an integer >= 0 or a time (`METRIC_SECONDS`) that is not a finite number >= 0 is a one-line ValueError
+    naming the file, line and field."""
+    path = Path(path)
     if not path.exists():
         return []
-    lines = [line for line in path.read_text().splitlines() if line.strip()]
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: unreadable: {first_line(error)}") from None
+    lines = [(number, line) for number, line in enumerate(text.splitlines(), start=1) if line.strip()]
     records = []
-    for number, line in enumerate(lines, start=1):
+    for index, (number, line) in enumerate(lines):
         try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError:
-            if number == len(lines):
+            record = json.loads(line)
+        except (ValueError, RecursionError):
+            if index == len(lines) - 1:
                 break
             raise ValueError(f"{path}:{number}: not a JSON record") from None
+        records.append(_checked_metrics(record, f"{path}:{number}"))
     if up_to_epoch is None:
-        return [r for r in records if isinstance(r, dict)]
-    return [r for r in records if isinstance(r, dict) and r.get("epoch", up_to_epoch + 1) <= up_to_epoch]
+        return records
+    return [r for r in records if r.get("epoch", up_to_epoch + 1) <= up_to_epoch]
+
+
+def _checked_metrics(record, where: str) -> dict:
+    """One metrics record, its epoch and times checked (`read_metrics`)."""
+    if not isinstance(record, dict):
+        raise ValueError(f"{where}: expected a JSON object (an epoch's record), got {type(record).__name__}")
+    epoch = record.get("epoch", 0)
+    if isinstance(epoch, bool) or not isinstance(epoch, int) or epoch < 0:
+        raise ValueError(f"{where}: epoch: expected an integer >= 0, got {epoch!r}")
+    for field in METRIC_SECONDS:
+        value = record.get(field, 0.0)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+            raise ValueError(f"{where}: {field}: expected a finite number of seconds >= 0, got {value!r}")
+    return record
 
 
 class RunLock:
