@@ -9,9 +9,9 @@ squared times m_i's variance). This profiles out the true signals of Foi et al. 
 integrating over them; with level sets of hundreds of samples the two agree to well under the intervals.
 
 The fit is iteratively reweighted least squares over (log a, b >= 0): each round fixes the standard errors at the
-last round's curve (the model's variance, not the noisy observed one, which would pull the
-curve down) and solves for the curve; the rounds stop when the curve moves by less than 1e-7 of itself. The 95%
-intervals come from the last round's Jacobian: Wald intervals for log a and for b (b's lower end clipped at 0, then
+last round's curve (the model's variance, not the noisy observed one, which would pull the curve down) and solves
+for the curve, with a loss that grows linearly beyond one standard error (`LOSS`); the rounds stop when the curve
+moves by less than 1e-6 of itself. The 95% intervals come from the last round's Jacobian: Wald intervals for log a and for b (b's lower end clipped at 0, then
 both ends square-rooted for the read noise), widened by the overdispersion, the fit's chi-square per degree of
 freedom where above 1 (texture the smooth-sample choice let through, fixed-pattern noise, a model that is not the
 capture's).
@@ -30,6 +30,10 @@ from warpsense.calibration.model import clipped_moments, noise_variance, signal_
 Z95 = 1.959963984540054
 """The standard normal's 97.5% point."""
 ROUNDS = 12
+"""Most reweighting rounds."""
+LOSS, LOSS_SCALE = "soft_l1", 1.0
+"""The solver's loss on the weighted residuals: quadratic within LOSS_SCALE standard errors, linear beyond, so that a
+level set that texture inflated (a positive outlier of several errors) pulls the curve by its sign, not its size."""
 """Most reweighting rounds."""
 
 
@@ -150,7 +154,8 @@ def fit_noise(groups: list[Group]) -> NoiseFit:
     curve = _Curve(groups)
     for _ in range(ROUNDS):
         weights = curve.weights(float(np.exp(theta[0])), float(theta[1]))
-        solution = optimize.least_squares(curve.residuals, theta, args=(weights,), method="trf",
+        solution = optimize.least_squares(curve.residuals, theta, args=(weights,), method="trf", loss=LOSS,
+                                          f_scale=LOSS_SCALE,
                                           bounds=([-np.inf, 0.0], [np.inf, np.inf]), x_scale=[1.0, scale],
                                           xtol=1e-10, ftol=1e-12, gtol=1e-12)
         moved = abs(solution.x[0] - theta[0]) + abs(solution.x[1] - theta[1]) / scale

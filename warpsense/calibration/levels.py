@@ -10,9 +10,12 @@ by their ring roughness alone (never by the centre's own energy, which would bia
   point of the roughness that noise alone gives at its level: all but 1% of the smooth samples, and none of the
   textured ones whose texture rivals the noise.
 
-The kept centres' energies are averaged after dropping the outliers far beyond anything the noise gives (`TRUNCATE`
-times a robust first estimate, the set's median: a hot pixel, a dot the ring does not see); the kept centres'
-block means give the set's level.
+A set of the second pass that keeps under `MIN_KEPT` of its samples is dropped (a level range of texture). The
+kept centres' energies are averaged after dropping outliers about a robust first estimate (`_robust`): for
+sets of nearly Gaussian noise (several codes, clear of the clip) those beyond its 99.9% point (`TIGHT`: a corner the
+ring did not see), for the others only those far beyond anything the noise gives (`TRUNCATE`: a hot pixel), since
+a code or two of noise clipped at zero has heavier tails than a Gaussian; the mean is divided by the cut's factor.
+The kept centres' block means give the set's level.
 """
 
 from __future__ import annotations
@@ -31,6 +34,13 @@ MIN_SET = 150
 """Least number of samples in a level set (before any is dropped)."""
 MAX_SETS = 48
 """Most level sets per channel and capture."""
+WIDTH = 0.3
+"""A set's levels span at most this fraction of their distance to the nearer clip bound (`_partition`)."""
+MIN_NARROW = 20
+"""Least number of samples in a set that the span closes early."""
+MIN_KEPT = 0.3
+"""A level set of the second pass that keeps less than this fraction of its samples is dropped: its level range is
+mostly texture, and the few samples whose ring looks smooth carry texture too."""
 
 _CENTRE = chi2(DEGREES)
 _RING = chi2(len(RING_DETAILS) * len(RING))
@@ -39,11 +49,33 @@ TRUNCATE = 30.0
 not see. Gaussian noise passes it but once in 2e7 samples; a tighter cut would bias a set near black, whose
 readings (a code or two of noise, clipped at zero) have heavier tails than a Gaussian's."""
 TRUNCATED_FACTOR = float(chi2(DEGREES + 2).cdf(TRUNCATE * DEGREES) / _CENTRE.cdf(TRUNCATE * DEGREES))
-"""E[e | e < TRUNCATE v] / v under the noise alone (E[X; X < t] = k P(chi2(k + 2) < t) for X ~ chi2(k))."""
-MEDIAN = float(_CENTRE.median() / DEGREES)
-"""median(e) / v under the noise alone."""
-SMOOTH = float(_RING.ppf(0.99) / (len(RING_DETAILS) * len(RING)))
-"""Ring roughness beyond SMOOTH times the reference variance marks a textured sample (the second pass)."""
+"""E[e | e < TRUNCATE v] / v under Gaussian noise."""
+GAUSSIAN_STEPS = 3.0
+"""A set whose noise spans this many ADC codes or more, 4 deviations clear of the lower clip, reads nearly Gaussian
+noise, and its energies are cut at `TIGHT` instead of `TRUNCATE`."""
+TIGHT = float(_CENTRE.ppf(0.999) / DEGREES)
+"""The 99.9% point of the energy under Gaussian noise (over its variance): a corner the ring does not see."""
+TIGHT_FACTOR = float(chi2(DEGREES + 2).cdf(TIGHT * DEGREES) / _CENTRE.cdf(TIGHT * DEGREES))
+"""E[e | e < TIGHT v] / v under Gaussian noise (E[X; X < t] = k P(chi2(k + 2) < t) for X ~ chi2(k))."""
+AGREE = 4.0
+"""A sample counts only where its centre's mean is within AGREE standard deviations of its ring's."""
+ROBUST = 0.98
+ROBUST_FACTOR = float(chi2(DEGREES + 2).cdf(_CENTRE.ppf(ROBUST)) / ROBUST)
+"""E[e | e below its ROBUST quantile] / v under Gaussian noise: `_robust` divides by it."""
+
+
+def _robust(energy: np.ndarray) -> float:
+    """A first estimate of the variance that a few outliers do not move: the mean of the energies below their 98%
+    point, over that mean's share under Gaussian noise. (Not the median: a block of a code or two of noise clipped at
+    zero reads mostly zeros, and the median of its energies is 0.)"""
+    if energy.size == 0:
+        return 0.0
+    return float(np.mean(energy[energy <= np.quantile(energy, ROBUST)]) / ROBUST_FACTOR)
+SMOOTH_QUANTILE = 0.95
+SMOOTH = float(_RING.ppf(SMOOTH_QUANTILE) / (len(RING_DETAILS) * len(RING)))
+"""Ring roughness beyond SMOOTH times the reference variance marks a textured sample (the second pass): the 95%
+point of the roughness noise alone gives, so that 5% of the smooth samples are lost and texture that adds a fifth
+of the noise's variance is mostly caught."""
 
 
 @dataclass
@@ -66,14 +98,39 @@ class LevelSets:
         return cls(*(np.zeros(0) for _ in range(5)))
 
 
+def _partition(order: np.ndarray, sorted_levels: np.ndarray, sorted_energy: np.ndarray, target: int,
+               lower: float, upper: float) -> list[np.ndarray]:
+    """Cut the samples (``order``, by level) into sets of ``target`` samples, a set closing early (at `MIN_NARROW`
+    samples or more) where its levels would span more than `WIDTH` of its distance to the nearer clip bound or of 2
+    noise deviations, whichever is more (the deviation from the median energy of the set's first samples): near a
+    clip the reading's variance bends with the level, and a set mixing a black patch with a dark grey one would have
+    a variance that is not the curve's at its mean level. Runs under `MIN_NARROW` samples are dropped."""
+    sets, start = [], 0
+    while start < order.size:
+        first = sorted_levels[start]
+        noise = np.sqrt(_robust(sorted_energy[start:start + MIN_NARROW]))
+        distance = max(min(first - lower, upper - first), 2 * noise, 1e-12)
+        end = min(start + target, order.size)
+        wide = np.nonzero(sorted_levels[start:end] > first + WIDTH * distance)[0]
+        if wide.size:
+            end = start + int(wide[0])
+        if end - start >= MIN_NARROW:
+            sets.append(order[start:end])
+        start = max(end, start + 1)
+    return sets
+
+
 def level_sets(samples: list[PlaneSamples], reference: Callable[[np.ndarray], np.ndarray] | None = None,
-               min_set: int = MIN_SET, max_sets: int = MAX_SETS) -> tuple[LevelSets, np.ndarray]:
+               min_set: int = MIN_SET, max_sets: int = MAX_SETS, lower: float = -np.inf, upper: float = np.inf,
+               step: float = 0.0) -> tuple[LevelSets, np.ndarray]:
     """The level sets of one channel's samples (its site planes' together).
 
     Args:
         samples: the channel's site planes' samples.
         reference: the noise variance expected at a ring level (clipping included), from a first fit; None for
             the first pass (the smoothest `KEEP` of each set).
+        lower, upper, step: the ADC's clip bounds and code step (white-level units), which decide the sets' widths
+            near the clips and the cut.
 
     Returns:
         (the level sets, a boolean mask over the concatenated samples: those the sets kept).
@@ -92,21 +149,33 @@ def level_sets(samples: list[PlaneSamples], reference: Callable[[np.ndarray], np
         smooth_enough = roughness < SMOOTH * reference(level)
     order = np.argsort(level, kind="stable")
     points = {name: [] for name in ("mean", "variance", "count", "mean_variance", "variance_variance")}
-    for members in np.array_split(order, sets):
+    for members in _partition(order, level[order], energy[order], -(-level.size // sets), lower, upper):
         if smooth_enough is None:
             count = max(int(round(KEEP * members.size)), 2)
             smooth = members[np.argsort(roughness[members], kind="stable")[:count]]
         else:
             smooth = members[smooth_enough[members]]
+            if smooth.size < MIN_KEPT * members.size:
+                continue
         if smooth.size < 2:
             continue
-        robust = np.median(energy[smooth]) / MEDIAN
+        robust = _robust(energy[smooth])
         if not robust > 0:  # a set of identical values (all clipped): nothing to read
             continue
-        kept = smooth[energy[smooth] < TRUNCATE * robust]
+        # the centre's level must be the ring's, to within the noise of both means: a sample on an edge (a centre
+        # in a dark patch, its ring half outside) would mix the readings of other levels into the set's, and near
+        # a clip, where the variance bends with the level, the mixture's variance is not the curve's at its mean.
+        # The centre's mean is independent of its detail energy, so this choice does not bias the energy either.
+        agree = np.abs(mean[smooth] - level[smooth]) <= AGREE * np.sqrt(robust * (1 / 9 + 1 / (9 * len(RING))))
+        smooth = smooth[agree]
+        if smooth.size < 2:
+            continue
+        gaussian = robust >= (GAUSSIAN_STEPS * step) ** 2 and np.mean(mean[smooth]) - lower > 4 * np.sqrt(robust)
+        limit, factor = (TIGHT, TIGHT_FACTOR) if gaussian and TIGHT else (TRUNCATE, TRUNCATED_FACTOR)
+        kept = smooth[energy[smooth] < limit * robust]
         if kept.size < 2:
             continue
-        variance = float(np.mean(energy[kept]) / TRUNCATED_FACTOR)
+        variance = float(np.mean(energy[kept]) / factor)
         points["mean"].append(float(np.mean(mean[kept])))
         points["variance"].append(variance)
         points["count"].append(kept.size)

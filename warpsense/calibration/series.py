@@ -26,7 +26,6 @@ from scipy import optimize
 
 from warpsense.calibration.captures import CalibrateError, Capture
 from warpsense.calibration.fit import Z95, NoiseFit
-from warpsense.calibration.model import clipped_moments
 
 PAIR_TOLERANCE = 0.03
 """Two flat fields pair when their means differ by at most this fraction of the larger (and 1e-4 of white)."""
@@ -89,21 +88,40 @@ def _clipped_fraction(plane: np.ndarray, lower: float, upper: float, step: float
     return float(np.mean((plane <= lower + 0.5 * step) | (plane >= upper - 0.5 * step)))
 
 
+def _censored_fit(values: np.ndarray, lower: float, upper: float, step: float) -> tuple[float, float]:
+    """(offset, variance) of dark readings clipped at the zero code: the maximum-likelihood Gaussian whose clipped,
+    rounded codes (code k takes the readings within half a step of lower + k step, code 0 all below, the top code
+    all above) give the readings' histogram."""
+    from scipy.special import ndtr
+
+    top = int(round((upper - lower) / step))
+    codes = np.clip(np.round((values - lower) / step), 0, top).astype(np.int64)
+    counts = np.bincount(codes - codes.min())
+    present = np.nonzero(counts)[0] + codes.min()
+    counts = counts[counts > 0]
+    edge_low = np.where(present <= 0, -np.inf, lower + (present - 0.5) * step)
+    edge_high = np.where(present >= top, np.inf, lower + (present + 0.5) * step)
+
+    def negative_log_likelihood(theta):
+        sigma = np.exp(theta[1])
+        high, low = (edge_high - theta[0]) / sigma, (edge_low - theta[0]) / sigma
+        # log(Phi(high) - Phi(low)) in the tail that keeps precision
+        probability = np.where(low > 0, ndtr(-low) - ndtr(-high), ndtr(high) - ndtr(low))
+        return -float(np.sum(counts * np.log(np.maximum(probability, 1e-300))))
+
+    mean, spread = float(np.mean(values)), float(np.std(values))
+    start = np.array([mean, np.log(max(spread, step / 4))])
+    solution = optimize.minimize(negative_log_likelihood, start, method="Nelder-Mead",
+                                 options={"xatol": 1e-9, "fatol": 1e-9, "maxiter": 4000})
+    return float(solution.x[0]), float(np.exp(2 * solution.x[1]))
+
+
 def _dark_moments(planes: list[np.ndarray], lower: float, upper: float, step: float) -> tuple[float, float, str]:
     """(offset, read variance, how) of one CFA site's dark frames (see the module docstring)."""
     values = np.concatenate([p.ravel() for p in planes])
     offset = float(np.mean(values))
     if max(_clipped_fraction(p, lower, upper, step) for p in planes) > CLIPPED:
-        mean, variance = float(np.mean(values)), float(np.var(values))
-
-        def mismatch(theta):
-            model_mean, model_variance = clipped_moments(np.array([theta[0]]), np.array([np.exp(2 * theta[1])]),
-                                                         lower, upper, step)
-            return [(model_mean[0] - mean) / step, (model_variance[0] - variance) / step**2]
-
-        start = [mean, 0.5 * np.log(max(variance, step**2 / 12))]
-        solution = optimize.least_squares(mismatch, start, xtol=1e-12, ftol=1e-12)
-        return float(solution.x[0]), float(np.exp(2 * solution.x[1])), "clipped at the zero code: moment match"
+        return (*_censored_fit(values, lower, upper, step), "clipped at the zero code: maximum likelihood over codes")
     if len(planes) >= 2:
         differences = [planes[i].ravel() - planes[i + 1].ravel() for i in range(len(planes) - 1)]
         variance = float(np.mean([np.var(d, ddof=1) for d in differences]) / 2)

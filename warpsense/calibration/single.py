@@ -26,7 +26,8 @@ MIN_SETS = 6
 
 @dataclass
 class SiteSets:
-    """The level sets one site of one capture gave, and how many of its samples they kept out of how many."""
+    """The level sets of one filter of one capture (its sites together, e.g. a Bayer tile's two greens, where they
+    share the ADC's range; ``site`` is the first of them), and how many of its samples they kept out of how many."""
 
     site: Site
     group: Group
@@ -71,29 +72,41 @@ def estimate_capture(capture: Capture) -> CaptureEstimate:
         CalibrateError: too few smooth pixels (the message names the file, the samples and sets found and the
             least needed).
     """
-    samples = [(site, plane_samples(site.plane, site.lower, site.upper, site.step)) for site in capture.sites]
+    # the sites of one filter and one ADC range (the two greens of a Bayer tile) share their level sets
+    channels_samples: dict[tuple, tuple[Site, list]] = {}
+    for site in capture.sites:
+        key = (site.letter, site.lower, site.upper, site.step)
+        channels_samples.setdefault(key, (site, []))[1].append(plane_samples(site.plane, site.lower, site.upper,
+                                                                             site.step))
+    samples = list(channels_samples.values())
 
     def too_few(kept: int, sets: int) -> CalibrateError:
         return CalibrateError(f"{capture.path}: too few smooth pixels: {kept} smooth samples (3 x 3 blocks of a "
                               f"colour channel) in {sets} level sets, at least {MIN_SAMPLES} in {MIN_SETS} needed "
                               "(a larger capture, or one with flat regions)")
 
-    first_sets = [level_sets([s])[0] for _, s in samples]
-    first_groups = [Group(sets, site.lower, site.upper, site.step) for (site, _), sets in zip(samples, first_sets)]
+    first_groups = [Group(level_sets(planes, lower=site.lower, upper=site.upper, step=site.step)[0], site.lower,
+                          site.upper, site.step) for site, planes in samples]
     try:
         first = fit_noise(first_groups)
     except FitError:
         raise too_few(int(sum(np.sum(g.sets.count) for g in first_groups)),
                       sum(len(g.sets) for g in first_groups)) from None
     sites = []
-    for site, plane in samples:
+    # the first curve with its read noise at the top of its interval: where the first pass could not see the read
+    # noise (few dark samples among its smoothest), a reference at its estimate would reject every dark sample
+    cautious = NoiseFit(first.shot, first.read_interval[1], first.shot_interval, first.read_interval, first.points,
+                        first.overdispersion, first.covariance)
+    for site, planes in samples:
         def reference(level, site=site):
-            # the curve on a grid of levels, interpolated: the exact sums over codes at every sample cost seconds
-            grid = np.linspace(float(level.min()), float(level.max()), 512) if level.size else np.zeros(1)
-            return np.interp(level, grid, first.variance(grid, site.lower, site.upper, site.step))
+            # the curve at the levels' quantiles, interpolated: the exact sums over codes at every sample would cost
+            # seconds, and quantiles are dense where the samples are (near black, where the curve bends)
+            grid = np.unique(np.quantile(level, np.linspace(0, 1, 513))) if level.size else np.zeros(1)
+            return np.interp(level, grid, cautious.variance(grid, site.lower, site.upper, site.step))
 
-        sets, used = level_sets([plane], reference)
-        sites.append(SiteSets(site, Group(sets, site.lower, site.upper, site.step), int(used.sum()), len(plane)))
+        sets, used = level_sets(planes, reference, lower=site.lower, upper=site.upper, step=site.step)
+        sites.append(SiteSets(site, Group(sets, site.lower, site.upper, site.step), int(used.sum()),
+                              sum(len(plane) for plane in planes)))
     kept = sum(s.kept for s in sites)
     count = sum(len(s.group.sets) for s in sites)
     if kept < MIN_SAMPLES or count < MIN_SETS:
