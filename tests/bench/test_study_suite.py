@@ -84,3 +84,103 @@ def test_exception_cli_options(args, message, capsys):
 
     assert main(["bench", *args]) != 0
     assert message in capsys.readouterr().err
+
+
+BROKEN_FIRST = '''[study]
+name = "broken_first"
+base = ""
+set = ["data.scenes_train=16", "data.scenes_val=4", "data.scene_height=32", "data.scene_width=48",
+       "data.crop_height=32", "data.crop_width=48", "data.batch_size=4", "model.width=4", "train.epochs=2",
+       "train.warmup_epochs=1", "train.eval_every=2", "train.plots=false", "run.device=\\"cpu\\""]
+seeds = [0]
+reference = "rggb"
+
+[[camera]]
+name = "broken"               # the fixed ISP cannot demosaic clear pixels: fails when the cell builds its model
+set = ["cfa.mode=\\"fixed\\"", "cfa.pattern=\\"RCCB\\"", "isp.enabled=true"]
+
+[[camera]]
+name = "rggb"
+set = ["cfa.mode=\\"fixed\\"", "exposure.learnable=false"]
+
+[[light]]
+name = "night"
+full_well_electrons = 66.66666666666667
+read_electrons = 0.13333333333333333
+bits = 10
+'''
+
+
+def _suite_command(plan, out, cells: int = 2) -> list[str]:
+    return ["bench", "--suite", "study", "--plan", str(plan), "--out", str(out), "--cells", str(cells), "--gpus",
+            "none"]
+
+
+def test_a_failed_cell_stops_the_suite_before_its_second_invocation(tmp_path, capsys, monkeypatch):
+    """A cell failed in the alone invocation: the shared one trained every cell again (and failed the same way),
+    then a RuntimeError's traceback ended the command. Now, as `study run`: the other cells of that invocation
+    go on, the suite stops there, and says so in one line (exit 1)."""
+    from warpsense.cli import main
+    from warpsense.study import runner
+
+    plan = tmp_path / "plan.toml"
+    plan.write_text(BROKEN_FIRST)
+    out = tmp_path / "suite"
+    invocations = []
+    real = runner.run_cells
+    monkeypatch.setattr("warpsense.bench.study_suite.run_cells",
+                        lambda plan, folder, *args, **kwargs: invocations.append(folder.name) or real(
+                            plan, folder, *args, **kwargs))
+    assert main(_suite_command(plan, out)) == 1
+    error = capsys.readouterr().err
+    assert invocations == ["alone"] and not (out / "shared").exists()
+    assert (out / "alone" / "runs" / "rggb.night.seed0" / "evaluation.json").is_file()  # the other cell went on
+    last = error.strip().splitlines()[-1]
+    assert last.startswith("warpsense bench: study suite: cells failed in the alone invocation")
+    assert "stopped before the shared invocation" in last and "Traceback" not in error
+
+
+@pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_or_sigterm_stops_the_suite_at_once_and_it_resumes(tmp_path, capsys, monkeypatch, signal_name):
+    """Ctrl-C (or SIGTERM) in the alone invocation's first cell: the alone invocation stopped that cell, and then
+    the shared invocation started training all cells anew. Now the suite stops there (exit 130, 143 for SIGTERM),
+    one line, no traceback, and the same command resumes the interrupted cell and finishes."""
+    import os
+    import signal
+
+    from warpsense.cli import main
+    from warpsense.train import engine
+
+    plan = tmp_path / "plan.toml"
+    plan.write_text(BROKEN_FIRST.replace('name = "broken"', 'name = "rccb"').replace(
+        '"cfa.pattern=\\"RCCB\\"", "isp.enabled=true"', '"cfa.pattern=\\"RCCB\\""'))
+    out = tmp_path / "suite"
+    write_epoch = engine._write_epoch
+
+    def interrupted(run_dir, *args, **kwargs):
+        write_epoch(run_dir, *args, **kwargs)
+        os.kill(os.getpid(), getattr(signal, signal_name))  # after the first epoch's checkpoint
+
+    monkeypatch.setattr(engine, "_write_epoch", interrupted)
+    assert main(_suite_command(plan, out, cells=1)) == (130 if signal_name == "SIGINT" else 143)
+    error = capsys.readouterr().err
+    assert "Traceback" not in error and not (out / "shared").exists()
+    assert error.strip().splitlines()[-1] == (f"warpsense bench: study suite: interrupted in the alone invocation "
+                                              f"({out / 'alone'}) before the shared invocation; run the same command "
+                                              "again to resume (finished cells are kept)")
+    assert (out / "alone" / "runs" / "rccb.night.seed0" / "checkpoint_last.safetensors").is_file()
+    monkeypatch.setattr(engine, "_write_epoch", write_epoch)
+    assert main(_suite_command(plan, out, cells=1)) == 0
+    assert "resuming" in capsys.readouterr().out
+    records = [json.loads(line) for line in
+               (out / "alone" / "runs" / "rccb.night.seed0" / "metrics.jsonl").read_text().splitlines()]
+    assert [record["epoch"] for record in records] == [0, 1]  # epoch 1 trained once, after the resume
+
+
+def test_a_damaged_evaluation_of_the_suite_is_named(tmp_path):
+    from warpsense.study.plan import PlanError
+
+    with pytest.raises(PlanError, match=r"run/evaluation.json: splits.val.miou: expected a finite score"):
+        judged_miou({"splits": {"val": {"miou": float("nan")}}}, "run/evaluation.json")
+    with pytest.raises(PlanError, match=r"run/evaluation.json: splits: expected an object"):
+        judged_miou({}, "run/evaluation.json")

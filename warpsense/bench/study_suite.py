@@ -15,21 +15,37 @@ in this process and a cell repeats exactly.
 
 from __future__ import annotations
 
-import json
+import math
 import statistics
 from pathlib import Path
 
-from warpsense.study.plan import load_plan
+from warpsense.study.plan import PlanError, load_plan
 from warpsense.study.report import run_times
-from warpsense.study.runner import THROUGHPUT, evaluation_path, run_cells, run_dir
+from warpsense.study.runner import THROUGHPUT, evaluation_path, read_record, read_throughput, run_cells, run_dir
 from warpsense.train.run_dir import METRICS, read_metrics
 
 
-def judged_miou(evaluation: dict) -> tuple[str, float]:
-    """(split, mIoU) a cell is judged by: its held-out sequence in a fold, else val."""
-    splits = evaluation["splits"]
+class SuiteStopped(Exception):
+    """The suite stopped before its comparison: ``code`` 1 (a cell failed) or 130 (interrupted); the message says
+    so in one line, and how to go on (a second call resumes: finished cells are kept)."""
+
+    def __init__(self, message: str, code: int):
+        super().__init__(message)
+        self.code = code
+
+
+def judged_miou(evaluation: dict, source: str | Path = "evaluation") -> tuple[str, float]:
+    """(split, mIoU) a cell is judged by: its held-out sequence in a fold, else val; a one-line PlanError naming
+    ``source`` (the evaluation's file) and the field where it is missing or not a finite score in [0, 1]."""
+    splits = evaluation.get("splits") if isinstance(evaluation, dict) else None
+    if not isinstance(splits, dict):
+        raise PlanError(f"{source}: splits: expected an object of the splits judged, got {splits!r}")
     split = "heldout" if "heldout" in splits else "val"
-    return split, float(splits[split]["miou"])
+    metrics = splits.get(split)
+    miou = metrics.get("miou") if isinstance(metrics, dict) else None
+    if isinstance(miou, bool) or not isinstance(miou, (int, float)) or not (math.isfinite(miou) and 0 <= miou <= 1):
+        raise PlanError(f"{source}: splits.{split}.miou: expected a finite score in [0, 1], got {miou!r}")
+    return split, float(miou)
 
 
 def _cell_times(path: Path) -> dict:
@@ -43,7 +59,11 @@ def _cell_times(path: Path) -> dict:
 
 
 def _invocation(out: Path) -> dict:
-    return json.loads((out / THROUGHPUT).read_text())[-1]
+    """The last `study run` invocation's throughput entry of a study directory (`read_throughput`)."""
+    entries = read_throughput(out / THROUGHPUT)
+    if not entries:
+        raise PlanError(f"{out / THROUGHPUT}: no invocation recorded (its cells were not trained by this suite)")
+    return entries[-1]
 
 
 def run_study_suite(plan: str, out: str | Path, cells: int = 0, gpus: list[str] | None = None, per_gpu: int = 2,
@@ -74,16 +94,16 @@ def run_study_suite(plan: str, out: str | Path, cells: int = 0, gpus: list[str] 
     chosen = loaded.cells()[: cells or None]
     out = Path(out)
     alone, shared = out / "alone", out / "shared"
-    codes = [run_cells(loaded, alone, chosen, gpus, 1, mps="off"),
-             run_cells(loaded, shared, chosen, gpus, per_gpu, mps=mps)]
-    if any(codes):
-        raise RuntimeError(f"study suite: cells failed (exit codes {codes}); their logs are under {out}")
+    for name, folder, slots, mode in (("alone", alone, 1, "off"), ("shared", shared, per_gpu, mps)):
+        code = run_cells(loaded, folder, chosen, gpus, slots, mps=mode)
+        _check_invocation(code, name, folder)
     slots = per_gpu if gpus else 1
     rows = []
     for cell in chosen:
         row = {"cell": cell.id}
         for name, folder in (("alone", alone), ("shared", shared)):
-            split, miou = judged_miou(json.loads(evaluation_path(folder, cell).read_text()))
+            path = evaluation_path(folder, cell)
+            split, miou = judged_miou(read_record(path, dict), path)
             row["split"], row[name] = split, {"miou": miou, **_cell_times(run_dir(folder, cell))}
         row["miou_difference"] = row["shared"]["miou"] - row["alone"]["miou"]
         row["speedup"] = slots * row["alone"]["steady_s"] / row["shared"]["steady_s"]
@@ -96,6 +116,19 @@ def run_study_suite(plan: str, out: str | Path, cells: int = 0, gpus: list[str] 
             "mps": invocations["shared"].get("mps", False), "overrides": list(overrides), "cells": rows,
             **invocations, "cells_per_gpu_hour": per_hour, "ratio": per_hour["shared"] / per_hour["alone"],
             "steady_ratio": slots * steady["alone"] / steady["shared"]}
+
+
+def _check_invocation(code: int, name: str, folder: Path) -> None:
+    """Stop the suite after an invocation that did not finish its cells, as `warpsense study run` stops: the other
+    invocation never starts (its times would be compared with nothing), and a second call resumes both."""
+    later = " before the shared invocation" if name == "alone" else ""
+    if code == 130:
+        raise SuiteStopped(f"study suite: interrupted in the {name} invocation ({folder}){later}; run the same "
+                           "command again to resume (finished cells are kept)", 130)
+    if code:
+        raise SuiteStopped(f"study suite: cells failed in the {name} invocation ({folder}; the reasons above, and "
+                           f"`warpsense study status {folder}`); stopped{later}. Run the same command again to retry "
+                           "them (finished cells are kept)", 1)
 
 
 def format_study_suite(record: dict) -> str:

@@ -4,6 +4,7 @@ plain-torch baseline and against themselves."""
 from __future__ import annotations
 
 import argparse
+import sys
 
 from warpsense.bench import BENCH_SUITES
 from warpsense.choices import DEVICES, MPS_MODES
@@ -126,7 +127,7 @@ def run_bench_command(device: str, suite: str, quick: bool, json_out: str | None
 def run_study_suite_command(plan: str | None, out: str | None, cells: int, per_gpu: int, gpus: str, mps: str,
                             overrides: tuple[str, ...], json_out: str | None) -> int:
     """`warpsense.bench.study_suite.run_study_suite` after checking its options; prints the comparison."""
-    from warpsense.bench.study_suite import format_study_suite, run_study_suite
+    from warpsense.bench.study_suite import SuiteStopped, format_study_suite, run_study_suite
     from warpsense.files import write_json
 
     if not plan or not out:
@@ -134,7 +135,11 @@ def run_study_suite_command(plan: str | None, out: str | None, cells: int, per_g
     check_output_file(json_out, "--json")
     devices = parse_gpus(gpus)
     check_local_gpus(devices)
-    record = run_study_suite(plan, out, cells, devices, per_gpu, mps, overrides)
+    try:
+        record = run_study_suite(plan, out, cells, devices, per_gpu, mps, overrides)
+    except SuiteStopped as stopped:  # a failed cell (1) or Ctrl-C / SIGTERM (130): one line, as `study run` ends
+        print(f"warpsense bench: {stopped}", file=sys.stderr)
+        return stopped.code
     print(format_study_suite(record))
     if json_out:
         write_json(json_out, record)
