@@ -26,7 +26,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from warpsense.calibration.local import DEGREES, RING, RING_DETAILS, STRIDE_CORRELATION, PlaneSamples
+from warpsense.calibration.local import (
+    DEGREES,
+    RING,
+    RING_DETAILS,
+    STRIDE_CORRELATION,
+    STRIDE_CORRELATION_ALL,
+    PlaneSamples,
+)
 
 KEEP = 0.3
 """Fraction of each level set kept in the first pass, smoothest first by ring roughness."""
@@ -61,6 +68,8 @@ AGREE = 4.0
 """A sample counts only where its centre's mean is within AGREE standard deviations of its ring's."""
 ROBUST = 0.98
 ROBUST_FACTOR = float(chi2(DEGREES + 2).cdf(_CENTRE.ppf(ROBUST)) / ROBUST)
+_ALL = len(RING_DETAILS)
+ROBUST_FACTOR_ALL = float(chi2(_ALL + 2).cdf(chi2(_ALL).ppf(ROBUST)) / ROBUST)
 """E[e | e below its ROBUST quantile] / v under Gaussian noise: `_robust` divides by it."""
 
 
@@ -138,7 +147,8 @@ def level_sets(samples: list[PlaneSamples], reference: Callable[[np.ndarray], np
     def joined(name):
         return np.concatenate([getattr(s, name) for s in samples]) if samples else np.zeros(0)
 
-    mean, energy, level, roughness = (joined(name) for name in ("mean", "energy", "level", "roughness"))
+    mean, energy, level, roughness, energy_all = (joined(name) for name in ("mean", "energy", "level", "roughness",
+                                                                            "energy_all"))
     used = np.zeros(level.size, dtype=bool)
     sets = min(max_sets, level.size // min_set)
     if sets < 1:
@@ -171,16 +181,21 @@ def level_sets(samples: list[PlaneSamples], reference: Callable[[np.ndarray], np
         if smooth.size < 2:
             continue
         gaussian = robust >= (GAUSSIAN_STEPS * step) ** 2 and np.mean(mean[smooth]) - lower > 4 * np.sqrt(robust)
-        limit, factor = (TIGHT, TIGHT_FACTOR) if gaussian and TIGHT else (TRUNCATE, TRUNCATED_FACTOR)
-        kept = smooth[energy[smooth] < limit * robust]
+        if gaussian:
+            values, correlation, limit, factor = energy, STRIDE_CORRELATION, TIGHT, TIGHT_FACTOR
+        else:  # near a clip: all four filters, and only gross outliers cut
+            values, correlation = energy_all, STRIDE_CORRELATION_ALL
+            limit, factor = TRUNCATE, 1.0
+            robust = _robust(values[smooth]) * ROBUST_FACTOR / ROBUST_FACTOR_ALL
+        kept = smooth[values[smooth] < limit * robust]
         if kept.size < 2:
             continue
-        variance = float(np.mean(energy[kept]) / factor)
+        variance = float(np.mean(values[kept]) / factor)
         points["mean"].append(float(np.mean(mean[kept])))
         points["variance"].append(variance)
         points["count"].append(kept.size)
         # a block mean of 9 pixels; both point estimates are means over samples STRIDE apart
         points["mean_variance"].append(variance / 9.0 / kept.size)
-        points["variance_variance"].append(2.0 * variance**2 * STRIDE_CORRELATION / kept.size)
+        points["variance_variance"].append(2.0 * variance**2 * correlation / kept.size)
         used[kept] = True
     return LevelSets(*(np.asarray(points[name], dtype=np.float64) for name in points)), used

@@ -31,9 +31,12 @@ DETAILS = [np.outer(a, b) for a in (_U1, _U2) for b in (_U1, _U2)]
 """The 4 detail filters: orthonormal, zero-sum along both axes."""
 
 CENTRE = [3]
+"""The detail filters of a sample's energy: u2 u2^T alone, the one that leaks least texture (a third of the others'
+on CamVid frames, whose own sensor noise is texture to the simulated one)."""
 DEGREES = len(CENTRE)
 """Degrees of freedom of a block's detail energy: v * chi-square(DEGREES) / DEGREES under the noise alone."""
 RING_DETAILS = [0, 1, 2, 3]
+"""The detail filters of the ring's roughness and of a sample's ``energy_all``: all four."""
 
 STRIDE = 2
 """Samples every STRIDE block positions along each axis."""
@@ -42,7 +45,7 @@ RING = [(dy, dx) for dy in (-3, 0, 3) for dx in (-3, 0, 3) if (dy, dx) != (0, 0)
 """The 8 blocks around a sample's centre block (offsets in pixels): they tile its 9 x 9 window with it."""
 
 
-def _overlap_factor(stride: int) -> float:
+def _overlap_factor(stride: int, filters: list[int] = CENTRE) -> float:
     """The variance of a mean of n sample energies (samples ``stride`` apart on a grid, Gaussian noise of variance
     v) is 2 v^2 / n times this: 1 / DEGREES for independent samples, more for overlapping blocks. Under Gaussian
     noise cov(d_k(p)^2, d_l(q)^2) = 2 v^2 c_kl(p - q)^2, c_kl the filters' cross-correlation."""
@@ -51,24 +54,28 @@ def _overlap_factor(stride: int) -> float:
         for dx in range(-2, 3):
             if dy % stride or dx % stride:
                 continue
-            for first in (DETAILS[k] for k in CENTRE):
-                for second in (DETAILS[k] for k in CENTRE):
+            for first in (DETAILS[k] for k in filters):
+                for second in (DETAILS[k] for k in filters):
                     shifted = np.zeros((7, 7))
                     shifted[2 + dy:5 + dy, 2 + dx:5 + dx] = second
                     padded = np.zeros((7, 7))
                     padded[2:5, 2:5] = first
                     total += float(np.sum(padded * shifted)) ** 2
-    return total / DEGREES**2
+    return total / len(filters) ** 2
 
 
 STRIDE_CORRELATION = _overlap_factor(STRIDE)
 """2 v^2 / n times this is the variance of a mean of n sample energies STRIDE apart."""
+STRIDE_CORRELATION_ALL = _overlap_factor(STRIDE, RING_DETAILS)
+"""The same for ``energy_all``, the mean square of all four detail coefficients."""
 
 
 @dataclass
 class PlaneSamples:
     """The samples of one site plane (1-D arrays of one length): centre block ``mean`` and detail ``energy``, ring
-    ``level`` and ring ``roughness``; ``rows``, ``cols``: the centre block's top-left pixel in the plane."""
+    ``level`` and ring ``roughness``; ``rows``, ``cols``: the centre block's top-left pixel in the plane;
+    ``energy_all``: the centre's mean square over all four detail filters (4 degrees of freedom), which sets near
+    a clip read, where texture is faint and the clipped noise has few distinct values."""
 
     mean: np.ndarray
     energy: np.ndarray
@@ -76,10 +83,11 @@ class PlaneSamples:
     roughness: np.ndarray
     rows: np.ndarray
     cols: np.ndarray
+    energy_all: np.ndarray
 
     @classmethod
     def empty(cls) -> "PlaneSamples":
-        return cls(*(np.zeros(0) for _ in range(4)), np.zeros(0, int), np.zeros(0, int))
+        return cls(*(np.zeros(0) for _ in range(4)), np.zeros(0, int), np.zeros(0, int), np.zeros(0))
 
     def __len__(self) -> int:
         return int(self.mean.size)
@@ -113,4 +121,4 @@ def plane_samples(plane: np.ndarray, lower: float, upper: float, step: float) ->
     margin = 1e-6 * step + 1e-12  # every ring pixel at the clip code
     keep = (level > lower + margin) & (level < upper - margin)
     return PlaneSamples(means[grid_rows, grid_cols][keep], energies[grid_rows, grid_cols][keep], level[keep],
-                        roughness[keep], grid_rows[keep], grid_cols[keep])
+                        roughness[keep], grid_rows[keep], grid_cols[keep], rough[grid_rows, grid_cols][keep])
