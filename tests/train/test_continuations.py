@@ -59,6 +59,10 @@ TASK_CHANGES = {
     "stage_on": (["optics.enabled=true"], "optics.enabled: False -> True"),
     "isp_on": (["isp.enabled=true"], "isp.enabled: False -> True"),
     "cfa_tile": (["cfa.tile=4"], "cfa.tile: 2 -> 4"),
+    # the frames the run is judged on (issue 76; the class table: tests/train/test_inputs.py)
+    "judged_frames": (["data.max_val_images=1"], "data.max_val_images: 0 -> 1"),
+    "scenes_judged": (["data.scenes_val=3"], "data.scenes_val: 2 -> 3"),
+    "scene_size": (["data.scene_height=32", "data.crop_height=32"], "data.scene_height: 16 -> 32"),
 }
 
 
@@ -196,7 +200,8 @@ def test_a_change_that_is_not_of_task_still_continues(run, capsys):
 
 
 def test_task_keys():
-    for key in ("data.dataset", "data.root", "model.num_classes", "model.width", "photons.enabled", "isp.enabled"):
+    for key in ("data.dataset", "data.root", "model.num_classes", "model.width", "photons.enabled", "isp.enabled",
+                "data.classes_file", "data.max_val_images"):
         assert is_task_key(key), key
     for key in ("train.lr", "train.epochs", "data.batch_size", "noise.shot", "run.device", "loss.teacher"):
         assert not is_task_key(key), key

@@ -380,6 +380,7 @@ def finished_runs(study_dirs: list[Path]) -> dict[str, Path]:
     with a record no report can read."""
     from warpsense.config import ConfigError, config_from_dict
     from warpsense.train.engine import EVALUATION
+    from warpsense.train.inputs import read_inputs
 
     found: dict[str, Path] = {}
     check_reuse_dirs(study_dirs)
@@ -394,6 +395,10 @@ def finished_runs(study_dirs: list[Path]) -> dict[str, Path]:
                 print(f"--reuse: {run} not considered: {error}")
                 continue
             read_record(run / EVALUATION, dict)
+            try:
+                read_inputs(run)  # damaged: named here, before anything is written
+            except ConfigError as error:
+                raise PlanError(str(error)) from None
             found.setdefault(_training_key(config.to_dict()), run)
     return found
 
@@ -402,15 +407,23 @@ def reuse_cells(plan: Plan, out: Path, cells: list[Cell], finished: dict[str, Pa
     """Copy into <out>/runs every not-yet-started cell whose resolved config one of the ``finished`` runs
     (`finished_runs`) trained, identical but for `REUSE_IGNORED`, so that a study can take its reference cells from
     an earlier one; returns the cells copied and where from. The copy is the whole run directory, written under a
-    temporary name first."""
+    temporary name first. A run whose recorded inputs (`warpsense.train.inputs`: its class table, split lists,
+    lens file, teacher) have changed since it trained is not copied: the cell trains on today's files."""
+    from warpsense.train.inputs import changed_input
+
     reused = {}
     if not finished:  # no --reuse: no cell's config to resolve here
         return reused
     for cell in cells:
         if cell_state(out, cell) != "new" or run_dir(out, cell).exists():
             continue
-        source = finished.get(_training_key(plan.config(cell, Path(out) / "runs").to_dict()))
+        config = plan.config(cell, Path(out) / "runs")
+        source = finished.get(_training_key(config.to_dict()))
         if source is None:
+            continue
+        changed = changed_input(source, config)  # the same config, but a file it read has changed since
+        if changed:
+            print(f"--reuse: {source} not copied for {cell.id}: {changed}; the cell trains", flush=True)
             continue
         target = run_dir(out, cell)
         partial = target.with_name(target.name + ".reusing")

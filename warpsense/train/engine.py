@@ -37,6 +37,7 @@ from warpsense.system import build_system, check_config, load_teacher
 from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
 from warpsense.train.distributed import DistributedContext, launch_rank, wrap_data_parallel
 from warpsense.train.evaluate import evaluate
+from warpsense.train.inputs import check_inputs, input_digests, record_inputs
 from warpsense.train.reproducibility import deterministic_algorithms
 from warpsense.train.run_dir import LAST, METRICS, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
 from warpsense.train.schedule import Schedule
@@ -161,6 +162,7 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
                 print(f"{run_dir}: already finished ({finished[0]} of {finished[1]} epochs); nothing to resume "
                       "(--extend N trains N more)")
             return (run_dir, None) if return_model else run_dir
+        check_inputs(run_dir, config)  # the files it read, by content: a changed class table is another task
     elif config is None:
         raise ValueError("train: a config is needed for a new run")
     else:
@@ -315,8 +317,9 @@ def _run_epoch(training_step, model, batches, steps: int, step: int, joint: bool
 
 
 def _write_run_files(run_dir: Path, config, versions: dict, history: list[dict], start_epoch: int,
-                     resume: bool) -> None:
-    """The run's config.json, environment.json and metrics.jsonl (``history``: the records it keeps), each written
+                     resume: bool, inputs: dict | None = None) -> None:
+    """The run's config.json, environment.json, metrics.jsonl (``history``: the records it keeps) and, with
+    ``inputs``, the digests of the files it read (`warpsense.train.inputs.record_inputs`), each written
     atomically. A new run writes them before its first epoch; a continuation only at the end of its first epoch,
     after every check and that epoch have passed, so a continuation refused or stopped before then leaves the run
     as it was. A continuation that changed the config first copies the old config.json to
@@ -330,6 +333,8 @@ def _write_run_files(run_dir: Path, config, versions: dict, history: list[dict],
             with atomic_write(earlier) as temporary:
                 shutil.copyfile(saved, temporary)
     config.save(saved)
+    if inputs is not None:
+        record_inputs(run_dir, inputs)
     write_json(run_dir / "environment.json", versions)
     with atomic_write(run_dir / METRICS) as temporary:
         temporary.write_text("".join(json.dumps(r) + "\n" for r in history))
@@ -378,6 +383,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     run_started = time.perf_counter()
     device = context.device
     torch.manual_seed(config.run.seed)
+    inputs = input_digests(config) if context.is_main else None  # before the files are read
     datasets = _datasets(config)
     _check_evaluation_files(datasets, config)
     num_classes = config.model.num_classes or len(datasets.train.classes)
@@ -418,7 +424,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     if context.is_main:
         versions = environment()
         if not resume:  # a continuation's own files wait for its first complete epoch (`_write_run_files`)
-            _write_run_files(run_dir, config, versions, history, start_epoch, resume)
+            _write_run_files(run_dir, config, versions, history, start_epoch, resume, inputs)
         print(f"run directory: {run_dir}")
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
               f"{sum(p.numel() for p in model.camera.learnable_parameters()):,}; device: {device}; ranks: {context.world_size}")
@@ -476,7 +482,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         if context.is_main:
             if resume and epoch == start_epoch:
                 _supersede_final_files(run_dir, start_epoch)  # first: a kill after it leaves an unfinished run
-                _write_run_files(run_dir, config, versions, history, start_epoch, resume)
+                _write_run_files(run_dir, config, versions, history, start_epoch, resume, inputs)
             state = {"epoch": epoch, "step": step, "best_miou": best_miou, "num_classes": num_classes,
                      "class_names": list(datasets.train.classes), "record": record, "environment": versions,
                      "schedule": {**schedule.to_dict(), "requested": [requested.epochs, requested.warmup_epochs]}}

@@ -59,9 +59,16 @@ def config_changes(saved: Config, requested: Config) -> list[str]:
             if key not in RELOCATABLE_KEYS and before.get(key) != after.get(key)]
 
 
+JUDGED_KEYS = ("data.classes_file", "data.max_val_images", "data.scenes_val", "data.scene_height", "data.scene_width",
+               "data.scene_sequences")
+"""Keys of the task too (`is_task_key`): the folder dataset's class table (its content is compared on its own:
+`warpsense.train.inputs`), and the frames a run is judged on (how many; the generated scenes' size and sequences)."""
+
+
 def is_task_key(key: str) -> bool:
-    """Whether changing ``key`` ("section.key") makes a run another task: `TASK_KEYS` and every "<section>.enabled"."""
-    return key in TASK_KEYS or key.endswith(".enabled")
+    """Whether changing ``key`` ("section.key") makes a run another task: `TASK_KEYS`, `JUDGED_KEYS` and every
+    "<section>.enabled"."""
+    return key in TASK_KEYS or key in JUDGED_KEYS or key.endswith(".enabled")
 
 
 def task_changes(saved: Config, requested: Config) -> list[str]:
