@@ -31,7 +31,7 @@ def scene(height=256, width=384, seed=0) -> np.ndarray:
         image[(rows - cy) ** 2 + (cols - cx) ** 2 < radius**2] = rng.uniform(0.0, 0.8, 3) ** 1.5
     image *= (1 + 0.03 * np.sin(cols * 0.07 + rng.uniform(0, 6)) * np.sin(rows * 0.05))[..., None]
     side = 40
-    for i, level in enumerate([0.0, 0.0005, 0.002, 0.006, 0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.7, 0.9]):
+    for i, level in enumerate([0.0, 0.0, 0.0005, 0.002, 0.006, 0.02, 0.05, 0.1, 0.2, 0.35, 0.6, 0.9]):
         top, left = 16 + (i // 6) * (height - 32 - side), 8 + (i % 6) * (side + 22)
         image[top:top + side, left:left + side] = level
     return np.clip(image, 0, 1)

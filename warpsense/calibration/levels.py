@@ -64,6 +64,11 @@ TIGHT = float(_CENTRE.ppf(0.999) / DEGREES)
 """The 99.9% point of the energy under Gaussian noise (over its variance): a corner the ring does not see."""
 TIGHT_FACTOR = float(chi2(DEGREES + 2).cdf(TIGHT * DEGREES) / _CENTRE.cdf(TIGHT * DEGREES))
 """E[e | e < TIGHT v] / v under Gaussian noise (E[X; X < t] = k P(chi2(k + 2) < t) for X ~ chi2(k))."""
+NEAR_CLIP_ALL, NEAR_CLIP_SIGMAS = True, 2.0
+AT_CLIP = 1.0
+"""Only a set within AT_CLIP noise deviations of the lower clip (a black patch's) reads all four filters."""
+"""A set near a clip reads all four detail filters unless their mean energy exceeds the one filter's by more than
+NEAR_CLIP_SIGMAS standard errors: texture, which the other three filters see 2-3x more of (CamVid frames)."""
 AGREE = 4.0
 """A sample counts only where its centre's mean is within AGREE standard deviations of its ring's."""
 ROBUST = 0.98
@@ -183,10 +188,14 @@ def level_sets(samples: list[PlaneSamples], reference: Callable[[np.ndarray], np
         gaussian = robust >= (GAUSSIAN_STEPS * step) ** 2 and np.mean(mean[smooth]) - lower > 4 * np.sqrt(robust)
         if gaussian:
             values, correlation, limit, factor = energy, STRIDE_CORRELATION, TIGHT, TIGHT_FACTOR
-        else:  # near a clip: all four filters, and only gross outliers cut
-            values, correlation = energy_all, STRIDE_CORRELATION_ALL
-            limit, factor = TRUNCATE, 1.0
-            robust = _robust(values[smooth]) * ROBUST_FACTOR / ROBUST_FACTOR_ALL
+        else:  # near a clip: only gross outliers cut, and all four filters unless they see texture
+            values, correlation, limit, factor = energy, STRIDE_CORRELATION, TRUNCATE, 1.0
+            one, four = float(np.mean(energy[smooth])), float(np.mean(energy_all[smooth]))
+            at_clip = np.mean(mean[smooth]) - lower <= AT_CLIP * np.sqrt(robust)
+            if NEAR_CLIP_ALL and at_clip and four <= one * (1 + NEAR_CLIP_SIGMAS * np.sqrt(2 * STRIDE_CORRELATION
+                                                                                          / smooth.size)):
+                values, correlation = energy_all, STRIDE_CORRELATION_ALL
+                robust = _robust(values[smooth]) * ROBUST_FACTOR / ROBUST_FACTOR_ALL
         kept = smooth[values[smooth] < limit * robust]
         if kept.size < 2:
             continue
