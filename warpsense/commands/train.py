@@ -10,7 +10,7 @@ from pathlib import Path
 from warpsense.commands.options import add_config_options, count, show_progress
 from warpsense.config import ConfigError, load_config, preset_names, with_overrides
 from warpsense.files import check_output_folder
-from warpsense.train.run_dir import LAST, newest_run, resumed_config
+from warpsense.train.run_dir import BEST, LAST, newest_run, resumed_config
 
 LOCATING_KEYS = ("run.output_dir=", "run.name=")  # overrides that only say where the run to resume is
 
@@ -142,6 +142,11 @@ def run_train(config_file: str | None, overrides: list[str], resume: bool = Fals
     except TrainingInterrupted as interrupted:
         if progress:  # the epoch's bar is left mid-line: start the message on a line of its own
             print(file=sys.stderr)
+        if not (interrupted.run_dir / LAST).is_file() and (interrupted.run_dir / BEST).is_file():
+            print(f"warpsense train: interrupted before the run's first resume point (train.checkpoint_every); "
+                  f"nothing to resume, but its best checkpoint so far is kept: {interrupted.run_dir / BEST}; start "
+                  "the run again to train it (in a new folder)", file=sys.stderr)
+            return 130
         if not (interrupted.run_dir / LAST).is_file():
             print(f"warpsense train: interrupted before the first epoch ended; nothing to resume in "
                   f"{interrupted.run_dir}: start the run again", file=sys.stderr)

@@ -437,10 +437,15 @@ def reuse_cells(plan: Plan, out: Path, cells: list[Cell], finished: dict[str, Pa
 def train_cell(plan: Plan, out: Path, cell: Cell, progress: bool = False) -> dict:
     """Train (or resume) and evaluate one cell in this process; returns its evaluation record."""
     from warpsense.train.engine import train
+    from warpsense.train.run_dir import holds_run, set_aside
 
     state = cell_state(out, cell)
     if state != "done":
         config = plan.config(cell, Path(out) / "runs")
+        if state == "new" and holds_run(run_dir(out, cell)):  # stopped before its first resume point: its best kept
+            kept = set_aside(run_dir(out, cell))
+            print(f"{cell.id}: an attempt stopped before its first resume point left a best checkpoint: kept in "
+                  f"{kept}; the cell trains from the start", flush=True)
         train(config, resume=run_dir(out, cell) if state == "partial" else False, progress=progress)
     return read_evaluation(out, cell)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import shutil
 import sys
 import time
@@ -34,16 +35,31 @@ from warpsense.errors import first_line
 from warpsense.files import atomic_write, environment, write_json
 from warpsense.models import count_parameters
 from warpsense.system import build_system, check_config, load_teacher
-from warpsense.system.checkpoint import CheckpointError, read_checkpoint, restore, resume_state, save_checkpoint
+from warpsense.system.checkpoint import (
+    METADATA_KEY,
+    CheckpointError,
+    read_checkpoint,
+    restore,
+    resume_state,
+    save_checkpoint,
+)
 from warpsense.train.distributed import DistributedContext, launch_rank, wrap_data_parallel
 from warpsense.train.evaluate import evaluate
 from warpsense.train.inputs import check_inputs, input_digests, record_inputs
 from warpsense.train.reproducibility import deterministic_algorithms
-from warpsense.train.run_dir import LAST, METRICS, RunLock, fresh_run_dir, newest_run, read_metrics, resumed_config
+from warpsense.train.run_dir import (
+    BEST,
+    LAST,
+    METRICS,
+    RunLock,
+    fresh_run_dir,
+    newest_run,
+    read_metrics,
+    resumed_config,
+)
 from warpsense.train.schedule import Schedule
 from warpsense.train.step import TrainingStep
 
-BEST = "checkpoint_best.safetensors"
 EVALUATION = "evaluation.json"
 
 
@@ -208,11 +224,28 @@ def _finished_epochs(run_dir: Path, config) -> tuple[int, int] | None:
     return (trained, schedule.epochs) if trained >= schedule.epochs else None
 
 
+def _kept_best(run_dir: Path) -> float:
+    """The score of the run's best checkpoint as it was written (its header's state.best_miou), -1 where it has none
+    or it cannot be read. A run resumed from a resume point before that checkpoint's epoch (stopped between an
+    epoch's best checkpoint and its checkpoint_last, or between resume points) replaces it only with a better epoch,
+    never with a redone one that scored less."""
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(run_dir / BEST), framework="pt") as handle:
+            value = json.loads((handle.metadata() or {})[METADATA_KEY])["state"]["best_miou"]
+    except Exception:  # noqa: BLE001 - absent or unreadable: the next best epoch writes it
+        return -1.0
+    finite = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    return float(value) if finite else -1.0
+
+
 def _discard_unfinished(run_dir: Path, created: Path | None) -> None:
     """Remove the folders this call created (``created``: the outermost) when the run holds no checkpoint yet (a
     config the model refuses, a missing dataset, Ctrl-C in the first epoch): nothing partial is left on disk, and
-    nothing suggests a resume."""
-    if created is None or (run_dir / LAST).exists():
+    nothing suggests a resume. A run with a best checkpoint but no resume point yet (stopped between an epoch's best
+    checkpoint and its checkpoint_last, or before train.checkpoint_every's first) is kept: that model is the user's."""
+    if created is None or (run_dir / LAST).exists() or (run_dir / BEST).exists():
         return
     shutil.rmtree(run_dir, ignore_errors=True)
     for folder in run_dir.parents:  # the output folders made for it, while empty (another run may use them now)
@@ -411,6 +444,7 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         state = resume_state(run_dir / LAST, tensors, meta)
         restore(tensors, model, optimizer, source=run_dir / LAST)
         start_epoch, step, best_miou = state["epoch"] + 1, state["step"], state["best_miou"]
+        best_miou = max(best_miou, _kept_best(run_dir))
         schedule = _resumed_schedule(state, requested, run_dir / LAST)
         torch.set_rng_state(tensors["rng"])
         history = read_metrics(run_dir / METRICS, state["epoch"])

@@ -14,6 +14,7 @@ from warpsense.config import Config, ConfigError, config_from_dict, flatten_keys
 from warpsense.errors import first_line
 
 LAST = "checkpoint_last.safetensors"
+BEST = "checkpoint_best.safetensors"
 METRICS = "metrics.jsonl"  # one JSON record per epoch
 LOCK = "train.lock"
 # keys a resumed run may change without asking: where the run is found and which device it runs on
@@ -26,14 +27,34 @@ TASK_KEYS = ("data.dataset", "data.root", "data.train_split", "data.val_split", 
              "model.squeeze", "model.full_width", "model.full_depth", "model.input", "cfa.tile")
 
 
+def holds_run(folder: Path) -> bool:
+    """Whether ``folder`` holds a run: its resume point, or a best checkpoint (a run interrupted before its first
+    resume point keeps the best one it wrote: a model of the user's)."""
+    return (Path(folder) / LAST).exists() or (Path(folder) / BEST).exists()
+
+
 def fresh_run_dir(base: Path) -> Path:
-    """``base`` if it holds no run yet, else the first free ``base-N`` (N = 2, 3, ...)."""
-    if not (base / LAST).exists():
+    """``base`` if it holds no run yet (`holds_run`), else the first free ``base-N`` (N = 2, 3, ...)."""
+    if not holds_run(base):
         return base
     suffix = 2
-    while (base.parent / f"{base.name}-{suffix}" / LAST).exists():
+    while holds_run(base.parent / f"{base.name}-{suffix}"):
         suffix += 1
     return base.parent / f"{base.name}-{suffix}"
+
+
+def set_aside(folder: Path) -> Path:
+    """Rename a run folder that has no resume point but a best checkpoint (`holds_run`: a run interrupted before its
+    first resume point) to ``<name>.interrupted`` (then ``.interrupted-2``, ...), so that a run that must have this
+    folder (a study's cell) starts again there without overwriting that best checkpoint; returns the new path."""
+    folder = Path(folder)
+    target = folder.with_name(f"{folder.name}.interrupted")
+    suffix = 2
+    while target.exists():
+        target = folder.with_name(f"{folder.name}.interrupted-{suffix}")
+        suffix += 1
+    folder.rename(target)
+    return target
 
 
 def newest_run(output_dir: str | Path, name: str) -> Path:
