@@ -755,6 +755,31 @@ def _pool(plan, out, pending, numbering, total, gpus, per_gpu, environment=None,
     return sorted(failed, key=lambda cell: numbering[cell])
 
 
-def plan_commands(plan: Plan, out: Path, reuse: list[Path] | tuple = ()) -> list[str]:
-    """One shell command per cell, for a scheduler of the user's (with ``reuse``'s --reuse options)."""
-    return [shlex.join(cell_command(plan, out, cell, reuse)) for cell in plan.cells()]
+def plan_commands(plan: Plan, out: Path, reuse: list[Path] | tuple = (), cells: list[Cell] | None = None) -> list[str]:
+    """One shell command per cell (default: every cell of the plan), for a scheduler of the user's (with
+    ``reuse``'s --reuse options)."""
+    return [shlex.join(cell_command(plan, out, cell, reuse)) for cell in (plan.cells() if cells is None else cells)]
+
+
+def check_runnable(plan: Plan, cells: list[Cell], local: bool = True) -> None:
+    """Refuse, before anything is written, cells this machine cannot train (``local``: they run here): a config that
+    asks for a device it does not have (run.device = "cuda" without CUDA) or a CUDA-only feature on the CPU
+    (train.cuda_graph), in one line naming the key and the cells (each distinct camera and light checked once).
+    A study whose cells all failed at once would have written its plan and refused the corrected command."""
+    from warpsense.system import resolve_device
+
+    if not local:
+        return
+    checked = set()
+    for cell in cells:
+        if (cell.camera, cell.light) in checked:
+            continue
+        checked.add((cell.camera, cell.light))
+        config = plan.config(cell, "runs")
+        try:
+            device = resolve_device(config.run.device)
+        except ValueError as error:
+            raise PlanError(f"{plan.source}: cell {cell.id}: run.device = {config.run.device!r}: {error}") from None
+        if config.train.cuda_graph and device.type != "cuda":
+            raise PlanError(f"{plan.source}: cell {cell.id}: train.cuda_graph needs a CUDA device and this machine "
+                            f"trains on {device.type} (--set train.cuda_graph=false)")
