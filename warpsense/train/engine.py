@@ -26,7 +26,10 @@ from warpsense.data import (
     build_fold,
     build_training,
     evaluation_splits,
+    fold_name,
     frame_sequences,
+    holds_out_fold,
+    labelled_sources,
 )
 from warpsense.data.on_device import DecodedDataset, DeviceBatches, dataset_megabytes
 from warpsense.data.photometric import RadianceJitter
@@ -266,7 +269,7 @@ class _Datasets(NamedTuple):
 def _datasets(config) -> _Datasets:
     seed = config.run.seed
     train = build_training(config.data, seed)
-    if config.data.holdout_sequence:  # a sequence fold: validate (and judge) on the held-out sequence
+    if holds_out_fold(config.data):  # a fold: validate (and judge) on its held-out frames
         return _Datasets(train, build_fold(config.data, train=False, seed=seed), None)
     return _Datasets(
         train,
@@ -289,8 +292,7 @@ def _check_evaluation_files(datasets: _Datasets, config) -> None:
     evaluation, after epochs are spent (training images are read in the first epoch, before any checkpoint). PIL's
     verify reads the file's header and chunk checksums without decoding it (CamVid's val: 0.3 ms a file, a tenth of
     a decode)."""
-    val_name = f"held-out sequence {config.data.holdout_sequence}" if config.data.holdout_sequence else \
-        config.data.val_split
+    val_name = f"held-out {fold_name(config.data)}" if holds_out_fold(config.data) else config.data.val_split
     checked = [(val_name, datasets.val), (f"held-out prefix {config.data.holdout_prefix}", datasets.selection)]
     checked += [(split, build_dataset(config.data, split, train=False, seed=config.run.seed))
                 for split in evaluation_splits(config.data) if split not in (config.data.val_split, HELDOUT_SPLIT)]
@@ -407,7 +409,7 @@ def _epoch_line(record: dict, schedule: Schedule, config) -> str:
     miou = f"{record['val_miou']:.4f}" if "val_miou" in record else "-"
     if "selection_miou" in record:
         miou += f" (held-out {config.data.holdout_prefix}: {record['selection_miou']:.4f})"
-    judged = f"held-out {config.data.holdout_sequence}" if config.data.holdout_sequence else "val"
+    judged = f"held-out {fold_name(config.data)}" if holds_out_fold(config.data) else "val"
     return (f"epoch {record['epoch'] + 1}/{schedule.epochs} {record['phase']}: loss {record['train_loss']:.4f} "
             f"{judged} mIoU {miou} ({record['images_per_s']:.1f} img/s)")
 
@@ -552,7 +554,8 @@ def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, epoch: i
     record = {"epoch": epoch,
               "class_names": list(datasets.train.classes), "num_classes": num_classes,
               "network_parameters": count_parameters(model.network), "camera": model.camera.summary(),
-              "holdout_sequence": config.data.holdout_sequence,
+              "holdout_sequence": config.data.holdout_sequence, "fold": fold_name(config.data),
+              "train_frames": len(datasets.train), "labelled_frames": _labelled_frames(config),
               "train_sequences": _sequences(getattr(datasets.train, "dataset", datasets.train)), "splits": {}}
     for split in evaluation_splits(config.data):
         dataset = datasets.val if split in (config.data.val_split, HELDOUT_SPLIT) else \
@@ -564,6 +567,12 @@ def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, epoch: i
         record["splits"][split] = metrics
     write_json(run_dir / EVALUATION, record)
     return record
+
+
+def _labelled_frames(config) -> int | None:
+    """The frames of the labelled splits a fold is cut from (train_split + val_split), None without a fold."""
+    return sum(len(source) for source in labelled_sources(config.data, config.run.seed)) \
+        if holds_out_fold(config.data) else None
 
 
 def _sequences(dataset, distinct: bool = True) -> list[str] | None:
@@ -589,8 +598,8 @@ def run_summary(run_dir: Path, config) -> str:
     if best is not None:
         if "selection_miou" in best:
             score = f"held-out {config.data.holdout_prefix} mIoU {best['selection_miou']:.4f}, val {best['val_miou']:.4f}"
-        elif config.data.holdout_sequence:
-            score = f"held-out {config.data.holdout_sequence} mIoU {best['val_miou']:.4f}"
+        elif holds_out_fold(config.data):
+            score = f"held-out {fold_name(config.data)} mIoU {best['val_miou']:.4f}"
         else:
             score = f"val mIoU {best['val_miou']:.4f}"
         lines.append(f"  best: {BEST} (epoch {best['epoch'] + 1}, {score})")

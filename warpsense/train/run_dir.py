@@ -23,7 +23,8 @@ RELOCATABLE_KEYS = ("run.output_dir", "run.name", "run.device")
 # a continued run even with --allow-config-change: its checkpoints, metrics and evaluation would mix two tasks. Every
 # "<section>.enabled" (a camera stage or the ISP turned on or off) counts too (`task_changes`).
 TASK_KEYS = ("data.dataset", "data.root", "data.train_split", "data.val_split", "data.holdout_prefix",
-             "data.holdout_sequence", "model.num_classes", "model.name", "model.width", "model.context",
+             "data.holdout_sequence", "data.holdout_block", "data.holdout_blocks", "data.block_buffer",
+             "model.num_classes", "model.name", "model.width", "model.context",
              "model.squeeze", "model.full_width", "model.full_depth", "model.input", "cfa.tile")
 
 
