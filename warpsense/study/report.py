@@ -37,6 +37,9 @@ from warpsense.train.run_dir import METRICS, read_metrics
 
 NOT_DISTINGUISHABLE = "not distinguishable"
 
+MISSING_SHOWN = 12
+"""Missing cells the console report names (a study run in parts misses hundreds; --json lists them all)."""
+
 
 def _sign_count(paired: dict, folds: bool = False) -> str:
     """", higher on 2 of 3 seeds" (or "of 9 (fold, seed) pairs"; the side most pairs took)."""
@@ -233,7 +236,7 @@ def _split_record(plan: dict, evaluations: dict, run_s: dict, steady_s: dict, sp
             if runs:
                 by_camera[camera["name"]] = runs
                 groups.append(_group(camera["name"], light["name"], runs, classes, run_s, steady_s))
-        if plan.get("folds") == "sequence":
+        if plan.get("folds", "none") != "none":
             per_sequence += _per_sequence(light["name"], by_camera, plan["reference"])
         reference = by_camera.get(plan["reference"])
         if reference is None:
@@ -243,7 +246,7 @@ def _split_record(plan: dict, evaluations: dict, run_s: dict, steady_s: dict, sp
                 comparisons.append(_comparison(camera, light["name"], runs, reference, plan, classes, resamples,
                                                block))
     return {"groups": groups, "comparisons": comparisons, "per_sequence": per_sequence,
-            "shared_sequences": _shared_sequences(evaluations, split)}
+            "shared_sequences": [] if plan.get("folds") == "blocks" else _shared_sequences(evaluations, split)}
 
 
 def _cell_name(camera: str, light: str, fold: str, seed: int) -> str:
@@ -293,6 +296,10 @@ def _check_scores(evaluation: dict, cell: str, path: Path, checked: dict | None 
         value = evaluation[field]
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             raise refuse(field, f"expected an integer >= 0, got {value!r}")
+    for field in ("train_frames", "labelled_frames"):  # a fold's counts (the report's fold lines), where recorded
+        value = evaluation.get(field)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise refuse(field, f"expected null or an integer >= 1, got {value!r}")
     _check_camera(evaluation["camera"], refuse)
     train_sequences = evaluation.get("train_sequences")
     if train_sequences is not None and not _names(train_sequences):
@@ -394,10 +401,36 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
     throughput_path = study_dir / THROUGHPUT
     throughput = read_throughput(throughput_path)
     parts = {split: _split_record(plan, evaluations, run_s, steady_s, split, resamples, block) for split in splits}
+    for part in parts.values():
+        for comparison in part["comparisons"]:
+            comparison["detectable"] = detectable_difference(comparison)
     return {"study": plan["name"], "directory": str(study_dir), "reference": plan["reference"], "level": LEVEL,
             "folds": plan.get("folds", "none"), "sequences": plan.get("sequences", []), "block_frames": block,
+            "fold_sizes": _fold_sizes(evaluations),
             "plan": plan, "cells": cells, "missing": missing, "throughput": throughput, "splits": parts,
             "maps": design_maps(study_dir, plan, cells, parts)}
+
+
+def detectable_difference(comparison: dict) -> float | None:
+    """The smallest difference a comparison could have called: the larger half-width of the intervals its verdict
+    needs to exclude 0 (the paired one and the bootstrap's); None where an interval is unknown (one pair)."""
+    widths = [(interval["high"] - interval["low"]) / 2 for interval in (comparison["paired"], comparison["bootstrap"])
+              if interval is not None and interval.get("low") is not None]
+    return max(widths) if len(widths) == 2 or (widths and comparison["bootstrap"] is None) else None
+
+
+def _fold_sizes(evaluations: dict) -> list[dict]:
+    """Per fold the cells were judged on: {"fold", "train" (frames trained on), "judged", "labelled" (frames of the
+    labelled splits the fold was cut from; None where unknown)}, from the first evaluation of each fold that records
+    them (evaluations written before the counts were recorded give none)."""
+    rows = {}
+    for (_, _, fold, _), evaluation in evaluations.items():
+        if fold in rows or "train_frames" not in evaluation:
+            continue
+        judged = next(iter(evaluation["splits"].values()))
+        rows[fold] = {"fold": fold, "train": evaluation["train_frames"], "judged": len(judged["image_counts"]),
+                      "labelled": evaluation.get("labelled_frames")}
+    return sorted(rows.values(), key=lambda row: (len(row["fold"]), row["fold"]))
 
 
 def _learned(camera: dict) -> str:
@@ -447,7 +480,8 @@ def _per_sequence_lines(split: str, part: dict, reference: str) -> list[str]:
     heads = [f"{row['light']}/{row['sequence']}" for row in rows]
     head_width = max(len(h) for h in heads)
     widths = [max(len(c), *(len(line[i]) for line in cells)) for i, c in enumerate(cameras)]
-    lines = [f"[{split}] per held-out sequence: mIoU mean over seeds [t interval], then the mean paired difference "
+    lines = [f"[{split}] per fold (held-out block or sequence): mIoU mean over seeds [t interval], then the mean "
+             f"paired difference "
              f"to {reference!r}",
              f"  {'':<{head_width}s}  " + "  ".join(f"{c:>{w}s}" for c, w in zip(cameras, widths))]
     lines += [f"  {head:<{head_width}s}  " + "  ".join(f"{c:>{w}s}" for c, w in zip(line, widths))
@@ -458,13 +492,23 @@ def _per_sequence_lines(split: str, part: dict, reference: str) -> list[str]:
 def render_text(record: dict) -> str:
     """The console report (every number comes from ``record``)."""
     level = f"{record['level']:.0%}"
-    folds = record.get("folds") == "sequence"
-    protocol = (f"sequence folds (held out: {', '.join(record['sequences'])}): each cell trains on the other "
-                f"sequences' frames and is judged on its own" if folds else "no folds: trained on train, judged on val")
+    folds = record.get("folds") in ("sequence", "blocks")
+    protocol = {"sequence": f"sequence folds (held out: {', '.join(record['sequences'])}): each cell trains on the "
+                            f"other sequences' frames and is judged on its own",
+                "blocks": f"block folds ({record['plan'].get('blocks')} blocks of every sequence, buffer "
+                          f"{record['plan'].get('block_buffer')} frame numbers): each cell is judged on one block of "
+                          f"every sequence and trains on the rest, less the buffer around it"}.get(
+        record.get("folds"), "no folds: trained on train, judged on val")
     lines = [f"study {record['study']} ({record['directory']}): {len(record['cells'])} cells evaluated, "
              f"{len(record['missing'])} missing; judged at the final epoch; {protocol}; intervals {level}"]
+    for row in record.get("fold_sizes") or []:
+        share = f" ({row['train'] / row['labelled']:.0%} of the labelled frames)" if row.get("labelled") else ""
+        lines.append(f"  fold {row['fold'] or '-'}: train {row['train']} frames{share}, judge {row['judged']} frames")
     if record["missing"]:
-        lines.append(f"  missing: {', '.join(record['missing'])}")
+        shown = record["missing"][:MISSING_SHOWN]
+        more = len(record["missing"]) - len(shown)
+        lines.append(f"  missing: {', '.join(shown)}" + (f" and {more} more (`warpsense study status "
+                                                            f"{record['directory']}` lists every cell)" if more else ""))
     lines += few_values_note(record, record["level"])
     over = "(fold, seed)" if folds else "seeds"
     for split, part in record["splits"].items():
@@ -490,13 +534,16 @@ def render_text(record: dict) -> str:
             block = record.get("block_frames")
             boot = f"bootstrap of frames in blocks of {block} within sequences" if block else "image bootstrap"
             lines.append(f"[{split}] difference to the reference camera {record['reference']!r}: paired over {over} "
-                         f"[{level} t] | {boot} [{level}]")
+                         f"[{level} t] | {boot} [{level}]; verdict; the smallest difference it could have called "
+                         f"(the wider interval's half-width)")
         for comparison in part["comparisons"]:
             bootstrap = comparison["bootstrap"]
             boot = f"[{bootstrap['low']:+.4f}, {bootstrap['high']:+.4f}]" if bootstrap else "-"
             lines.append(f"  {comparison['light']:>8s}  {comparison['camera']:<{width}s}  "
                          f"{interval_text(comparison['paired'], signed=True)} | {boot}  {comparison['verdict']}"
-                         f"{_sign_count(comparison['paired'], folds)}")
+                         f"{_sign_count(comparison['paired'], folds)}"
+                         + ("" if comparison.get("detectable") is None else
+                            f"; detects +-{comparison['detectable']:.4f}"))
         lines += _per_sequence_lines(split, part, record["reference"])
         lines += _per_class_lines(split, part)
     lines += map_lines(record.get("maps", []), level)
@@ -546,7 +593,7 @@ def study_figure(record: dict, split: str | None = None):
             score_axis.errorbar(miou["mean"], y, xerr=error, fmt="o", color=colour, capsize=4)
         score_axis.set_yticks(range(len(groups)), [g["camera"] for g in groups])
         score_axis.invert_yaxis()
-        over = "(fold, seed)" if record.get("folds") == "sequence" else "seeds"
+        over = "(fold, seed)" if record.get("folds", "none") != "none" else "seeds"
         score_axis.set_xlabel(f"{split} mIoU (mean over {over}, {record['level']:.0%} interval)")
         score_axis.set_title(f"{light}: score per camera (red: reference {record['reference']})", fontsize=10)
         score_axis.grid(axis="x", alpha=0.3)
