@@ -71,6 +71,7 @@ from warpsense.choices import LIGHT_LEVELS
 from warpsense.config import Config, ConfigError, flatten_keys, load_config, parse_override, read_toml
 from warpsense.data import DatasetError, build_dataset, sequence_names
 from warpsense.resources import CONFIG_DIR
+from warpsense.study.conflicts import check_conflicts
 
 
 class PlanError(ValueError):
@@ -502,6 +503,7 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     elif any("{fold}" in text for text in _all_overrides(plan)):
         raise PlanError(f"{source}: {{fold}} in a set stands for a cell's fold: it needs study.folds = \"blocks\" "
                         f"or \"sequence\"")
+    check_conflicts(plan)  # two tables setting one key differently: the plan would not say what runs
     checked_data = set()
     for camera in plan.cameras:  # every cell's config resolves (seeds only change run.seed, folds the held-out name)
         for light in plan.lights:
