@@ -55,10 +55,11 @@ def _same(a, b) -> bool:
         and not isinstance(b, bool) and float(a) == float(b))
 
 
-def check_conflicts(plan) -> None:
-    """Refuse a plan in which two tables set one config key of a cell to different values (`PlanError` naming the
-    key, both tables and both values), or a table sets a key the study sets per cell (`PER_CELL_KEYS`)."""
-    from warpsense.study.plan import PlanError
+def check_conflicts(plan, error: type[Exception] = ValueError) -> None:
+    """Refuse a plan (a `warpsense.study.plan.Plan`) in which two tables set one config key of a cell to different
+    values, or a table sets a key the study sets per cell (`PER_CELL_KEYS`): an ``error`` (the plan's `PlanError`)
+    naming the plan file, the key, both tables and both values."""
+    PlanError = error  # noqa: N806 - the caller's error class, raised as the plan's own
 
     sweeps = {camera: (sweep, values) for sweep in plan.sweeps for camera, values in sweep.points}
     cache: dict = {}

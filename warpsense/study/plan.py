@@ -503,7 +503,7 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     elif any("{fold}" in text for text in _all_overrides(plan)):
         raise PlanError(f"{source}: {{fold}} in a set stands for a cell's fold: it needs study.folds = \"blocks\" "
                         f"or \"sequence\"")
-    check_conflicts(plan)  # two tables setting one key differently: the plan would not say what runs
+    check_conflicts(plan, PlanError)  # two tables setting one key differently: the plan would not say what runs
     checked_data = set()
     for camera in plan.cameras:  # every cell's config resolves (seeds only change run.seed, folds the held-out name)
         for light in plan.lights:
