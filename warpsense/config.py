@@ -105,6 +105,12 @@ class DataConfig:
     jitter_vignetting: float = _field(0.0, minimum=0, maximum=1)
 
 
+# The camera's stage sections (`warpsense.camera.camera.STAGES`): each is its stage's constructor's keyword arguments,
+# every key but `enabled`, with the constructor's defaults (`Stage.from_config`), so that a stage built in Python is
+# the one the default config builds. They live here, not beside their stages, so that reading a config (the CLI's
+# parser, a study plan) loads no torch.
+
+
 @dataclass
 class OpticsConfig:
     enabled: bool = False

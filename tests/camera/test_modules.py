@@ -43,6 +43,19 @@ def test_cfa_softmax_anneals_to_one_hot_and_learns():
     assert module.logits.grad is not None and module.logits.grad.abs().sum() > 0
 
 
+def test_cfa_temperature_anneals_geometrically_through_the_joint_phase():
+    from warpsense.camera.cfa import annealed_temperature
+    from warpsense.train.schedule import Schedule
+
+    schedule = Schedule(epochs=6, warmup_epochs=2)
+    temperatures = [annealed_temperature(schedule, e, 1.0, 0.05) for e in range(6)]
+    assert temperatures[:3] == [1.0, 1.0, 1.0] and temperatures[-1] == pytest.approx(0.05)
+    ratios = [b / a for a, b in zip(temperatures[2:], temperatures[3:])]
+    assert ratios == pytest.approx([0.05 ** (1 / 3)] * 3)  # geometric over the joint epochs
+    assert annealed_temperature(Schedule(3, 2), 2, 1.0, 0.05) == 0.05  # one joint epoch: already the end value
+    assert annealed_temperature(Schedule(3, 3), 2, 1.0, 0.05) == 1.0  # no joint phase: never annealed
+
+
 def test_cfa_layouts_tiles_and_errors():
     assert CFA("BGGR", 4, "fixed").phi().shape == (4, 4, 3)
     assert CFA("GRBG", 1, "fixed").hard_letters() == [["G"]]

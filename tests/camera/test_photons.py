@@ -252,7 +252,8 @@ def test_gradients_reach_f_number_exposure_time_gain_and_cfa():
 
 
 def test_photon_stage_gradcheck_float64():
-    stage = PhotonBudget(70.0, analog_gain=3.0, gain_learnable=True, read_electrons=2.0).double().eval()
+    stage = PhotonBudget(mid_grey_electrons=70.0, analog_gain=3.0, gain_learnable=True, read_electrons=2.0)
+    stage = stage.double().eval()
     exposure = torch.rand(1, 1, 4, 4, dtype=torch.float64, requires_grad=True)
     logit = stage.gain_logit.detach().clone().requires_grad_(True)
     # eval noise is keyed by a fixed seed: the sample is a smooth function of the exposure and the gain

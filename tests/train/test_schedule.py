@@ -9,15 +9,10 @@ from warpsense.train.engine import LAST, train
 from warpsense.train.schedule import Schedule
 
 
-def test_phases_and_temperature_follow_the_plan():
+def test_phases_follow_the_plan():
     schedule = Schedule(epochs=6, warmup_epochs=2)
     assert [schedule.phase(e) for e in range(6)] == ["warmup"] * 2 + ["joint"] * 4
-    temperatures = [schedule.temperature(e, 1.0, 0.05) for e in range(6)]
-    assert temperatures[:3] == [1.0, 1.0, 1.0] and temperatures[-1] == pytest.approx(0.05)
-    ratios = [b / a for a, b in zip(temperatures[2:], temperatures[3:])]
-    assert ratios == pytest.approx([0.05 ** (1 / 3)] * 3)  # geometric over the joint epochs
-    assert Schedule(3, 2).temperature(2, 1.0, 0.05) == 0.05  # one joint epoch: already the end value
-    assert Schedule(3, 3).temperature(2, 1.0, 0.05) == 1.0  # no joint phase: never annealed
+    assert [schedule.is_joint(e) for e in range(6)] == [False] * 2 + [True] * 4
 
 
 @pytest.mark.parametrize("plan, epochs, expected", [

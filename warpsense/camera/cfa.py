@@ -1,4 +1,5 @@
-"""Colour filter array stage C (eq. 4 of the paper, docs/references.md): filters, layouts, learnable responses, hard export."""
+"""Colour filter array stage C (eq. 4 of the paper, docs/references.md): filters, layouts, learnable responses, the
+temperature's annealing, hard export."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from torch.nn import functional as F
 
 from warpsense.camera.stage import SensorArguments, Stage
 from warpsense.choices import CFA_FILTERS, CFA_LAYOUTS, CFA_MODES
+from warpsense.config import CFAConfig
 from warpsense.ops.cfa import cfa_mosaic
 
 FILTERS = {"R": (1.0, 0.0, 0.0), "G": (0.0, 1.0, 0.0), "B": (0.0, 0.0, 1.0), "C": (1.0, 1.0, 1.0),
@@ -75,6 +77,19 @@ def check_candidates(candidates: str, pattern: str, mode: str) -> str | None:
     return None
 
 
+def annealed_temperature(schedule, epoch: int, start: float, end: float) -> float:
+    """The softmax / gumbel temperature at ``epoch`` (0-based) of ``schedule`` (a `warpsense.train.schedule.Schedule`):
+    ``start`` through warm-up, then geometric annealing through the joint phase that reaches ``end`` at the last
+    epoch (a joint phase of one epoch is at ``end``)."""
+    if not schedule.is_joint(epoch):
+        return start
+    joint_epochs = schedule.epochs - schedule.warmup_epochs
+    if joint_epochs <= 1:
+        return end
+    progress = min(epoch - schedule.warmup_epochs, joint_epochs - 1) / (joint_epochs - 1)
+    return start * (end / start) ** progress
+
+
 class CFA(Stage):
     """Learnable colour filter array producing phi [T, T, 3] and the RAW mosaic.
 
@@ -94,14 +109,15 @@ class CFA(Stage):
     config_section = "cfa"
     takes, gives = "rgb", "raw"
 
-    def __init__(self, pattern: str = "RGGB", tile: int = 2, mode: str = "softmax", init_logit: float = 4.0,
-                 temperature_start: float = 1.0, temperature_end: float = 1.0, candidates: str = "RGBC"):
+    def __init__(self, pattern: str = CFAConfig.pattern, tile: int = CFAConfig.tile, mode: str = CFAConfig.mode,
+                 init_logit: float = CFAConfig.init_logit, temperature_start: float = CFAConfig.temperature_start,
+                 temperature_end: float = CFAConfig.temperature_end, candidates: str = CFAConfig.candidates):
         """Args:
             pattern, tile: the layout the responses start at (a `CFA_LAYOUTS` name) tiled to T x T.
             mode: a `CFA_MODES` name (see the class docstring).
             init_logit: softmax and gumbel modes: the starting logit of each site's layout filter (the others 0).
             temperature_start, temperature_end: softmax / gumbel temperature through warm-up and at the last epoch
-                (`on_epoch` anneals geometrically between them through the joint phase).
+                (`on_epoch` anneals geometrically between them through the joint phase: `annealed_temperature`).
             candidates: the filter letters (`FILTERS`) a softmax or gumbel CFA chooses among, in logit order.
         """
         super().__init__()
@@ -128,11 +144,6 @@ class CFA(Stage):
             self.register_buffer("fixed_phi", letters_to_phi(letters))
 
     @classmethod
-    def from_config(cls, section) -> "CFA":
-        return cls(section.pattern, section.tile, section.mode, section.init_logit, section.temperature_start,
-                   section.temperature_end, section.candidates)
-
-    @classmethod
     def check_section(cls, section, where: str) -> None:
         problem = check_candidates(section.candidates, section.pattern, section.mode)
         if problem:
@@ -149,8 +160,8 @@ class CFA(Stage):
                 "cfa_phi": phi.detach().cpu().tolist(), "temperature": float(self.temperature)}
 
     def on_epoch(self, schedule, epoch: int) -> None:
-        """Anneal the temperature along the plan (`Schedule.temperature`)."""
-        self.temperature.fill_(schedule.temperature(epoch, *self.temperature_plan))
+        """Anneal the temperature along the plan (`annealed_temperature`)."""
+        self.temperature.fill_(annealed_temperature(schedule, epoch, *self.temperature_plan))
 
     def fuse(self, arguments: SensorArguments) -> bool:
         arguments.phi = self.phi()

@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from warpsense.camera.stage import SensorArguments, Stage
+from warpsense.config import ExposureConfig
 from warpsense.ops.exposure import exposure, exposure_gain
 
 
@@ -21,15 +22,15 @@ class Exposure(Stage):
     config_section = "exposure"
     takes = gives = "rgb"
 
-    def __init__(self, gain_logit: float = 0.0, learnable: bool = True):
+    def __init__(self, gain_logit: float = ExposureConfig.gain_logit, learnable: bool = ExposureConfig.learnable):
+        """Args:
+            gain_logit: the starting logit g (the default -ln 4 gives a(g) = 1).
+            learnable: whether g takes gradients.
+        """
         super().__init__()
         if not math.isfinite(gain_logit):
             raise ValueError(f"exposure.gain_logit must be finite, got {gain_logit}")
         self.gain_logit = nn.Parameter(torch.tensor(float(gain_logit)), requires_grad=learnable)
-
-    @classmethod
-    def from_config(cls, section) -> "Exposure":
-        return cls(section.gain_logit, learnable=section.learnable)
 
     def summary(self) -> dict:
         """The gain a(g) (dimensionless, in [0.25, 4])."""

@@ -7,6 +7,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from warpsense.camera.cfa import FILTERS
+from warpsense.config import ISPConfig
 
 
 class FixedISP(nn.Module):
@@ -16,14 +17,15 @@ class FixedISP(nn.Module):
     [[1, 2, 1], [2, 4, 2], [1, 2, 1]] (exact bilinear demosaicking for Bayer layouts), then x^(1/gamma).
     """
 
-    def __init__(self, letters: list[list[str]], gamma: float = 2.2):
+    def __init__(self, letters: list[list[str]], gamma: float = ISPConfig.gamma):
         super().__init__()
         if any(letter not in "RGB" for row in letters for letter in row):
             raise ValueError(f"the fixed ISP needs an R/G/B layout, got {letters}")
         tile = len(letters)
         masks = torch.tensor([[FILTERS[letter] for letter in row] for row in letters]).permute(2, 0, 1)  # [3, T, T]
         self.register_buffer("site_masks", masks)
-        self.register_buffer("kernel", torch.tensor([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]]).expand(3, 1, 3, 3).clone())
+        bilinear = torch.tensor([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]])
+        self.register_buffer("kernel", bilinear.expand(3, 1, 3, 3).clone())
         self.tile = tile
         self.gamma = gamma
 

@@ -8,7 +8,15 @@ import torch
 from torch import nn
 
 from warpsense.camera.stage import WHAT_IF_SOURCE, SensorArguments, Stage
+from warpsense.config import NoiseConfig
 from warpsense.ops.noise import poisson_gaussian, poisson_gaussian_exact
+
+
+def _electrons_problem(full_well_electrons: float, read_electrons: float) -> str | None:
+    """Why the noise cannot be stated in electrons this way, or None."""
+    if read_electrons > 0 and full_well_electrons == 0:
+        return "noise.read_electrons needs noise.full_well_electrons (electrons at the white level)"
+    return None
 
 
 class NoisySensor(Stage):
@@ -96,15 +104,35 @@ class NoisySensor(Stage):
 
 class SensorNoise(NoisySensor):
     """Poisson-Gaussian noise with shot (variance coefficient) and read (std) levels stated directly or from the
-    full well (see `from_config`). Learnable levels are bounded to [0, 2x] their initial values:
+    full well (see `__init__`). Learnable levels are bounded to [0, 2x] their initial values:
     level = 2 * init * sigmoid(p), started at p = 0, so a level starts in the middle of its bounds (a level of 0
     stays 0, with a finite gradient). Seeds and exact counts: `NoisySensor`.
     """
 
     config_section = "noise"
 
-    def __init__(self, shot: float = 0.015, read: float = 0.002, learnable: bool = False, eval_seed: int = 1234):
+    def __init__(self, shot: float = NoiseConfig.shot, read: float = NoiseConfig.read,
+                 full_well_electrons: float = NoiseConfig.full_well_electrons,
+                 read_electrons: float = NoiseConfig.read_electrons, learnable: bool = NoiseConfig.learnable,
+                 eval_seed: int = NoiseConfig.eval_seed):
+        """Levels stated directly (``shot``, ``read``) or physically. With ``full_well_electrons`` > 0, a signal s
+        (white level = 1) holds s * FWC electrons, so its shot variance is s / FWC (shot = 1 / FWC) and the read
+        noise is read_electrons / FWC; ``shot`` and ``read`` are then ignored.
+
+        Args:
+            shot: shot-noise variance coefficient (variance = shot * signal), >= 0.
+            read: read-noise standard deviation (units of the white level), >= 0.
+            full_well_electrons: electrons at the white level (0: the levels are ``shot`` and ``read``).
+            read_electrons: read noise in electrons (needs ``full_well_electrons``).
+            learnable: whether both levels learn (bounded to [0, 2x] their initial values).
+            eval_seed: the first noise seed in eval mode (`NoisySensor`).
+        """
         super().__init__(eval_seed)
+        problem = _electrons_problem(full_well_electrons, read_electrons)
+        if problem:
+            raise ValueError(f"SensorNoise: {problem}")
+        if full_well_electrons > 0:
+            shot, read = 1.0 / full_well_electrons, read_electrons / full_well_electrons
         if not (0 <= shot < math.inf and 0 <= read < math.inf):
             raise ValueError(f"noise.shot and noise.read must be finite and >= 0, got shot={shot}, read={read}")
         self.register_buffer("shot_init", torch.tensor(float(shot)))
@@ -113,22 +141,10 @@ class SensorNoise(NoisySensor):
         self.read_logit = nn.Parameter(torch.tensor(0.0), requires_grad=learnable)
 
     @classmethod
-    def from_config(cls, section) -> "SensorNoise":
-        """From the [noise] section: levels stated directly (``shot``, ``read``) or physically. With
-        ``full_well_electrons`` set, a signal s (white level = 1) holds s * FWC electrons, so its shot variance is
-        s / FWC (shot = 1 / FWC) and the read noise is read_electrons / FWC; ``shot`` and ``read`` are then
-        ignored."""
-        if section.full_well_electrons > 0:
-            shot, read = 1.0 / section.full_well_electrons, section.read_electrons / section.full_well_electrons
-        else:
-            shot, read = section.shot, section.read
-        return cls(shot, read, section.learnable, section.eval_seed)
-
-    @classmethod
     def check_section(cls, section, where: str) -> None:
-        if section.read_electrons > 0 and section.full_well_electrons == 0:
-            raise ValueError(f"{where}: noise.read_electrons needs noise.full_well_electrons (electrons at the "
-                             "white level)")
+        problem = _electrons_problem(section.full_well_electrons, section.read_electrons)
+        if problem:
+            raise ValueError(f"{where}: {problem}")
 
     def summary(self) -> dict:
         """The levels in use: shot variance coefficient and read standard deviation (units of the white level)."""

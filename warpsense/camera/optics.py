@@ -1,5 +1,5 @@
-"""Optics stage O (eq. 2 of the paper, docs/references.md): a lens and the exposure's motion rendered to a PSF grid, applied by the
-PSF-convolution kernel."""
+"""Optics stage O (eq. 2 of the paper, docs/references.md): a lens and the exposure's motion rendered to a PSF grid,
+applied by the PSF-convolution kernel."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import torch
 
 from warpsense.camera.bounds import check_log_bounds, log_bounded, log_bounded_parameter
 from warpsense.camera.stage import Stage
+from warpsense.config import OpticsConfig
 from warpsense.ops.psf import psf_conv
 from warpsense.optics.lens import Lens, LensFileError, read_lens_spec
 from warpsense.optics.motion import compose, streak_psfs, streak_size
@@ -41,13 +42,33 @@ class Optics(Stage):
     part = "optics"
     takes = gives = "rgb"
 
-    def __init__(self, lens: Lens, learnable: bool = False, normalize_mean: float = 0.5, method: str = "direct",
-                 energy_eps: float = 1e-3, field_tolerance: float = 1e-3, f_number: float = 0.0,
-                 f_number_learnable: bool = False, f_number_bounds: tuple[float, float] = (1.4, 8.0),
-                 exposure_ms: float = REFERENCE_EXPOSURE_MS, exposure_learnable: bool = False,
-                 exposure_bounds: tuple[float, float] = (1.0, 30.0), corner_speed_px_per_ms: float = 0.0,
-                 render_precision: str = "float32"):
+    def __init__(self, lens: Lens | str = OpticsConfig.lens, learnable: bool = OpticsConfig.learnable,
+                 normalize_mean: float = OpticsConfig.normalize_mean, method: str = OpticsConfig.method,
+                 render_precision: str = OpticsConfig.render_precision, energy_eps: float = OpticsConfig.energy_eps,
+                 field_tolerance: float = OpticsConfig.field_tolerance, f_number: float = OpticsConfig.f_number,
+                 f_number_learnable: bool = OpticsConfig.f_number_learnable,
+                 f_number_min: float = OpticsConfig.f_number_min, f_number_max: float = OpticsConfig.f_number_max,
+                 exposure_ms: float = OpticsConfig.exposure_ms,
+                 exposure_learnable: bool = OpticsConfig.exposure_learnable,
+                 exposure_ms_min: float = OpticsConfig.exposure_ms_min,
+                 exposure_ms_max: float = OpticsConfig.exposure_ms_max,
+                 corner_speed_px_per_ms: float = OpticsConfig.corner_speed_px_per_ms):
+        """Args (the [optics] keys, docs/guide/camera.md):
+            lens: a `Lens`, or a lens file (a name in configs/lenses or a path) read with its Zernike terms
+                learnable as ``learnable`` says.
+            learnable: learn the lens's Zernike coefficients (bounded).
+            normalize_mean: > 0: rescale each output image to this mean; 0: times the throughput.
+            method: how the PSFs are applied (a `warpsense.choices.PSF_METHODS` name).
+            render_precision: "float32" or "float64", the dtype of a re-rendered grid's pupil FFTs.
+            energy_eps, field_tolerance: a frozen grid's crop (energy left out) and collapse to one PSF (L1).
+            f_number, f_number_learnable, f_number_min, f_number_max: the f-number (0: the lens file's), learned
+                within its bounds or fixed.
+            exposure_ms, exposure_learnable, exposure_ms_min, exposure_ms_max: the exposure time (ms), likewise.
+            corner_speed_px_per_ms: image speed of the frame corner (pixels per ms; 0: no motion blur).
+        """
         super().__init__()
+        if not isinstance(lens, Lens):
+            lens = Lens.from_json(lens, learnable=learnable)
         self.lens = lens
         self.learnable = learnable
         self.normalize_mean = normalize_mean
@@ -55,8 +76,8 @@ class Optics(Stage):
         self.corner_speed = float(corner_speed_px_per_ms)
         self.render_dtype = getattr(torch, render_precision)
         lens.offset.requires_grad_(learnable)
-        self.f_number_bounds = tuple(float(b) for b in f_number_bounds)
-        self.exposure_bounds = tuple(float(b) for b in exposure_bounds)
+        self.f_number_bounds = (float(f_number_min), float(f_number_max))
+        self.exposure_bounds = (float(exposure_ms_min), float(exposure_ms_max))
         self.stopped = f_number_learnable or f_number > 0  # rendered at another f-number than the file's
         start_f = f_number if f_number > 0 else lens.spec.f_number
         if f_number_learnable:
@@ -89,20 +110,6 @@ class Optics(Stage):
     def _invalidate_on_load(self, *args, **kwargs) -> None:
         """load_state_dict pre-hook: the loaded design renders its PSF grid anew."""
         self.invalidate_cache()
-
-    @classmethod
-    def from_config(cls, section) -> "Optics":
-        """From the [optics] section: the lens file (a name in configs/lenses or a path), its f-number, the exposure
-        time and motion, and how the PSFs are applied."""
-        lens = Lens.from_json(section.lens, learnable=section.learnable)
-        return cls(lens, learnable=section.learnable, normalize_mean=section.normalize_mean, method=section.method,
-                   energy_eps=section.energy_eps, field_tolerance=section.field_tolerance,
-                   f_number=section.f_number, f_number_learnable=section.f_number_learnable,
-                   f_number_bounds=(section.f_number_min, section.f_number_max), exposure_ms=section.exposure_ms,
-                   exposure_learnable=section.exposure_learnable,
-                   exposure_bounds=(section.exposure_ms_min, section.exposure_ms_max),
-                   corner_speed_px_per_ms=section.corner_speed_px_per_ms,
-                   render_precision=section.render_precision)
 
     @classmethod
     def check_section(cls, section, where: str) -> None:

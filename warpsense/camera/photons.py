@@ -27,6 +27,7 @@ from warpsense.camera.bounds import check_log_bounds, log_bounded, log_bounded_p
 from warpsense.camera.noise import NoisySensor
 from warpsense.camera.stage import SensorArguments
 from warpsense.choices import LIGHT_LEVELS
+from warpsense.config import PhotonsConfig
 
 MID_GREY = 0.18
 """Linear reflectance of the mid-grey patch that states a light level."""
@@ -58,13 +59,26 @@ class PhotonBudget(NoisySensor):
 
     config_section = "photons"
 
-    def __init__(self, mid_grey_electrons: float = LIGHT_LEVELS["night"], pixel_pitch_um: float = REFERENCE_PITCH_UM,
-                 quantum_efficiency: float = REFERENCE_QE, full_well_electrons: float = 6000.0,
-                 read_electrons: float = 2.0, analog_gain: float = 1.0, gain_learnable: bool = False,
-                 gain_max: float = 64.0, digital_gain: float = 0.0, eval_seed: int = 1234):
-        if not (mid_grey_electrons > 0 and pixel_pitch_um > 0 and quantum_efficiency > 0 and full_well_electrons > 0
-                and read_electrons >= 0):
-            raise ValueError("photons: light, pitch, quantum efficiency and full well must be > 0, read noise >= 0")
+    def __init__(self, light: str = PhotonsConfig.light, mid_grey_electrons: float = PhotonsConfig.mid_grey_electrons,
+                 pixel_pitch_um: float = PhotonsConfig.pixel_pitch_um,
+                 quantum_efficiency: float = PhotonsConfig.quantum_efficiency,
+                 full_well_electrons: float = PhotonsConfig.full_well_electrons,
+                 read_electrons: float = PhotonsConfig.read_electrons, analog_gain: float = PhotonsConfig.analog_gain,
+                 gain_learnable: bool = PhotonsConfig.gain_learnable, gain_max: float = PhotonsConfig.gain_max,
+                 digital_gain: float = PhotonsConfig.digital_gain, eval_seed: int = PhotonsConfig.eval_seed):
+        """Args:
+            light: the scene light level by name (`LIGHT_LEVELS`), unless ``mid_grey_electrons`` > 0.
+            mid_grey_electrons: > 0: the light level E_mid in electrons instead of by name.
+            pixel_pitch_um, quantum_efficiency: the pixel (um; in (0, 1]).
+            full_well_electrons, read_electrons: full-well capacity and read noise (std), in electrons.
+            analog_gain, gain_learnable, gain_max: the analog gain G in [1, gain_max], learned or fixed.
+            digital_gain: the gain from ADC units to the network's input (0: mid-grey through a clear filter at the
+                starting design -> 0.5).
+            eval_seed: the first noise seed in eval mode (`NoisySensor`).
+        """
+        mid_grey_electrons = light_electrons(light, mid_grey_electrons)
+        if not (pixel_pitch_um > 0 and quantum_efficiency > 0 and full_well_electrons > 0 and read_electrons >= 0):
+            raise ValueError("photons: pitch, quantum efficiency and full well must be > 0, read noise >= 0")
         super().__init__(eval_seed)
         # electrons per unit of relative exposure phi . L (a clear pixel on the mid-grey patch collects E_mid)
         self.electrons_per_unit = (mid_grey_electrons / (3 * MID_GREY) * (pixel_pitch_um / REFERENCE_PITCH_UM) ** 2
@@ -77,13 +91,6 @@ class PhotonBudget(NoisySensor):
         if digital_gain <= 0:  # the mid-grey patch through a clear filter at the starting design -> 0.5
             digital_gain = 0.5 * self.full_well / (mid_grey_electrons * analog_gain)
         self.register_buffer("digital_gain", torch.tensor(float(digital_gain)))
-
-    @classmethod
-    def from_config(cls, section) -> "PhotonBudget":
-        return cls(light_electrons(section.light, section.mid_grey_electrons), section.pixel_pitch_um,
-                   section.quantum_efficiency, section.full_well_electrons, section.read_electrons,
-                   section.analog_gain, section.gain_learnable, section.gain_max, section.digital_gain,
-                   section.eval_seed)
 
     @classmethod
     def check_section(cls, section, where: str) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from warpsense.camera.stage import WHAT_IF_SOURCE, SensorArguments, Stage
 from warpsense.choices import QUANTIZE_MODES
-from warpsense.config import check_value
+from warpsense.config import QuantizeConfig, check_value
 from warpsense.ops.quantize import quantize_ste
 
 
@@ -19,17 +19,19 @@ class Quantizer(Stage):
         """bits: as the config checks quantize.bits (one check, the config's message)."""
         check_value(f"{cls.config_section}.{name}", value, WHAT_IF_SOURCE)
 
-    def __init__(self, bits: int = 10, white_level: float = 1.0, mode: str = "full_well"):
+    def __init__(self, bits: int = QuantizeConfig.bits, white_level: float = QuantizeConfig.white_level,
+                 mode: str = QuantizeConfig.mode):
+        """Args:
+            bits: ADC bit depth b (2^b - 1 steps).
+            white_level: the full-well level w (units of the signal).
+            mode: a `QUANTIZE_MODES` name: "full_well" (fixed w) or "max" (w = each image's maximum).
+        """
         super().__init__()
         if mode not in QUANTIZE_MODES:
             raise KeyError(f"unknown quantization mode {mode!r}; valid modes: {', '.join(QUANTIZE_MODES)}")
         self.bits = bits
         self.white_level = white_level
         self.mode = mode
-
-    @classmethod
-    def from_config(cls, section) -> "Quantizer":
-        return cls(section.bits, section.white_level, section.mode)
 
     def fuse(self, arguments: SensorArguments) -> bool:
         """The fused kernel quantizes on the full well; the per-image-max mode takes this stage's own op."""

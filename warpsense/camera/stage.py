@@ -4,6 +4,7 @@ what-if overrides; everything else talks to the camera."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Callable, ClassVar
 
@@ -54,12 +55,14 @@ class Stage(nn.Module):
     """A camera stage: an `nn.Module` that owns its parameters, builds itself from its config section and reports
     its learned state.
 
-    A new stage is a kernel, an op, a subclass of this class with its config section (a dataclass in
-    `warpsense.config` and its lines in `configs/default.toml`), and one line in `warpsense.camera.camera.STAGES`.
+    The stage's config section (a dataclass of `warpsense.config`) is its constructor's signature: the constructor
+    takes the section's keys but ``enabled`` as keyword arguments, each defaulting to the section's default (e.g.
+    ``temperature_end: float = CFAConfig.temperature_end``), so a stage built in Python with its defaults is the one
+    the default config builds. Adding a stage: docs/guide/development.md.
 
     Class attributes:
         config_section: the name of the stage's ``[section]`` (its ``enabled`` key decides whether
-            `Camera.from_config` builds the stage).
+            `Camera.from_config` builds the stage; its other keys are the constructor's arguments).
         part: "optics" for stages on the radiance image before the sensor ([B, 3, H, W] -> [B, 3, H, W]), "sensor"
             for the sensor chain that the fused kernel can run.
         takes: the signal a sensor stage's `forward` takes: "rgb" ([B, 3, H, W] irradiance) or "raw" ([B, 1, H, W]);
@@ -76,8 +79,10 @@ class Stage(nn.Module):
 
     @classmethod
     def from_config(cls, section) -> "Stage":
-        """Build the stage from its whole config section (a dataclass of `warpsense.config`)."""
-        raise NotImplementedError(f"{cls.__name__} does not implement from_config")
+        """Build the stage from its whole config section (a dataclass of `warpsense.config`): the constructor called
+        with every key of the section but ``enabled``."""
+        return cls(**{key.name: getattr(section, key.name) for key in dataclasses.fields(section)
+                      if key.name != "enabled"})
 
     @classmethod
     def check_section(cls, section, where: str) -> None:

@@ -1,5 +1,5 @@
-"""The epoch plan of a run (paper Alg. 1): how many epochs, which of them are warm-up, the CFA temperature of each,
-and the plan's fit to a wall-time budget."""
+"""The epoch plan of a run (paper Alg. 1): how many epochs, which of them are warm-up, and the plan's fit to a
+wall-time budget. The stages read it at each epoch (`Camera.on_epoch`), e.g. the CFA anneals its temperature."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ class Schedule:
     """Epochs of a run; the first ``warmup_epochs`` train the network on a frozen camera, the rest jointly.
 
     The run's config states the requested plan; a time budget (``train.time_budget_minutes``) may shorten it after
-    the first epoch (`shortened`, with `epochs_within`). The config is never changed: the plan in use is this object, saved in each
-    checkpoint so a resumed run keeps it.
+    the first epoch (`shortened`, with `epochs_within`). The config is never changed: the plan in use is this object,
+    saved in each checkpoint so a resumed run keeps it.
     """
 
     epochs: int
@@ -31,17 +31,6 @@ class Schedule:
     def phase(self, epoch: int) -> str:
         """"warmup" or "joint", as recorded in metrics.jsonl."""
         return "joint" if self.is_joint(epoch) else "warmup"
-
-    def temperature(self, epoch: int, start: float, end: float) -> float:
-        """CFA softmax temperature: ``start`` through warm-up, then geometric annealing that reaches ``end`` at the
-        last epoch."""
-        joint_epochs = self.epochs - self.warmup_epochs
-        if not self.is_joint(epoch):
-            return start
-        if joint_epochs <= 1:
-            return end
-        progress = min(epoch - self.warmup_epochs, joint_epochs - 1) / (joint_epochs - 1)
-        return start * (end / start) ** progress
 
     def epochs_within(self, budget_seconds: float, epoch_seconds: float) -> int:
         """How many epochs of ``epoch_seconds`` (plus a 10% margin for evaluation) fit ``budget_seconds``: at least
