@@ -1,7 +1,7 @@
-"""The README's recipe for a new stage, followed to the letter by a stage defined only here (a kernel-free pixel gain):
-a Stage subclass, its config section (a dataclass on the config), and one line in STAGES. It runs in the camera
-fused (placed before the noise, it folds into the responses) or not (after the noise it cannot be fused, and turns
-fusing off instead of being skipped)."""
+"""The recipe for a new stage (docs/guide/development.md, "Adding a stage"), followed by a stage defined only here,
+a pixel gain: its kernel, its op, its stage with its config section, and its registration (the section on the
+config, one line in STAGES). It runs in the camera fused (placed before the noise, it folds into the responses) or
+not (after the noise it cannot be fused, turns fusing off instead of being skipped, and runs its own op)."""
 
 import dataclasses
 import re
@@ -9,19 +9,73 @@ from dataclasses import dataclass, field
 
 import pytest
 import torch
+import warp as wp
 from torch import nn
 
 from warpsense.camera import Camera
 from warpsense.camera import camera as camera_module
 from warpsense.camera.stage import SensorArguments, Stage
-from warpsense.config import Config, ConfigError, load_config
+from warpsense.config import Config, ConfigError, _field, load_config
 from warpsense.ops import cfa_mosaic, poisson_gaussian, quantize_ste
+from warpsense.ops._warp import launch, prepare, save_inputs, warp_op
+
+# 1. the kernel (kernels/<stage>.py): forward and an explicit backward, no torch
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def gain_forward(raw: wp.array2d(dtype=wp.float32), gain: wp.array(dtype=wp.float32),
+                 out: wp.array2d(dtype=wp.float32)):
+    b, i = wp.tid()
+    out[b, i] = gain[0] * raw[b, i]
+
+
+@wp.kernel
+def gain_backward(raw: wp.array2d(dtype=wp.float32), gain: wp.array(dtype=wp.float32),
+                  grad_out: wp.array2d(dtype=wp.float32), grad_raw: wp.array2d(dtype=wp.float32),
+                  grad_gain: wp.array(dtype=wp.float32)):
+    b, i = wp.tid()
+    grad_raw[b, i] = gain[0] * grad_out[b, i]
+    wp.atomic_add(grad_gain, 0, raw[b, i] * grad_out[b, i])
+
+
+# 2. the op (warpsense/ops/<stage>.py): the kernels as a torch custom op with its autograd formula
+
+
+@warp_op("test_pixel_gain_backward", lambda rows, gain, grad_out: (torch.empty_like(rows), torch.empty_like(gain)))
+def _pixel_gain_backward(rows: torch.Tensor, gain: torch.Tensor,
+                         grad_out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    grad_rows, grad_gain = torch.empty_like(rows), torch.zeros_like(gain)
+    launch(gain_backward, tuple(rows.shape), [rows, gain, grad_out.contiguous(), grad_rows, grad_gain], rows.device)
+    return grad_rows, grad_gain
+
+
+def _backward(ctx, grad_out):
+    return _pixel_gain_backward(*ctx.saved_tensors, grad_out)
+
+
+@warp_op("test_pixel_gain", lambda rows, gain: torch.empty_like(rows), _backward, save_inputs)
+def _pixel_gain(rows: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
+    out = torch.empty_like(rows)
+    launch(gain_forward, tuple(rows.shape), [rows, gain, out], rows.device)
+    return out
+
+
+def pixel_gain(raw: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
+    """RAW [B, 1, H, W] (float32) times a 0-d gain."""
+    rows, gain = prepare(raw.reshape(raw.shape[0], -1), gain.reshape(1))
+    return _pixel_gain(rows, gain).view(raw.shape)
+
+
+# 3. the stage (warpsense/camera/<stage>.py) and its config section (warpsense/config.py): the section's keys but
+# `enabled` are the constructor's arguments, its defaults the constructor's; `Stage.from_config` is inherited
 
 
 @dataclass
 class PixelGainConfig:
     enabled: bool = True
-    gain: float = 1.7
+    gain: float = _field(1.7, minimum=0)
 
 
 class PixelGain(Stage):
@@ -29,13 +83,9 @@ class PixelGain(Stage):
 
     config_section = "pixel_gain"
 
-    def __init__(self, gain: float):
+    def __init__(self, gain: float = PixelGainConfig.gain):
         super().__init__()
         self.gain = nn.Parameter(torch.tensor(float(gain)))
-
-    @classmethod
-    def from_config(cls, section) -> "PixelGain":
-        return cls(section.gain)
 
     def fuse(self, arguments: SensorArguments) -> bool:
         if arguments.noisy or arguments.bits is not None:
@@ -44,14 +94,27 @@ class PixelGain(Stage):
         return True
 
     def forward(self, raw, image_index=None):
-        return raw * self.gain
+        return pixel_gain(raw, self.gain)
 
     def summary(self) -> dict:
         return {"pixel_gain": float(self.gain.detach())}
 
 
+# 4. the registration: the section a field of Config (and its lines in configs/default.toml), one line in STAGES
+
 ConfigWithGain = dataclasses.make_dataclass(
     "ConfigWithGain", [("pixel_gain", PixelGainConfig, field(default_factory=PixelGainConfig))], bases=(Config,))
+
+
+def test_the_op_equals_its_torch_form_forward_and_backward():
+    raw = torch.rand(2, 1, 5, 7, requires_grad=True)
+    gain = torch.tensor(1.7, requires_grad=True)
+    out = pixel_gain(raw, gain)
+    torch.testing.assert_close(out, raw * 1.7, atol=0, rtol=0)
+    weights = torch.rand(2, 1, 5, 7)
+    grad_raw, grad_gain = torch.autograd.grad((out * weights).sum(), (raw, gain))
+    torch.testing.assert_close(grad_raw, weights * 1.7)
+    torch.testing.assert_close(grad_gain, (raw * weights).sum().detach())
 
 
 def _plugged(monkeypatch, after: str) -> Camera:
@@ -72,6 +135,7 @@ def test_a_stage_before_the_noise_is_fused_and_equals_brighter_radiance(monkeypa
     assert [name for name, _ in camera.stages()] == ["exposure", "cfa", "pixel_gain", "noise", "quantizer"]
     assert camera.fusable()
     assert camera.summary()["pixel_gain"] == pytest.approx(1.7)
+    assert torch.equal(camera.pixel_gain.gain, PixelGain().gain)  # the default config's is the default stage
     radiance = torch.rand(2, 3, 6, 8)
     raw = camera(radiance)
     # the gain before the noise is the same capture as 1.7x the light (same eval noise seeds)
