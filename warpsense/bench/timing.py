@@ -1,6 +1,5 @@
 """Timing helpers: median and IQR after warm-up, with the device synchronised around each repetition; the inference
-latency every benchmark and `warpsense eval --latency` report (`time_latency`); the kernels of a call by time
-(`torch.profiler`)."""
+latency every benchmark and `warpsense eval --latency` report (`time_latency`)."""
 
 from __future__ import annotations
 
@@ -43,45 +42,6 @@ def time_function(function, device, repeats: int = 20, warmup: int = 3) -> dict:
         _sync(device)
         samples.append((time.perf_counter() - start) * 1e3)
     return _summary(samples)
-
-
-def median_interval(values: list[float], z: float = 1.96) -> tuple[float, float]:
-    """Distribution-free ~95% confidence interval of the median of ``values`` (order statistics: the k-th smallest
-    and largest with k = floor((n - z sqrt(n)) / 2), the binomial's normal approximation; Conover, Practical
-    Nonparametric Statistics, 3rd ed., section 3.2). The whole range when n is too small for it."""
-    ordered = sorted(values)
-    k = int((len(ordered) - z * len(ordered) ** 0.5) / 2)
-    k = min(max(k, 0), (len(ordered) - 1) // 2)
-    return ordered[k], ordered[len(ordered) - 1 - k]
-
-
-def time_interleaved(functions: dict, device, repeats: int = 300, warmup: int = 3, reference=None) -> dict:
-    """Wall time per call (ms) of each of ``functions`` (name -> function of no arguments), timed in rounds that
-    call each once in turn, the device synchronised around each call: a host-bound call (batch-1 eager inference)
-    drifts with the machine's load, and interleaving gives every function the same drift, so their medians compare
-    where timing each apart did not (docs/benchmarks.md, batch-1 latency: the eager baseline's IQR was 4.1 ms of a
-    7.2 ms median). Returns name -> `time_function`'s summary; with ``reference`` (one of the names), every other
-    summary also has "vs_reference_ms": the median of its per-round differences to the reference's call of the same
-    round, and "vs_reference_ci95_ms", that median's interval (`median_interval`)."""
-    for _ in range(warmup):
-        for function in functions.values():
-            function()
-    _sync(device)
-    samples = {name: [] for name in functions}
-    for _ in range(repeats):
-        for name, function in functions.items():
-            start = time.perf_counter()
-            function()
-            _sync(device)
-            samples[name].append((time.perf_counter() - start) * 1e3)
-    summaries = {name: _summary(values) for name, values in samples.items()}
-    if reference is not None:
-        for name, values in samples.items():
-            if name != reference:
-                differences = [value - base for value, base in zip(values, samples[reference])]
-                summaries[name]["vs_reference_ms"] = statistics.median(differences)
-                summaries[name]["vs_reference_ci95_ms"] = list(median_interval(differences))
-    return summaries
 
 
 def time_cuda_graph(function, repeats: int = 50, warmup: int = 3) -> dict:
@@ -171,20 +131,3 @@ def latency_lines(record: dict) -> list[str]:
               f"  {name:<{width}s}  {ms:9.3f} ms" for name, ms in rows]
     return lines
 
-
-def write_kernel_table(function, device, out: str, warmup: int = 3, rows: int = 60) -> None:
-    """Run ``function()`` once under `torch.profiler` (after ``warmup`` calls) and write its kernels by total time,
-    GPU time on CUDA, CPU time otherwise, ``rows`` of them, to the text file ``out``."""
-    from torch.profiler import ProfilerActivity, profile
-
-    cuda = torch.device(device).type == "cuda"
-    for _ in range(warmup):
-        function()
-    _sync(device)
-    with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as trace:
-        function()
-        _sync(device)
-    table = trace.key_averages().table(sort_by="cuda_time_total" if cuda else "cpu_time_total", row_limit=rows,
-                                       max_name_column_width=90)
-    with open(out, "w") as file:
-        file.write(table)
