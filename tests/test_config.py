@@ -159,7 +159,7 @@ def test_cuda_graph_refuses_self_capturing_compile_modes():
 RETIRED_VALUE = ("model.name", "packunet")
 
 
-@pytest.mark.parametrize("key", [*RETIRED, "=".join(RETIRED_VALUE)])
+@pytest.mark.parametrize("key", [*RETIRED, *("=".join(key) for key in RETIRED_VALUES)])
 def test_a_retired_key_or_value_is_refused_in_one_line_naming_it_and_where_to_read_why(key, tmp_path):
     """Every retired key (any value, even that of the behaviour that stayed: a config asking for it is out of date)
     and retired value is refused from --set and from a TOML file, by a one-line error naming it, saying it was
@@ -191,7 +191,7 @@ def test_a_saved_config_drops_retired_keys_that_ask_for_the_behaviour_that_staye
     assert config_from_dict(saved) == Config()
     for key, value in [("loss.lovasz_stride", 2), ("loss.class_balance", 0.5), ("data.unprocess", True),
                        ("model.decoder_join", "project"), ("model.input_transform", "anscombe"),
-                       ("train.ema_decay", 0.999), RETIRED_VALUE]:
+                       ("train.ema_decay", 0.999), RETIRED_VALUE, ("loss.distill_mode", "channel")]:
         section, name = key.split(".")
         asking = copy.deepcopy(saved)
         asking[section][name] = value

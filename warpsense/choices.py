@@ -66,9 +66,9 @@ MODEL_INPUTS = ("sensor", "srgb")
 MODEL_NAMES = ("dsunet",)
 """Segmentation networks (`warpsense.models.MODELS`)."""
 
-DISTILL_MODES = ("pixel", "channel")
+DISTILL_MODES = ("pixel",)
 """How a student's logits match its teacher's (`warpsense.train.losses.DISTILLATION`): per pixel over the classes
-(Hinton et al. 2015), or per class over the image's pixels (channel-wise, Shu et al., ICCV 2021)."""
+(Hinton et al. 2015). The channel-wise mode was retired (`warpsense.config.RETIRED_VALUES`)."""
 
 MODEL_CONTEXTS = ("none", "pyramid")
 """Context modules at the networks' 1/16 bottleneck (`warpsense.models.dsunet.CONTEXTS`)."""

@@ -374,6 +374,8 @@ run's config holding its `Retired.remaining` value (dropped)."""
 
 RETIRED_VALUES = {
     ("model.name", "packunet"): Retired("PackUNet, the network with the 2 x 2 CFA tile packed into channels"),
+    ("loss.distill_mode", "channel"): Retired("channel-wise distillation: each class's logit map matched over the "
+                                              "image's pixels", verdict="lower than none on every seed on val"),
 }
 """Retired values of keys that stay ("section.key", value): refused wherever they appear."""
 

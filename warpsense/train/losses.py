@@ -103,21 +103,6 @@ def pixel_distillation(student: torch.Tensor, teacher: torch.Tensor, temperature
     return _kl_over(student, teacher, temperature, dim=1).mean()
 
 
-def channel_distillation(student: torch.Tensor, teacher: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
-    """Channel-wise knowledge distillation (Shu, Liu, Gao, Yan, Shen, ICCV 2021): each class's logit map becomes a
-    distribution over the image's pixels, softmax(map / T), and the student's matches the teacher's: the mean over
-    images and classes of T^2 KL(teacher || student). Where pixel-wise distillation weighs every pixel alike, this
-    one attends to the pixels where each class's evidence is strongest, so a small object counts as much for its
-    class as a large region. OpenMMLab's mmrazor reproduces it on Cityscapes logits with T = 1 and weight 5
-    (PSPNet-R18 student 74.87 -> 75.54 mIoU).
-
-    Args:
-        student: [B, K, H, W] logits being trained; teacher: [B, K, H, W] logits (no gradient flows into them).
-        temperature: T > 0.
-    """
-    return _kl_over(student.flatten(2), teacher.flatten(2), temperature, dim=2).mean()
-
-
 def _kl_over(student: torch.Tensor, teacher: torch.Tensor, temperature: float, dim: int) -> torch.Tensor:
     """T^2 KL(softmax(teacher / T) || softmax(student / T)) with both softmaxes along ``dim`` (float32 or wider)."""
     dtype = torch.promote_types(student.dtype, torch.float32)
@@ -126,7 +111,7 @@ def _kl_over(student: torch.Tensor, teacher: torch.Tensor, temperature: float, d
     return temperature**2 * (log_teacher.exp() * (log_teacher - log_student)).sum(dim=dim)
 
 
-DISTILLATION = {"pixel": pixel_distillation, "channel": channel_distillation}
+DISTILLATION = {"pixel": pixel_distillation}
 """The distillation terms by `loss.distill_mode` (names: `warpsense.choices.DISTILL_MODES`)."""
 
 
