@@ -1,4 +1,5 @@
-"""Compact UNet with depthwise-separable convolutions and squeeze-and-excitation (section 3.6 of the paper, docs/references.md)."""
+"""Compact UNet with depthwise-separable convolutions and squeeze-and-excitation (section 3.6 of the paper,
+docs/references.md)."""
 
 from __future__ import annotations
 
@@ -139,7 +140,11 @@ def build_context(name: str, channels: int) -> nn.Module:
     return CONTEXTS[name](channels)
 
 
-class Stage(nn.Sequential):
+class SeparableStack(nn.Sequential):
+    """``depth`` separable blocks at one resolution of the UNet (the first with ``stride``, changing the channels
+    ``in_channels`` -> ``out_channels``); a Sequential, so its blocks' checkpoint keys are ``<name>.0``, ``<name>.1``,
+    ..."""
+
     def __init__(self, in_channels: int, out_channels: int, depth: int, stride: int, squeeze: bool = True):
         blocks = [SeparableBlock(in_channels, out_channels, stride, squeeze)]
         blocks += [SeparableBlock(out_channels, out_channels, squeeze=squeeze) for _ in range(depth - 1)]
@@ -184,20 +189,20 @@ class DSUNet(nn.Module):
         self.tile = tile if in_channels == 1 and tile > 1 else 0
         # conv and BN; the ReLU is applied with the BN (`norm_relu`); a Sequential for its checkpoint keys
         self.stem = nn.Sequential(nn.Conv2d(in_channels, f, 3, 1, 1, bias=False), nn.BatchNorm2d(f))
-        self.enc1 = Stage(f, f, full_depth, 1, squeeze)
+        self.enc1 = SeparableStack(f, f, full_depth, 1, squeeze)
         shuffle_channels = in_channels * self.tile * self.tile if self.tile else 0
         self.down2 = SeparableBlock(f, 2 * w, stride=2, squeeze=squeeze)
         self.mix2 = nn.Conv2d(2 * w + shuffle_channels, 2 * w, 1) if shuffle_channels else nn.Identity()
-        self.enc2 = Stage(2 * w, 2 * w, 1, 1, squeeze)
-        self.enc3 = Stage(2 * w, 4 * w, 2, 2, squeeze)
-        self.enc4 = Stage(4 * w, 6 * w, 3, 2, squeeze)
-        self.enc5 = Stage(6 * w, 8 * w, 3, 2, squeeze)
+        self.enc2 = SeparableStack(2 * w, 2 * w, 1, 1, squeeze)
+        self.enc3 = SeparableStack(2 * w, 4 * w, 2, 2, squeeze)
+        self.enc4 = SeparableStack(4 * w, 6 * w, 3, 2, squeeze)
+        self.enc5 = SeparableStack(6 * w, 8 * w, 3, 2, squeeze)
         self.context = build_context(context, 8 * w)
         # each decoder stage runs on the upsampled deeper features joined to its skip
-        self.dec4 = Stage(8 * w + 6 * w, 6 * w, 1, 1, squeeze)
-        self.dec3 = Stage(6 * w + 4 * w, 4 * w, 1, 1, squeeze)
-        self.dec2 = Stage(4 * w + 2 * w, 2 * w, 1, 1, squeeze)
-        self.dec1 = Stage(2 * w + f, f, full_depth, 1, squeeze)
+        self.dec4 = SeparableStack(8 * w + 6 * w, 6 * w, 1, 1, squeeze)
+        self.dec3 = SeparableStack(6 * w + 4 * w, 4 * w, 1, 1, squeeze)
+        self.dec2 = SeparableStack(4 * w + 2 * w, 2 * w, 1, 1, squeeze)
+        self.dec1 = SeparableStack(2 * w + f, f, full_depth, 1, squeeze)
         self.head = nn.Conv2d(f, num_classes, 1)
         self.to(memory_format=self.memory_format)
 
