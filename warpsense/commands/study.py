@@ -182,11 +182,26 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
     reuse_dirs = [Path(path) for path in reuse or []]
     folds = fold_lines(fold_sizes(plan))
     if plan_only:
-        print("\n".join([*(f"# {line}" for line in folds),
+        from warpsense.study.adaptive import plan_only_notes
+
+        print("\n".join([*(f"# {line}" for line in folds), *(f"# {line}" for line in plan_only_notes(plan)),
                          *plan_commands(plan, Path(out), reuse_dirs, chosen_cells)]))
         return 0
+    if plan.search is not None and cell is None and not patterns:
+        from warpsense.study.search import require_optuna
+
+        require_optuna()  # before anything is written
     check_runnable(plan, chosen_cells, local=cluster is None)  # a device it cannot have: before anything is written
     print("\n".join(f"study: {line}" for line in folds), flush=True)
+    # study.sequential and [[search]] choose their rounds of cells (warpsense.study.adaptive); --cell and --cells
+    # run the cells named, as in any plan
+    adaptive = (plan.sequential is not None or plan.search is not None) and cell is None and not patterns
+    if adaptive:
+        from warpsense.study.adaptive import run_adaptive
+    if cluster is not None and adaptive:
+        return run_adaptive(plan, Path(out), lambda round_plan, cells: submit_study(round_plan, Path(out), cluster,
+                                                                                    cells, reuse_dirs),
+                            wait=cluster.wait)
     if cluster is not None:
         return submit_study(plan, Path(out), cluster, None if cell is None and not patterns else chosen_cells,
                             reuse_dirs)
@@ -198,25 +213,29 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
             check_local_gpus(devices)
         return run_cells(plan, Path(out), local, gpus=elsewhere, mps="off",
                          progress=progress, record=False, reuse=reuse_dirs)
-    def run_pool(per_gpu: int, mps: str) -> int:
+    def run_pool(per_gpu: int, mps: str, round_plan=plan, cells=None) -> int:
         # in this process where that is one cell at a time on its own cuda:0 (or the CPU); one worker process
         # for another single GPU (--gpus 1): this process's training would take cuda:0 whatever --gpus says
         here = not devices or (devices == ["0"] and per_gpu == 1)
-        return run_cells(plan, Path(out), local, gpus=None if here else devices, per_gpu=per_gpu,
-                         progress=progress, sample_gpus=devices, reuse=reuse_dirs, mps=mps)
+        return run_cells(round_plan, Path(out), local if cells is None else cells, gpus=None if here else devices,
+                         per_gpu=per_gpu, progress=progress, sample_gpus=devices, reuse=reuse_dirs, mps=mps)
 
     chosen = per_gpu == "auto"
     if not devices and (mps == "on" or per_gpu not in ("auto", 1)):  # a GPU machine's command line, run on a CPU
         print(f"study: no pool of GPUs (--gpus {gpus}): the cells run one at a time in this process; --per-gpu and "
               "--mps apply to the pool", flush=True)
-    try:
-        code = run_pool(pool_cells_per_gpu(plan, devices, mps) if chosen else per_gpu, mps)
-    except MPSError as error:
-        if not (chosen and mps == "auto"):
-            raise
-        # a choice of ours, not the user's: one cell a GPU without MPS rather than no study
-        print(f"study: {error}; one cell at once on each GPU instead", file=sys.stderr, flush=True)
-        code = run_pool(1, "off")
+
+    def run_local(round_plan=plan, cells=None) -> int:
+        try:
+            return run_pool(pool_cells_per_gpu(plan, devices, mps) if chosen else per_gpu, mps, round_plan, cells)
+        except MPSError as error:
+            if not (chosen and mps == "auto"):
+                raise
+            # a choice of ours, not the user's: one cell a GPU without MPS rather than no study
+            print(f"study: {error}; one cell at once on each GPU instead", file=sys.stderr, flush=True)
+            return run_pool(1, "off", round_plan, cells)
+
+    code = run_adaptive(plan, Path(out), run_local) if adaptive else run_local()
     if code == 0:
         print(f"study finished; report: warpsense study report {out}")
     return code
@@ -245,7 +264,7 @@ def status_study(study_dir: str) -> int:
 def report_study(study_dir: str, json_out: str | None = None, plot_out: str | None = None,
                  split: str | None = None, resamples: int = 2000, block_frames: int = 10) -> int:
     """The `warpsense study report` command: console text, and the same record as JSON and a plot (with sweeps, and
-    the design map beside it: OUT_map.png for ``--plot OUT.png``)."""
+    the design map beside it: OUT_map.png for ``--plot OUT.png``; with a search, its designs: OUT_search.png)."""
     from warpsense.study.report import plot_study, render_text, study_record
 
     if split is not None and not plot_out:
@@ -268,4 +287,9 @@ def report_study(study_dir: str, json_out: str | None = None, plot_out: str | No
 
             if plot_maps(record, map_path(plot_out), split):
                 print(f"wrote {map_path(plot_out)}")
+        if record.get("search"):  # a plan with a [[search]]: its designs over the searched keys beside it
+            from warpsense.study.search_report import plot_search, search_path
+
+            if plot_search(record, search_path(plot_out)):
+                print(f"wrote {search_path(plot_out)}")
     return 0

@@ -15,6 +15,10 @@ A plan is a TOML file (see `configs/studies/`)::
     blocks = 5                      # with folds = "blocks": blocks per sequence, one fold each
     block_buffer = 30               # with folds = "blocks": frame numbers around a held-out block left out of training
     sequences = []                  # with folds = "sequence": the sequences held out, one fold each (default: all)
+    sequential = {min_seeds = 3, max_seeds = 8, tolerance = 0.01}  # optional: min_seeds seeds for every cell, then
+                                    # one more seed at a time for each comparison whose interval holds 0 and is wider
+                                    # than +-tolerance, up to max_seeds (`warpsense.study.sequential`); seeds lists
+                                    # the first ones, the rest follow the last
 
     [[camera]]
     name = "fixed_isp"
@@ -44,6 +48,9 @@ A plan is a TOML file (see `configs/studies/`)::
     analog_gain = 2.0               # photons.analog_gain (optional)
     set = ["optics.exposure_ms=2.5"]  # the operating point at this level (optional)
 
+A ``[[search]]`` table (`warpsense.study.search_space`) adds the designs a Bayesian search proposes within bounds
+of config keys: each a camera named after its values, trained by `warpsense.study.search`.
+
 Every cell (camera x light x seed, and x fold with ``folds = "blocks"`` or ``"sequence"``) is one ordinary training
 run; its config is the base, the camera's preset, the study's and the camera's overrides, the light's sensor keys, the
 fold's ``data.holdout_block`` (with ``data.holdout_blocks`` and ``data.block_buffer``) or ``data.holdout_sequence``,
@@ -72,6 +79,8 @@ from warpsense.config import Config, ConfigError, flatten_keys, load_config, par
 from warpsense.data import DatasetError, build_dataset, sequence_names
 from warpsense.resources import CONFIG_DIR
 from warpsense.study.conflicts import check_conflicts
+from warpsense.study.search_space import SearchError, SearchSpec, corner_designs, parse_search
+from warpsense.study.sequential import SequentialRule, check_rule
 
 
 class PlanError(ValueError):
@@ -180,6 +189,31 @@ class Plan:
     sweeps: tuple[SweepSpec, ...] = ()  # where the cameras of [[sweep]] tables came from (they are in ``cameras``)
     blocks: int = 5  # folds = "blocks": blocks per sequence, one fold each
     block_buffer: int = 30  # folds = "blocks": frame numbers around a held-out block left out of training
+    sequential: SequentialRule | None = None  # study.sequential: seeds added while comparisons are unsettled
+    search: SearchSpec | None = None  # a [[search]] table: designs proposed by a Bayesian search
+    designs: tuple[str, ...] = ()  # the search's designs started so far (their cells join `cells`; not recorded)
+
+    def with_designs(self, cameras) -> "Plan":
+        """This plan with the search's design ``cameras`` among its cells (`cells`, `cell`), as a round of the search
+        trains them; its record (`to_dict`) is the plan's own."""
+        return dataclasses.replace(self, designs=tuple(dict.fromkeys([*self.designs, *cameras])))
+
+    def camera_spec(self, name: str) -> CameraSpec | None:
+        """The camera ``name``: one of the plan's cameras, or a design of its search (`SearchSpec.design_values`:
+        the name says the design); None otherwise."""
+        for camera in self.cameras:
+            if camera.name == name:
+                return camera
+        values = self.search.design_values(name) if self.search is not None else None
+        if values is None:
+            return None
+        return CameraSpec(name, self.search.preset, tuple(self.search.overrides(values)))
+
+    def design_cells(self, camera: str) -> list[Cell]:
+        """A search design's cells in the order its rungs take them: seed by seed (the first ``search.seeds`` of
+        the plan's seeds), fold by fold, at the search's light."""
+        return [Cell(camera, self.search.light, seed, fold) for seed in self.seeds[:self.search.seeds]
+                for fold in self.fold_names()]
 
     def fold_names(self) -> tuple[str, ...]:
         """The folds' names, in order ("block1".., the held-out sequences; one "" without folds)."""
@@ -203,12 +237,18 @@ class Plan:
         soonest; cells of equal work (the cameras of one fold and seed, as a rule) keep this order."""
         folds = self.fold_names()
         return [Cell(camera.name, light.name, seed, fold) for light in self.lights for seed in self.seeds
-                for fold in folds for camera in self.cameras if not light.cameras or camera.name in light.cameras]
+                for fold in folds for camera in self.cameras if not light.cameras or camera.name in light.cameras] \
+            + [cell for camera in self.designs for cell in self.design_cells(camera)]
 
     def cell(self, cell_id: str) -> Cell:
         for cell in self.cells():
             if cell.id == cell_id:
                 return cell
+        camera = cell_id.split("/", 1)[0]
+        if self.search is not None and camera not in {c.name for c in self.cameras} and self.camera_spec(camera):
+            for cell in self.design_cells(camera):  # a design of the search: its name says its config
+                if cell.id == cell_id:
+                    return cell
         form = "camera/light/fold/seed" if self.folds != "none" else "camera/light/seed"
         raise PlanError(f"{self.source}: no cell {cell_id!r}; cells are {form}, e.g. {self.cells()[0].id}")
 
@@ -228,7 +268,7 @@ class Plan:
 
     def config(self, cell: Cell, output_dir: str | Path) -> Config:
         """The resolved config of ``cell``, its run directory <output_dir>/<cell.run_name>."""
-        camera = next(c for c in self.cameras if c.name == cell.camera)
+        camera = self.camera_spec(cell.camera)
         light = next(light for light in self.lights if light.name == cell.light)
         files = [file for file in (self.base, camera.preset) if file]
         overrides = [*self.set, *camera.set, *light.overrides(), *self.fold_overrides(cell.fold),
@@ -243,6 +283,12 @@ class Plan:
         data = dataclasses.asdict(self)
         if not self.sweeps:
             del data["sweeps"]
+        del data["designs"]  # the search's state, kept in the study directory (warpsense.study.search)
+        for key in ("sequential", "search"):  # absent where unused: a directory recorded before them matches
+            if data[key] is None:
+                del data[key]
+        if self.sequential is not None:
+            data["sequential"] = self.sequential.to_dict()
         if self.folds != "blocks":
             del data["blocks"], data["block_buffer"]
         for camera in data["cameras"]:
@@ -263,11 +309,13 @@ class Plan:
                                           x["bits"], tuple(x["cameras"]), x.get("scene", ""),
                                           x.get("analog_gain"), tuple(x.get("set", ()))) for x in data["lights"]),
                    overrides=tuple(data.get("overrides", ())),
-                   sweeps=tuple(SweepSpec.from_dict(sweep) for sweep in data.get("sweeps", ())))
+                   sweeps=tuple(SweepSpec.from_dict(sweep) for sweep in data.get("sweeps", ())),
+                   sequential=SequentialRule.from_dict(data["sequential"]) if data.get("sequential") else None,
+                   search=SearchSpec.from_dict(data["search"]) if data.get("search") else None)
 
 
 STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str, "folds": str, "sequences": list,
-              "blocks": int, "block_buffer": int}
+              "blocks": int, "block_buffer": int, "sequential": dict}
 
 
 CAMERA_KEYS = {"name": str, "preset": str, "set": list, "seed_offset": int}
@@ -277,7 +325,9 @@ LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons"
 
 
 def _is_study_override(text: str) -> bool:
-    return text.split("=", 1)[0].strip().startswith("study.")
+    """Whether a ``--set`` entry changes the plan (``study.KEY`` its [study] table, ``search.KEY`` its [[search]])
+    rather than every cell's config."""
+    return text.split("=", 1)[0].strip().startswith(("study.", "search."))
 
 
 def fill_placeholders(text: str, cell: "Cell") -> str:
@@ -292,13 +342,14 @@ def cell_overrides(overrides) -> list[str]:
     return [text for text in overrides if not _is_study_override(text)]
 
 
-def _study_overrides(study: dict, overrides, source: str) -> dict:
-    """The [study] table with the command line's ``study.KEY=VALUE`` entries applied."""
+def _study_overrides(study: dict, overrides, source: str, table: str = "study") -> dict:
+    """The [study] table (or, with ``table`` "search", a [[search]] table) with the command line's
+    ``study.KEY=VALUE`` (``search.KEY=VALUE``) entries applied."""
     study = dict(study)
     for text in overrides:
-        if _is_study_override(text):
+        if text.split("=", 1)[0].strip().startswith(f"{table}."):
             try:
-                study.update(parse_override(text)["study"])
+                study.update(parse_override(text)[table])
             except ConfigError as error:
                 raise PlanError(f"{source}: {error}") from None
     return study
@@ -420,9 +471,9 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
         hint = "" if path.is_file() else f"; shipped plans: {', '.join(study_names())}"
         raise PlanError(f"{error}{hint}") from None
     for key in data:
-        if key not in ("study", "camera", "light", "sweep"):
+        if key not in ("study", "camera", "light", "sweep", "search"):
             raise PlanError(f"{source}: unknown table [{key}]; valid tables: [study], [[camera]], [[sweep]], "
-                            "[[light]]")
+                            "[[search]], [[light]]")
     study = data.get("study")
     if not isinstance(study, dict):
         raise PlanError(f"{source}: [study] table missing")
@@ -459,6 +510,19 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds) \
             or len(set(seeds)) != len(seeds):
         raise PlanError(f"{source}: study.seeds: expected distinct integers >= 0, got {seeds!r}")
+    rule = _sequential_rule(study, source, 2)  # the rule's own keys here; its first look's pairs once folds are known
+    if rule is not None:
+        seeds = _sequential_seeds(seeds, rule, source)
+    search = _search(data.get("search", []), source, [x["name"] for x in lights], [c["name"] for c in cameras],
+                     overrides)
+    if search is None and any(text.strip().startswith("search.") for text in overrides):
+        raise PlanError(f"{source}: --set search.KEY: the plan has no [[search]] table")
+    if search is not None and rule is not None:
+        raise PlanError(f"{source}: study.sequential: a plan with a [[search]] judges its designs at search.seeds; "
+                        "sequential verdicts add seeds to fixed comparisons: give one of them per plan")
+    if search is not None and search.seeds > len(seeds):
+        raise PlanError(f"{source}: search[0].seeds: {search.seeds} seeds per design, the study has {len(seeds)} "
+                        "(study.seeds)")
     if study["reference"] not in [c["name"] for c in cameras]:
         raise PlanError(f"{source}: study.reference: {study['reference']!r} is not a camera of the plan; cameras: "
                         f"{', '.join(c['name'] for c in cameras)}")
@@ -495,7 +559,7 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                                _float(x.get("analog_gain")),
                                _strings(x.get("set", []), f"{source}: light {x['name']}.set")) for x in lights),
         overrides=tuple(overrides), folds=study.get("folds", "none"), sweeps=tuple(sweeps),
-        blocks=study.get("blocks", 5), block_buffer=study.get("block_buffer", 30))
+        blocks=study.get("blocks", 5), block_buffer=study.get("block_buffer", 30), sequential=rule, search=search)
     if plan.folds == "sequence":
         plan = dataclasses.replace(plan, sequences=_fold_sequences(plan, study.get("sequences", [])))
     elif plan.folds == "blocks":
@@ -503,6 +567,10 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     elif any("{fold}" in text for text in _all_overrides(plan)):
         raise PlanError(f"{source}: {{fold}} in a set stands for a cell's fold: it needs study.folds = \"blocks\" "
                         f"or \"sequence\"")
+    if rule is not None:
+        _sequential_rule(study, source, len(plan.fold_names()))
+    if search is not None:
+        _check_designs(plan)
     check_conflicts(plan, PlanError)  # two tables setting one key differently: the plan would not say what runs
     checked_data = set()
     for camera in plan.cameras:  # every cell's config resolves (seeds only change run.seed, folds the held-out name)
@@ -529,6 +597,91 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                 except DatasetError as error:
                     raise PlanError(f"{where}: data: {error}") from None
     return plan
+
+
+def _sequential_rule(study: dict, source: str, pairs_per_seed: int) -> SequentialRule | None:
+    """The plan's ``study.sequential`` rule checked (None without one), its first look holding ``pairs_per_seed`` x
+    min_seeds pairs; a PlanError naming the key otherwise."""
+    if "sequential" not in study:
+        return None
+    try:
+        return check_rule(study["sequential"], f"{source}: study.sequential", pairs_per_seed)
+    except ValueError as error:
+        raise PlanError(str(error)) from None
+
+
+def _sequential_seeds(seeds: list, rule: SequentialRule, source: str) -> list:
+    """A sequential plan's seeds in the order they are added: ``seeds``, then the next integers not among them, up
+    to max_seeds; a PlanError where ``seeds`` lists more."""
+    if len(seeds) > rule.max_seeds:
+        raise PlanError(f"{source}: study.seeds: {len(seeds)} seeds listed, study.sequential.max_seeds is "
+                        f"{rule.max_seeds}: list at most that many (the rest follow the last)")
+    seeds, candidate = list(seeds), max(seeds) + 1
+    while len(seeds) < rule.max_seeds:
+        if candidate not in seeds:
+            seeds.append(candidate)
+        candidate += 1
+    return seeds
+
+
+def _search(tables, source: str, lights: list[str], cameras: list[str], overrides) -> SearchSpec | None:
+    """The plan's ``[[search]]`` (at most one), with the command line's ``search.KEY=VALUE`` entries, checked; a
+    PlanError naming the key otherwise."""
+    if not isinstance(tables, list) or not all(isinstance(table, dict) for table in tables):
+        raise PlanError(f"{source}: search: expected a [[search]] table")
+    if len(tables) > 1:
+        raise PlanError(f"{source}: search: one [[search]] table per plan, got {len(tables)}")
+    if not tables:
+        return None
+    try:
+        return parse_search(_study_overrides(tables[0], overrides, source, "search"), f"{source}: search[0]", lights,
+                            cameras)
+    except SearchError as error:
+        raise PlanError(str(error)) from None
+
+
+def _check_designs(plan: Plan) -> None:
+    """Every design the search can propose resolves (its configs at the bounds' corners pass the config's and the
+    stages' checks), says the searched values in its config (nothing later in a cell's overrides, a light's keys
+    or --set, changes them), no plan camera is named as a design, a known camera's design lies within the bounds
+    and a learned camera learns a searched key; else a PlanError naming the search."""
+    from warpsense.study.maps import LEARNED_KEYS
+    from warpsense.system import check_config
+
+    search, where = plan.search, f"{plan.source}: search[0]"
+    first = {camera: Cell(camera, search.light, plan.seeds[0], plan.fold_names()[0]) for camera in
+             (*search.known, *search.learned)}
+    for camera in search.known:  # its design lies within the bounds: the sampler takes it as a design
+        config = plan.config(first[camera], "runs")
+        for key, low, high in zip(search.parameters, search.low, search.high):
+            section, name = key.split(".", 1)
+            value = getattr(getattr(config, section), name)
+            if not low <= value <= high:
+                raise PlanError(f"{where}.known: camera {camera!r} has {key} = {value!r}, outside the bounds "
+                                f"[{low:g}, {high:g}]")
+    for camera in search.learned:  # it learns a searched key, else it has no learned design to start from
+        config = plan.config(first[camera], "runs")
+        flags = [LEARNED_KEYS[key][0] for key in search.parameters if key in LEARNED_KEYS]
+        if not any(getattr(getattr(config, flag.split(".")[0]), flag.split(".")[1]) for flag in flags):
+            raise PlanError(f"{where}.learned: camera {camera!r} learns none of the searched keys "
+                            f"({', '.join(search.parameters)}): nothing learned to start from")
+    for camera in plan.cameras:
+        if search.design_values(camera.name) is not None:
+            raise PlanError(f"{where}.name: the plan's camera {camera.name!r} is named as a design of the search; "
+                            "rename one of them")
+    for values in corner_designs(search):
+        cell = Cell(search.camera(values), search.light, plan.seeds[0], plan.fold_names()[0])
+        try:
+            config = plan.config(cell, "runs")
+            check_config(config, "config")
+        except ConfigError as error:
+            raise PlanError(f"{where}: design {cell.camera} (a corner of the bounds): {error}") from None
+        for key, value in zip(search.parameters, values):
+            section, name = key.split(".", 1)
+            if getattr(getattr(config, section), name) != value:
+                raise PlanError(f"{where}.bounds.{key}: design {cell.camera} trains with {key} = "
+                                f"{getattr(getattr(config, section), name)!r}, not {value!r}: a light's keys or --set "
+                                "change it after the design's own; leave the key to the search")
 
 
 def _seed_offset(camera: dict, source: str) -> int:

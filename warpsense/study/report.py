@@ -12,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from warpsense.study.adaptive import expected_cells, plan_view
 from warpsense.study.maps import design_maps, map_lines
-from warpsense.study.plan import Cell, Plan, PlanError
+from warpsense.study.plan import Cell, PlanError
 from warpsense.study.runner import (
     THROUGHPUT,
     evaluation_path,
@@ -22,6 +23,8 @@ from warpsense.study.runner import (
     read_throughput,
     throughput_line,
 )
+from warpsense.study.search_report import search_lines, search_record
+from warpsense.study.sequential import judged_comparison, sequential_lines
 from warpsense.study.statistics import (
     LEVEL,
     block_bootstrap_difference,
@@ -192,8 +195,11 @@ def _comparison(camera: str, light: str, runs: dict, reference: dict, plan: dict
         both = [(runs[k]["per_class_iou"][name], reference[k]["per_class_iou"][name]) for k in keys]
         both = [(a, b) for a, b in both if a is not None and b is not None]
         deltas[name] = float(np.mean([a - b for a, b in both])) if both else None
-    return {"camera": camera, "light": light, "reference": plan["reference"], "paired": paired,
-            "bootstrap": bootstrap, "verdict": _verdict(paired, bootstrap), "per_class_delta": deltas}
+    record = {"camera": camera, "light": light, "reference": plan["reference"], "paired": paired,
+              "bootstrap": bootstrap, "verdict": _verdict(paired, bootstrap), "per_class_delta": deltas}
+    # study.sequential: judged at the look where the sequential rule stopped, its repeated interval
+    record.update(judged_comparison(plan, runs, reference, sequences, block, resamples) or {})
+    return record
 
 
 def _per_sequence(light: str, by_camera: dict, reference: str) -> list[dict]:
@@ -377,9 +383,9 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
     if resamples < 1 or block < 1:
         raise ValueError(f"{'--resamples' if resamples < 1 else '--block-frames'} must be >= 1")
     study_dir = Path(study_dir)
-    plan = read_plan_record(study_dir)
+    plan = plan_view(study_dir, read_plan_record(study_dir))  # with a [[search]]'s designs among the cameras
     evaluations, run_s, steady_s, cells, missing = {}, {}, {}, [], []
-    for cell in Plan.from_dict(plan).cells():
+    for cell in expected_cells(study_dir, plan):  # study.sequential, [[search]]: the cells needed so far
         path = evaluation_path(study_dir, cell)
         if not path.is_file():
             missing.append(cell.id)
@@ -408,7 +414,8 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
             "folds": plan.get("folds", "none"), "sequences": plan.get("sequences", []), "block_frames": block,
             "fold_sizes": _fold_sizes(evaluations),
             "plan": plan, "cells": cells, "missing": missing, "throughput": throughput, "splits": parts,
-            "maps": design_maps(study_dir, plan, cells, parts)}
+            "maps": design_maps(study_dir, plan, cells, parts),
+            "search": search_record(study_dir, plan, cells, parts)}
 
 
 def detectable_difference(comparison: dict) -> float | None:
@@ -544,9 +551,11 @@ def render_text(record: dict) -> str:
                          f"{_sign_count(comparison['paired'], folds)}"
                          + ("" if comparison.get("detectable") is None else
                             f"; detects +-{comparison['detectable']:.4f}"))
+        lines += sequential_lines(split, part, record["level"])
         lines += _per_sequence_lines(split, part, record["reference"])
         lines += _per_class_lines(split, part)
     lines += map_lines(record.get("maps", []), level)
+    lines += search_lines(record.get("search"), level)
     if record.get("throughput"):
         lines.append("\nthroughput (each `study run`)")
         lines += [f"  {throughput_line(entry)}" for entry in record["throughput"]]

@@ -1,0 +1,45 @@
+"""A stand-in for training a study's cell: writes the run directory a finished cell leaves (config.json,
+metrics.jsonl, evaluation.json) with a score chosen by the test, so that the rounds of adaptive studies (sequential
+verdicts, searches) are checked by hand in a second."""
+
+import json
+from pathlib import Path
+
+from warpsense.study import runner
+
+CLASSES = ["sky", "road"]
+
+
+def evaluation(miou: float, camera: dict | None = None, frames: int = 4) -> dict:
+    """An evaluation record of mIoU ``miou`` on ``frames`` frames of one sequence ("val0"): per frame and class
+    (TP, FP, FN) = (100 m, 50 (1 - m), 50 (1 - m)), whose IoU is m."""
+    counts = [100 * miou, 50 * (1 - miou), 50 * (1 - miou)]
+    split = {"miou": miou, "per_class_iou": dict.fromkeys(CLASSES, miou), "image_sequences": ["val0"] * frames,
+             "image_counts": [[counts, counts] for _ in range(frames)]}
+    return {"epoch": 1, "network_parameters": 10, "camera": camera or {}, "class_names": CLASSES,
+            "splits": {"val": split}}
+
+
+class FakeTraining:
+    """``runner.train_cell`` replaced: ``score(config, cell) -> mIoU``; ``trained`` lists the cells' ids in the order
+    trained; with ``stop_after`` the next cell raises KeyboardInterrupt (as Ctrl-C would) once that many trained."""
+
+    def __init__(self, score, stop_after: int | None = None):
+        self.score, self.stop_after, self.trained = score, stop_after, []
+
+    def __call__(self, plan, out, cell, progress=False) -> dict:
+        from warpsense.train.engine import TrainingInterrupted
+
+        if self.stop_after is not None and len(self.trained) >= self.stop_after:
+            raise TrainingInterrupted(runner.run_dir(out, cell))
+        directory = runner.run_dir(Path(out), cell)
+        directory.mkdir(parents=True, exist_ok=True)
+        config = plan.config(cell, Path(out) / "runs")
+        (directory / "config.json").write_text(json.dumps(config.to_dict()))
+        (directory / "metrics.jsonl").write_text(json.dumps({"epoch": 0, "setup_s": 1.0, "wall_s": 5.0}) + "\n")
+        learned = {"f_number": config.optics.f_number * 0.9, "exposure_ms": config.optics.exposure_ms * 1.2} \
+            if config.optics.f_number_learnable else {}
+        record = evaluation(self.score(config, cell), learned)
+        (directory / "evaluation.json").write_text(json.dumps(record))
+        self.trained.append(cell.id)
+        return record
