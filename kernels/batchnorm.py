@@ -13,8 +13,9 @@ The ReLU's mask is recomputed from x (the same `affine` as the forward's), so ne
 
 Layout: each thread owns a pair of channels (2p, 2p + 1) and walks the rows g, g + G, g + 2G, ... of x [R, C], so a
 warp's loads are one contiguous run of memory. bfloat16 data comes as int32 words [R, C / 2], one pair per 4-byte
-load (two bfloat16 loads would halve the bytes per instruction; 8 channels per thread in one 16-byte load were
-slower, at 64-96 registers a thread: docs/benchmarks.md, batch norm + ReLU); float32 and float64 data as [R, C]. Arithmetic is float32 for bfloat16 and float32, float64 for float64. The reductions write
+load (two bfloat16 loads would halve the bytes per instruction; 8 channels per thread in one 16-byte load take
+64-96 registers a thread and were slower); float32 and float64 data as [R, C]. Arithmetic is float32 for bfloat16
+and float32, float64 for float64. The reductions write
 one partial sum per row group [G, 2, C] in a fixed order (the op adds them up): deterministic, no atomics. The
 statistics sum x - x[0] (a shift inside the data's range keeps E[x^2] - E[x]^2 from cancelling).
 """
@@ -65,7 +66,7 @@ def bf16_pair(low: float, high: float) -> wp.int32:
 
 # Element (r, c) of the contiguous rows [R, C] (or [R, C / 2] words) at r * width + c, in 64 bits: Warp's x[r, c]
 # also wraps negative indices and multiplies a 64-bit stride per axis on every access, more instructions than the
-# arithmetic here (the PSF kernels measured it: docs/benchmarks.md, PSF convolution).
+# arithmetic here (docs/benchmarks.md, PSF convolution).
 _AT = "return a.data[(long long)r * a.shape[1] + c];"
 _PUT = "a.data[(long long)r * a.shape[1] + c] = v;"
 

@@ -1,4 +1,5 @@
-"""Poisson-Gaussian sensor noise R' = R + sqrt(shot * max(R, 0) + read^2) * eps (eq. 5 of the paper, docs/references.md) as Warp kernels.
+"""Poisson-Gaussian sensor noise R' = R + sqrt(shot * max(R, 0) + read^2) * eps (eq. 5 of the paper,
+docs/references.md) as Warp kernels.
 
 ``shot`` is a variance coefficient, ``read`` a standard deviation, both 1-element arrays so learnable values stay
 on the device. eps ~ N(0, 1) comes from Warp's counter-based generator keyed by (seed, element index): the same on
@@ -108,7 +109,8 @@ def noise_backward(
 # Poisson sampler works in float32 with a uint32 count, which biases its variance from ~1e6 on and wraps at 2^32.
 # At 1e4 the normal limit's skewness error (1 / sqrt(lambda) = 1%) is below the Poisson noise of any statistic.
 POISSON_NORMAL_LIMIT = wp.constant(1.0e4)
-READ_STREAM = wp.constant(0x5BD1E995)  # seed offset of the read-noise draw, a stream independent of the photon-count draw
+# seed offset of the read-noise draw, a stream independent of the photon-count draw
+READ_STREAM = wp.constant(0x5BD1E995)
 
 
 @wp.kernel

@@ -29,8 +29,8 @@ from global memory. Every kernel is a gather with one writer per output element:
 
 The planes, tables and cells are contiguous (the op layer builds them) and are read by flat element offset
 (`load`, `load_node`), so an inner loop's loads are an address and a constant; offsets are int32 (the op layer
-refuses larger images). On an H100 the forward runs at 25% of the FP32 peak and the forward + PSF gradient at 28%
-(docs/benchmarks.md, PSF convolution, with the profile of what bounds them).
+refuses larger images). What bounds them, and how far they are from the GPU's arithmetic peak: docs/benchmarks.md,
+PSF convolution.
 """
 
 import functools
@@ -41,7 +41,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 # Loads by flat element offset from a contiguous array's start. Warp's `array[i, j, k]` computes a 64-bit byte
-# offset per axis and wraps negative indices per axis on every access: in the forward that was about half of the
+# offset per axis and wraps negative indices per axis on every access: in the forward about half of the
 # instructions (docs/benchmarks.md, PSF convolution). With offsets the compiler folds a constant step into the load
 # (`at + i * size` with i and size constants) and keeps one running offset per loop. On CUDA a 4-vector of float32 is
 # one 16-byte load (the op layer passes 16-byte-aligned cells).
@@ -81,11 +81,11 @@ def load_node(a: wp.array4d(dtype=wp.vec4d), i: int) -> wp.vec4d: ...  # noqa: F
 
 FORWARD_BOUNDS = (128, 5)
 """CUDA launch bounds of the forward and image-adjoint kernels (maxThreadsPerBlock, minBlocksPerMultiprocessor): blocks
-of 128 threads, five a multiprocessor, which caps a thread at ~100 registers (146 uncapped, three blocks): the forward
-0.457-0.467 -> 0.430 ms on an H100 (docs/benchmarks.md, PSF convolution). The op layer launches blocks of the first."""
+of 128 threads, five a multiprocessor, which caps a thread at ~100 registers (146 uncapped, three blocks): more warps
+hide the loads' latency (docs/benchmarks.md, PSF convolution). The op layer launches blocks of the first."""
 
 ROWS = 8  # output rows per thread in the forward and image-adjoint kernels
-TAPS = 8  # PSF taps (consecutive j) per thread in the PSF-adjoint kernel (8 beat 4 on an H100)
+TAPS = 8  # PSF taps (consecutive j) per thread in the PSF-adjoint kernel (the fastest of 4, 8 and 16)
 
 
 @wp.func
@@ -168,8 +168,8 @@ def psf_backward_cells(
     Thread (lane, tap group): the tap group enumerates (c, i, TAPS consecutive j); the lane (b, cell, chunk of the
     cell's source rows, chunk of its columns). Neighbouring threads share a source row, so its loads are broadcast.
     Along the row the gradients of the TAPS outputs slide through registers (one load per source), TAPS sources a
-    block with every load of a block issued before its arithmetic (the kernel waited on its loads one source at a
-    time: docs/benchmarks.md, PSF convolution); the weights are separable, so
+    block with every load of a block issued before its arithmetic (else the kernel waits on its loads one source at
+    a time: docs/benchmarks.md, PSF convolution); the weights are separable, so
     each row keeps two sums per tap (sum v and sum fx * v, v = g x) and folds them into the four corners with its
     fy. Each thread writes its own partials[(b, row chunk, column chunk), c, cell, tap] (summed over batch and
     chunks by the caller): no atomics.
@@ -266,8 +266,8 @@ def psf_cells_staged(size: int) -> wp.Kernel:
     a Warp module of its own per size): the same sums as `psf_backward_cells`, read as tiles.
 
     Why: in `psf_backward_cells` the 32 threads of a warp are 32 tap groups, each reading the gradient of another
-    row, so each of its window loads took 32 sectors (80% of the kernel's sectors excessive, Nsight Compute;
-    docs/benchmarks.md, PSF convolution) and the kernel waited on L1. Here a block is one (image, channel, cell,
+    row, so each of its window loads takes 32 sectors (most of the kernel's sectors excessive: docs/benchmarks.md,
+    PSF convolution) and the kernel waits on L1. Here a block is one (image, channel, cell,
     row split, column chunk); its threads are the tap groups (tap row i, TAPS consecutive tap columns from j0) of
     one channel, and it loads the STAGED_ROWS x STAGED_COLS sources of a step and the gradient rows and columns
     they reach as tiles into shared memory (coalesced, once), then each thread slides its window along its
@@ -375,10 +375,10 @@ def psf_kernels(size: int) -> PsfKernels:
 
     Thread ([part,] plane, row group, column) keeps ROWS outputs (or source gradients) in registers and walks the
     tap columns j (the forward: those of its part). For each it loads the WINDOW = size + ROWS - 1 values of its
-    column that the size x ROWS (tap row, output) pairs read, once, then runs every tap row from registers: 0.18 loads per tap and output at size 15
-    (the register-tiled kernels before them: 0.3 in the forward, 1 in the image adjoint; 0.57x and 0.60x their
-    time on an H100, docs/benchmarks.md, column-sliding PSF kernels). ``size`` is a compile-time constant, so the
-    tap-row and window loops unroll and the window is indexed by constants: registers, not local memory.
+    column that the size x ROWS (tap row, output) pairs read, once, then runs every tap row from registers: 0.18
+    loads per tap and output at size 15, where register tiles of outputs need 0.3 in the forward and 1 in the image
+    adjoint. ``size`` is a compile-time constant, so the tap-row and window loops unroll and the window is indexed
+    by constants: registers, not local memory.
 
     Grids: forward (parts, planes, ceil(H / ROWS), W) over outputs, part p taking tap columns p * taps .. p * taps +
     taps - 1 into out[p] (the caller sums the parts: one part, taps = size, unless a launch is too small to fill the

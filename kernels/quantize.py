@@ -1,4 +1,5 @@
-"""ADC quantization with a clipped straight-through gradient (eq. 6 of the paper, corrected as in docs/references.md, convention 1):
+"""ADC quantization with a clipped straight-through gradient (eq. 6 of the paper, corrected as in
+docs/references.md, convention 1):
 
     Q(R) = floor(clip(R, 0, w) / w * L + 1/2) / L * w,   L = 2^b - 1 steps,   dQ/dR = 1 on [0, w], else 0.
 

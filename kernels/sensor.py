@@ -1,4 +1,5 @@
-"""The whole sensor in one pass: CFA mosaic -> Poisson-Gaussian noise -> ADC quantization (eqs. 4-6 of the paper, docs/references.md).
+"""The whole sensor in one pass: CFA mosaic -> Poisson-Gaussian noise -> ADC quantization (eqs. 4-6 of the paper,
+docs/references.md).
 
     R   = < rgb(p), phi[p mod T] >                         (exposure a(g) is folded into phi by the caller)
     R'  = R + sqrt(shot * max(R, 0) + read^2) * eps         (eps from `noise.standard_normal`, the same draw as the

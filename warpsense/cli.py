@@ -36,9 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
 CPU_THREAD_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
 """Environment defaults for torch's OpenMP runtime that `main` sets before torch loads, where the caller has not set
 them: an OpenMP thread waiting for work sleeps instead of spinning. libgomp's default spins at every barrier, which
-takes the cores from the threads with work whenever another job shares them: beside another CPU job the quickstart's
-training ran 14x slower, and on a loaded 2-core machine 5-10x slower than with PASSIVE (tools/bench_threads.py,
-docs/benchmarks.md). OMP_WAIT_POLICY=ACTIVE in the environment keeps spinning on a machine of one's own."""
+takes the cores from the threads with work whenever another job shares them, and training slows several-fold beside
+another CPU job (docs/benchmarks.md, CPU; tools/bench_threads.py). OMP_WAIT_POLICY=ACTIVE in the environment keeps
+spinning on a machine of one's own."""
 
 
 def _cpu_thread_defaults() -> None:

@@ -115,9 +115,8 @@ def process_warmup(config, device: torch.device) -> float:
     """One untimed forward + backward of the recipe's system and of the baseline's, at the training batch and crop
     with bf16 autocast and the loss as they train, in this process: what the first method timed would otherwise pay
     for both (Warp's modules loaded from its kernel cache or built, torch's custom-op machinery imported on first
-    call, cuDNN's kernels loaded). On an H100 (docs/history.md): the recipe, timed first, had an
-    11.7-16.0 s first epoch and the baseline after it 1.3-1.5 s. Its wall seconds; nothing trains (the parameters'
-    gradients are dropped)."""
+    call, cuDNN's kernels loaded): without it the method timed first pays them in its first epoch, several times the
+    other's. Its wall seconds; nothing trains (the parameters' gradients are dropped)."""
     started = time.perf_counter()
     classes = len(build_dataset(config.data, config.data.val_split, train=False, seed=config.run.seed).classes)
     shape = (config.data.batch_size, 3, config.data.crop_height, config.data.crop_width)

@@ -114,7 +114,7 @@ def training_throughput(method, camera_name, loss_name, device, batch, height, w
     """Images per second of full training steps (the training engine's `TrainingStep`: sensor + network forward,
     loss, backward, fused AdamW on CUDA), after ``warmup`` steps (which include any compilation)."""
     torch.manual_seed(0)
-    # eager steps run the network in NHWC (2x faster in bf16); inductor does better from NCHW (its own layouts)
+    # eager steps run the network in NHWC (bf16's fast kernels); inductor does better from NCHW (its own layouts)
     system = SensingModel(*build(method, camera_name, device, compile_mode == "off", overrides)).train()
     set_finite_check(system, False)  # as in training: no host read per step
     parameters = [p for p in system.parameters() if p.requires_grad]

@@ -139,8 +139,9 @@ class Camera(nn.Module):
             ValueError: a section the stages refuse (`check_config`), e.g. photons.enabled with noise.enabled.
         """
         config = cls._resolve(config)
-        # the stages' own checks, as the system runs them: without them a photon budget was built beside the noise
-        # and exposure stages it replaces (noise drawn twice), and noise.read_electrons without a full well ignored
+        # the stages' own checks, as the system runs them: without them a photon budget would be built beside the
+        # noise and exposure stages it replaces (noise drawn twice), and noise.read_electrons without a full well
+        # ignored
         cls.check_config(config, "Camera.from_config")
         sections = {name: getattr(config, stage.config_section, None) for name, stage in STAGES.items()}
         return cls(**{name: stage.from_config(sections[name]) for name, stage in STAGES.items()
@@ -158,7 +159,7 @@ class Camera(nn.Module):
 
     def stages(self) -> list[tuple[str, Stage]]:
         """The constructed stages in data-path order, as (attribute name, module)."""
-        modules = self._modules  # (nn.Module's __getattr__ costs ~1 us a name; an absent stage is None or unset)
+        modules = self._modules  # (nn.Module's __getattr__ is a slow path per name; an absent stage is None or unset)
         return [(name, modules[name]) for name in self.stage_names if modules.get(name) is not None]
 
     def _part(self, part: str) -> list[Stage]:
@@ -263,7 +264,7 @@ class Camera(nn.Module):
 
     def _cache_key(self) -> tuple:
         # each module's own tensors read directly, the modules listed once per cache: parameters() and buffers()
-        # walk the module tree through generators, ~30 us a call
+        # walk the module tree through generators on every call
         modules = self._cache.get("modules")
         if modules is None:
             modules = self._cache["modules"] = list(self.modules())
@@ -315,8 +316,8 @@ class Camera(nn.Module):
 
     def forward(self, radiance: torch.Tensor, image_index: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance [B, 3, H, W] -> RAW [B, 1, H, W]; ``image_index`` [B] (dataset indices) keys the eval noise."""
-        # named here, in the camera's words: the stages' ops named their own arguments (rgb, image, seed), a numpy
-        # array or an int index failed with an AttributeError from inside
+        # named here, in the camera's words: the stages' ops name their own arguments (rgb, image, seed), and a numpy
+        # array or an int index would fail with an AttributeError from inside
         if isinstance(radiance, torch.Tensor) and not radiance.is_floating_point():  # most likely an sRGB frame
             raise TypeError(f"camera: radiance must be floating point (linear), got {radiance.dtype}; an sRGB frame "
                             "is decoded by warpsense.data.color.srgb_to_linear (SensingModel does it for uint8)")

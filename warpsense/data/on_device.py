@@ -20,8 +20,8 @@ from warpsense.data.labels import IGNORE_INDEX
 from warpsense.data.transforms import check_fill, paste, reflect_index
 
 DECODE_THREADS = 8
-"""Threads that decode a dataset's files at once (PIL and NumPy release the GIL while decoding): the CamVid training
-split (367 frames) took 4.5 s on one thread and 1.7 s on four, on a 2-core machine."""
+"""Threads that decode a dataset's files at once (PIL and NumPy release the GIL while decoding, so threads overlap
+the files' reads and decodes even on a machine of few cores)."""
 
 
 def decode_all(dataset, description: str, progress: bool = False) -> list:
@@ -68,8 +68,8 @@ class DeviceBatches:
     generator seeded by (seed, epoch), so resumed runs repeat it. With ``world_size`` > 1 every rank draws the
     randomness of the global batch (``batch_size`` x ``world_size`` images: their scales, crops, flips and pasted
     donors) and takes its share, every ``world_size``-th image from its ``rank``: the ranks' batches together are
-    the batch one process draws. (Before issue 32's fix each rank drew one batch's randomness from the same generator,
-    so rank r's k-th image had rank 0's crop and donor: a global batch of 16 carried 8 donors, each twice.)
+    the batch one process draws (ranks that drew one batch's randomness each from the same generator would give
+    rank r's k-th image rank 0's crop and donor: every donor twice in the global batch).
     """
 
     def __init__(self, dataset, device, batch_size: int, crop: tuple[int, int], scale_range=(1.0, 1.0),

@@ -45,9 +45,8 @@ def norm_relu(norm: nn.BatchNorm2d, x: torch.Tensor) -> torch.Tensor:
     """``F.relu(norm(x))``. In training mode over channels-last x (bfloat16, float32 or float64, an even number of
     channels) on a `FUSED_DEVICES` device, an nn.BatchNorm2d with affine parameters, running statistics and a fixed
     momentum runs with its ReLU as one op (`batch_norm_relu`, equal up to float rounding, deterministic; the running
-    statistics and ``num_batches_tracked`` move as torch moves them). Torch's channels-last batch norms and ReLUs of
-    the recipe network take 13.6 ms forward + backward a step on an H100, the op 8.4
-    (docs/benchmarks.md, batch norm + ReLU)."""
+    statistics and ``num_batches_tracked`` move as torch moves them): one pass each way where torch's channels-last
+    batch norm and ReLU take several (docs/benchmarks.md, batch norm + ReLU)."""
     if (norm.training and type(norm) is nn.BatchNorm2d and norm.affine and norm.track_running_stats
             and norm.momentum is not None and _fused("norm", x)):
         norm.num_batches_tracked.add_(1)
@@ -61,8 +60,8 @@ class SqueezeExcitation(nn.Module):
     gated features plus it (the block's residual connection). In training, channels-last x (bfloat16, float32 or
     float64, an even number of channels, a residual of the same dtype and layout) on a `FUSED_DEVICES` device takes
     the gate and the residual in one pass forward and one backward (`channel_gate`, equal up to float rounding,
-    deterministic): the training step 3% faster on an H100. Evaluation keeps torch's two kernels, which a batch-1
-    CUDA graph replays faster (docs/benchmarks.md, the squeeze-and-excitation gate)."""
+    deterministic), a shorter training step. Evaluation keeps torch's two kernels, which a batch-1 CUDA graph replays
+    faster (docs/benchmarks.md, the squeeze-and-excitation gate)."""
 
     def __init__(self, channels: int, reduction: int = 4):
         super().__init__()
@@ -168,8 +167,8 @@ class DSUNet(nn.Module):
     The full-resolution path (stem, ``enc1``, ``dec1`` and the head's input) carries ``full_width`` channels (0: w)
     through ``full_depth`` separable blocks in the encoder and in the decoder (1: one each). It is where a pole or a
     sign a few pixels wide is seen whole. It costs little in parameters (width 40 adds 5.6k, depth 2 adds 2.4k at
-    w = 24) and much in activations, which are full-resolution there (6-7% longer runs on an
-    H100, docs/history.md).
+    w = 24) and much in activations, which are full-resolution there (longer runs: docs/history.md, the
+    full-resolution path).
 
     ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 it doubles the training speed (batch
     norm and depthwise convolutions have fast NHWC kernels; their NCHW bf16 backward is slow). The output is the
@@ -216,11 +215,10 @@ class DSUNet(nn.Module):
     def _up_cat(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
         """``torch.cat([upsampled x, skip], dim=1)``: the decoder's bilinear x2 and skip connection. A channels-last
         network on a `FUSED_DEVICES` device takes them in one pass forward and one backward (`upsample_concat`,
-        equal up to float rounding and deterministic; torch's NHWC resize backward was 3.0 ms and the
-        concatenations 1.4 ms of a 41 ms step on an H100, docs/history.md), except a single image in
-        eval mode run eagerly: there the host's cost per op decides, and torch's resize and cat cost less of it
-        than the custom op (~0.1 ms a join at batch 1 on the H100's host, docs/benchmarks.md: batch-1 latency); inside a
-        CUDA graph capture the op's shorter GPU time wins again."""
+        equal up to float rounding and deterministic; torch's NHWC resize backward and the concatenations are a
+        large share of the step's time), except a single image in eval mode run eagerly: there the host's cost per
+        op decides, and torch's resize and cat cost less of it than the custom op (docs/benchmarks.md, batch-1
+        latency); inside a CUDA graph capture the op's shorter GPU time wins again."""
         if (self.memory_format == torch.channels_last and x.device.type in FUSED_DEVICES
                 and NETWORK_OPS.fused("joins") and (self.training or x.shape[0] > 1 or _capturing(x))):
             return upsample_concat(x, skip)

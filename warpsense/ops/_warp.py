@@ -111,7 +111,7 @@ def plain_eager(tensors: Sequence) -> bool:
     """Whether a call on ``tensors`` (a sequence of arguments; non-tensors ignored) is plain eager PyTorch: not
     traced by torch.compile or torch.jit.trace, no torch-function or dispatch mode (fake tensors, make_fx, export),
     no functorch transform (vmap, grad), plain tensors (no subclasses, no torch-function objects such as FX
-    proxies). ~0.4 us."""
+    proxies). A few attribute reads: cheap beside the dispatch it saves."""
     if (torch.compiler.is_compiling() or torch._C._get_tracing_state() is not None
             or torch._C._is_torch_function_mode_enabled() or torch._C._len_torch_dispatch_stack()
             or torch._C._functorch.peek_interpreter_stack() is not None):
@@ -203,9 +203,8 @@ class WarpOp:
 
     A call that none of torch's machinery needs to see runs the implementation directly: plain eager
     (`plain_eager`), no input that requires a gradient (or gradients off), the profiler off, no forward-AD level
-    open, no argument mutated.
-    The custom op's dispatch costs 27-42 us of host time per call on an H100 machine (torch 2.11,
-    docs/history.md), which batch-1 inference pays per op. Every other call (autograd, torch.compile,
+    open, no argument mutated. The custom op's dispatch costs host time on every call, which batch-1 inference pays
+    per op (docs/benchmarks.md, batch-1 latency). Every other call (autograd, torch.compile,
     torch.jit.trace, fake tensors, vmap, profiling) goes through the op, so it is seen as one node with its fake
     implementation and autograd formula. A CUDA-graph capture in eager mode may take either path: both launch
     the same kernels on the current stream. A call that a forward-mode tangent reaches (`forward_tangents`)

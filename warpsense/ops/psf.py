@@ -21,7 +21,7 @@ from warpsense.kernels import psf as kernels
 from warpsense.ops._warp import Vectors, launch, may_keep, prepare, save_inputs, warp_op
 from warpsense.ops.arguments import check_same_device, check_tensor
 
-_THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill an H100; serial CPU)
+_THREADS_TARGET = {"cuda": 1 << 18, "cpu": 1}  # threads the PSF-gradient launch aims for (fill a large GPU; serial CPU)
 _FORWARD_THREADS = {"cuda": 1 << 17, "cpu": 1}  # threads below which the forward splits its tap columns
 
 
@@ -117,8 +117,8 @@ FORWARD_BLOCK = kernels.FORWARD_BOUNDS[0]
 more warps a multiprocessor than Warp's 256 for a kernel of many registers a thread (docs/benchmarks.md, PSF
 convolution)."""
 CELLS_BLOCK = 128
-"""Threads per block of the PSF-adjoint launch (with 128 its forward + PSF gradient ran 1.25 against 1.40 ms at 256
-when the adjoint took 96 registers; at its 114 now both sizes fit 16 warps a multiprocessor)."""
+"""Threads per block of the PSF-adjoint launch: blocks of 128 were faster than 256 when the adjoint took 96 registers
+a thread (docs/benchmarks.md, PSF convolution); at its 114 now both sizes fit 16 warps a multiprocessor."""
 
 
 def _nodes(cells: torch.Tensor) -> Vectors:
@@ -293,8 +293,9 @@ def psf_conv(image: torch.Tensor, psf: torch.Tensor, method: str = "auto") -> to
             (negative lobes, sums other than 1 for vignetting); energy is conserved only for PSFs summing to 1,
             which is the lens's job (`Lens.psf_grid`). A NaN or inf PSF value makes the outputs it reaches NaN.
         method: "auto" (default: the fastest exact method; the Warp kernel for a varying grid; for one PSF the
-            fastest of cuDNN conv2d, a cuDNN forward with the Warp adjoints as its backward, and the Warp kernel, measured once
-            per shape and gradient need on CUDA; FFT is left out for its precision), "direct" (Warp kernel),
+            fastest of cuDNN conv2d, a cuDNN forward with the Warp adjoints as its backward, and the Warp kernel,
+            timed once per shape and gradient need on CUDA; FFT is left out for its precision), "direct" (Warp
+            kernel),
             "conv2d" (cuDNN on the edge-padded image; one PSF only), "fft" (torch.fft; one PSF only; NaN stays
             local, but float32 rounding is relative to the image maximum: dark pixels beside 1e9 brighter ones
             lose their precision) or "patch" (each node's region convolved with that node's PSF, no blending:
@@ -331,7 +332,7 @@ _CELLS: dict[int, tuple] = {}  # id(psf) -> (weak reference to psf, its version,
 def _kept_cells(psf: torch.Tensor) -> torch.Tensor:
     """`node_cells(psf)`, kept while ``psf`` lives unchanged (same tensor, same version counter) when no gradient
     flows to it: a fixed PSF grid (a frozen lens, a camera in eval) is rearranged once instead of per call (a stack
-    kernel and ~15 us of host time). Computed afresh where a kept tensor is not allowed (`may_keep`: tracing,
+    kernel and its host time). Computed afresh where a kept tensor is not allowed (`may_keep`: tracing,
     capturing a CUDA graph, inference mode) and for an inference tensor (no version counter). A change through
     ``.data`` is not seen."""
     # is_compiling first: dynamo folds it to True and never traces into the host-side checks
@@ -407,9 +408,8 @@ def _cudnn_backward(ctx, grad_out):
 
 @warp_op("psf_conv_cudnn", lambda image, kernel: torch.empty_like(image), _cudnn_backward, save_inputs)
 def _psf_conv_cudnn(image: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
-    """One PSF: the forward by cuDNN (a depthwise convolution), both gradients by the Warp adjoint kernels (on an
-    H100 cuDNN's depthwise data gradient took 1.45 ms and its weight gradient ~2.8 ms at 16 x 3 x 192 x 640, the Warp
-    adjoints ~1.1 and ~0.9 ms)."""
+    """One PSF: the forward by cuDNN (a depthwise convolution), both gradients by the Warp adjoint kernels, which
+    are faster than cuDNN's depthwise data and weight gradients."""
     radius = kernel.shape[-1] // 2
     padded = F.pad(image, (radius,) * 4, mode="replicate")
     return F.conv2d(padded, kernel.flip(-1, -2).unsqueeze(1), groups=image.shape[1])

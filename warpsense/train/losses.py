@@ -52,8 +52,8 @@ LOSS_OPS = OpSwitch(("softmax", "lovasz", "smoothness"))
 plain-torch references (`warpsense.ops.reference`), as in the benchmarks' plain-torch baseline."""
 FUSED_LOSS_DEVICES = ("cuda",)
 """Devices where the softmax with cross-entropy and the Lovasz term take their fused ops (the smoothness op runs
-everywhere): on a CPU the Lovasz op's tiles run as Warp's cooperative fibers, ~20x slower than torch's sort there
-(docs/history.md), and Warp's CPU kernels use one core where torch's use all."""
+everywhere): on a CPU the Lovasz op's tiles run as Warp's cooperative fibers, far slower than torch's sort there,
+and Warp's CPU kernels use one core where torch's use all."""
 
 
 def lovasz_softmax(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE_INDEX) -> torch.Tensor:

@@ -128,7 +128,7 @@ class TrainingStep:
         if self.compiled and self._phase is not None and joint != self._phase:
             # The phase switch flips requires_grad on camera parameters in place. Dynamo's guards can miss that and
             # replay the previous phase's graph, in which the camera takes no gradient (pytorch#139476; fixed after
-            # torch 2.11 by pytorch#177158): a camera with a fixed lens then never learned. Recompile.
+            # torch 2.11 by pytorch#177158): a camera with a fixed lens would never learn. Recompile.
             torch.compiler.reset()
         self._phase = joint
         if not self.cuda_graph:
@@ -208,7 +208,7 @@ class TrainingStep:
     def release_graphs(self) -> None:
         """Free the captured step (its CUDA graph and memory pool); the next step warms up and captures anew.
         Call it before a process group is destroyed: NCCL cannot destroy a communicator while a graph that captured
-        its all-reduce lives, and destroy_process_group then waits forever (pytorch#115388; seen on 2 H100s).
+        its all-reduce lives, and destroy_process_group then waits forever (pytorch#115388).
         Dropping the last reference is not enough: this object refers to itself (``forward_loss`` is its bound
         method), so it lives until the garbage collector runs."""
         if self._captured is not None:
