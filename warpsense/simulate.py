@@ -105,7 +105,7 @@ def load_camera(config: str | None = None, overrides: list[str] | tuple[str, ...
         return SimulatedCamera(model.camera.eval(), str(checkpoint))
     resolved = load_config(config, overrides)
     check_config(resolved, f"config {config}")
-    # before: run.device was never read and the camera stayed on the CPU ("cuda" without CUDA ran with exit 0)
+    # the config's run.device, resolved: "cuda" without CUDA is refused rather than run on the CPU
     torch_device = resolve_device(device or resolved.run.device)
     return SimulatedCamera(Camera.from_config(resolved).eval().to(torch_device), str(config))
 

@@ -46,8 +46,8 @@ def letters_to_phi(letters: list[list[str]]) -> torch.Tensor:
     rows x columns: [1, K, 3] for one row of K candidates).
 
     Raises:
-        TypeError: one string: a flat "RGGB", as `LearnedCamera.cfa_layout` spells a layout, was read as four rows
-            of one letter ([4, 1, 3]); `layout_letters` gives the rows.
+        TypeError: one string: a flat "RGGB", as `LearnedCamera.cfa_layout` spells a layout, would be read as four
+            rows of one letter ([4, 1, 3]); `layout_letters` gives the rows.
         ValueError: rows of different lengths.
         KeyError: a letter that is not a filter, naming the filters.
     """

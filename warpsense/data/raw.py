@@ -162,7 +162,7 @@ def load_raw(path: str | Path) -> tuple[torch.Tensor, dict]:
         raise refused(first_line(error)) from None
     if mosaic is None:
         raise refused("no 'mosaic' tensor")
-    # what convert and simulate write; another tool's tensor failed later in predict with a traceback
+    # what convert and simulate write; another tool's tensor would fail later in predict with a traceback
     if mosaic.dtype != torch.float32 or mosaic.ndim != 3 or mosaic.shape[0] != 1 or min(mosaic.shape[1:]) < 2:
         raise refused(f"its 'mosaic' is {str(mosaic.dtype).removeprefix('torch.')} {list(mosaic.shape)}, expected "
                       "float32 [1, H, W] with H, W >= 2")

@@ -38,7 +38,7 @@ def check_config(config, source: str = "config") -> None:
 def build_system(config, num_classes: int) -> SensingModel:
     """Camera -> (fixed ISP on the camera's exported layout) -> network, from a resolved config; ``num_classes``
     (a positive int) is the network's output count unless ``model.num_classes`` sets it."""
-    # 0 built a head of no outputs (zero-element weights, one torch warning) and 11.0 failed inside torch.empty
+    # 0 would build a head of no outputs (zero-element weights, one torch warning), 11.0 fail inside torch.empty
     if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 1:
         raise ValueError(f"build_system: num_classes must be a positive int, got {num_classes!r}")
     camera = Camera.from_config(config)
