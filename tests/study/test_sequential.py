@@ -42,7 +42,7 @@ def test_a_single_look_is_the_fixed_t_test():
 @pytest.mark.parametrize("looks", [2, 3, 5])
 def test_many_pairs_per_look_give_pococks_constant(looks):
     """With 200 pairs a look the t statistics are normal ones: the nominal level's normal quantile is Pocock's."""
-    nominal = nominal_level(tuple(200 * k for k in range(1, looks + 1)), replicates=200_000)
+    nominal = nominal_level(tuple(200 * k for k in range(1, looks + 1)))
     assert stats.norm.isf(nominal / 2) == pytest.approx(POCOCK[looks], abs=0.012)
 
 
@@ -50,12 +50,12 @@ def test_crossing_probability_by_a_multivariate_normal_integral():
     """The boundary found for 4 looks of 300, 600, 900 and 1500 pairs (unequal increments), as a normal boundary:
     1 - P(all |Z_k| < c) with corr(Z_i, Z_j) = sqrt(n_i / n_j), integrated by Genz's method, is 5%."""
     looks = (300, 600, 900, 1500)
-    c = stats.norm.isf(nominal_level(looks, replicates=200_000) / 2)
+    c = stats.norm.isf(nominal_level(looks) / 2)
     n = np.array(looks, dtype=float)
     correlation = np.sqrt(np.minimum.outer(n, n) / np.maximum.outer(n, n))
     inside = stats.multivariate_normal(mean=np.zeros(4), cov=correlation).cdf(
         np.full(4, c), lower_limit=np.full(4, -c), rng=np.random.default_rng(0))
-    assert 1 - inside == pytest.approx(0.05, abs=0.003)
+    assert 1 - inside == pytest.approx(0.0496, abs=0.002)  # 5% less twice the calibration's standard error
 
 
 def test_few_pairs_per_look_keep_five_percent_on_raw_gaussian_pairs():
@@ -172,7 +172,7 @@ def test_armitage_repeated_significance_and_the_sequential_rule_in_the_simulatio
         tolerance = 3 * math.sqrt(0.05 * 0.95 / 20_000)
         assert result["peeking"][-1]["cumulative"] == pytest.approx(ARMITAGE[looks], abs=0.008)
         assert all(row["rate"] == pytest.approx(0.05, abs=tolerance) for row in result["fixed"])
-        assert result["overall"] == pytest.approx(0.05, abs=tolerance)
+        assert result["overall"] == pytest.approx(0.05, abs=tolerance) == result["any_look"]
 
 
 def test_simulation_counts_stopping_times_and_tolerance_stops_lower_the_rate():
