@@ -240,3 +240,25 @@ def test_the_smoke_search_trains_fewer_cells_than_its_grid(tmp_path, capsys):
     assert [p["source"] for p in search["proposals"]][:3] == ["camera:start", "start", "learned:learned"]
     assert search["best"] is not None and search["gpu_seconds"] > 0
     assert [p["state"] for p in search["proposals"]] == ["complete"] * len(search["proposals"])
+
+
+def test_the_camvid_photon_search_plan(shared_data):
+    """The shipped CamVid search: block folds that train on >= 75% of the labelled frames, three searched keys on
+    log scales, the preset known, the learned camera and the dark corner tried first, a budget under a quarter of
+    the 4 x 4 grid's 240 cells with the learned camera's 15."""
+    plan = load_plan("camvid_photon_search", [f'data.root="{shared_data / "camvid"}"'])
+    from warpsense.study.plan import fold_sizes
+
+    assert plan.folds == "blocks" and all(row["train"] >= 351 for row in fold_sizes(plan))
+    spec = plan.search
+    assert spec.parameters == ("optics.f_number", "optics.exposure_ms", "photons.analog_gain") and all(spec.log)
+    assert spec.known == ("preset",) and spec.learned == ("learned_from_f2_t10",) and spec.start == ((4.0, 3.0, 8.0),)
+    assert spec.rungs(5) == [1, 5] and spec.design_cost(5) == 5
+    grid = math.prod(spec.grid_points) * len(plan.fold_names()) * len(plan.seeds)
+    learned = sum(cell.camera == "learned_from_f2_t10" for cell in plan.cells())
+    assert grid == 240 and spec.budget + learned <= grid / 4
+    config = plan.config(plan.cell("search_f1p76_t14p4_g11p3/night/block2/0"), "runs")
+    assert (config.optics.f_number, config.optics.exposure_ms, config.photons.analog_gain) == (1.76, 14.4, 11.3)
+    assert config.data.holdout_block == 2 and config.optics.corner_speed_px_per_ms == 0.3  # the preset's motion blur
+    preset = plan.config(plan.cell("preset/night/block1/0"), "runs")
+    assert (preset.optics.f_number, preset.optics.exposure_ms, preset.photons.analog_gain) == (2.0, 10.0, 8.0)
