@@ -262,3 +262,36 @@ def test_the_camvid_photon_search_plan(shared_data):
     assert config.data.holdout_block == 2 and config.optics.corner_speed_px_per_ms == 0.3  # the preset's motion blur
     preset = plan.config(plan.cell("preset/night/block1/0"), "runs")
     assert (preset.optics.f_number, preset.optics.exposure_ms, preset.photons.analog_gain) == (2.0, 10.0, 8.0)
+
+
+def test_the_designs_are_drawn_over_a_sweeps_map():
+    """A plan with a sweep over the search's first two keys: each design sits on the map at its values (grid points
+    0, 1 on each axis, log-interpolated between: f/2.8 halfway from f/1.4 to f/5.6), the best starred."""
+    from warpsense.study.maps import maps_figure
+
+    interval = {"mean": 0.4, "low": 0.35, "high": 0.45, "n": 2}
+    grid = [{"camera": f"map_f{f}_t{t}", "values": [f, t], "miou": {**interval, "mean": 0.3 + 0.01 * i}, "cells": 2}
+            for i, (f, t) in enumerate(((1.4, 2.0), (1.4, 20.0), (5.6, 2.0), (5.6, 20.0)))]
+    entry = {"split": "val", "sweep": "map", "light": "night", "parameters": ["optics.f_number", "optics.exposure_ms"],
+             "labels": ["f", "t"], "values": [[1.4, 5.6], [2.0, 20.0]], "grid": grid, "learned": [], "folds": "none",
+             "best": {"camera": grid[3]["camera"], "values": [5.6, 20.0], "miou": grid[3]["miou"], "tied": []},
+             "cost": {"points": 4, "runs": 8, "run_s": None}}
+    proposals = [{"number": 1, "camera": "search_f2p8_t6p32", "values": {"optics.f_number": 2.8,
+                                                                         "optics.exposure_ms": 6.32},
+                  "state": "complete", "rungs": [], "miou": interval},
+                 {"number": 2, "camera": "search_f1p4_t20", "values": {"optics.f_number": 1.4,
+                                                                       "optics.exposure_ms": 20.0},
+                  "state": "pruned", "rungs": [{"cells": 1, "mean": 0.2}], "miou": None}]
+    search = {"parameters": ["optics.f_number", "optics.exposure_ms"], "light": "night", "split": "val",
+              "proposals": proposals, "best": {"camera": "search_f2p8_t6p32"}}
+    figure = maps_figure({"study": "s", "maps": [entry], "search": search})
+    axis = figure.axes[0]
+    drawn = {line.get_marker(): (float(line.get_xdata()[0]), float(line.get_ydata()[0])) for line in axis.lines}
+    assert drawn["*"] == pytest.approx((0.5, 0.5), abs=2e-3) and drawn["x"] == pytest.approx((0.0, 1.0))
+    assert sorted(text.get_text() for text in axis.texts if text.get_text() in ("1", "2")) == ["1", "2"]
+    import matplotlib.pyplot as plt
+
+    plt.close(figure)
+    other = maps_figure({"study": "s", "maps": [entry], "search": {**search, "light": "day"}})
+    assert not [line for line in other.axes[0].lines if line.get_marker() in ("*", "x")]  # another light: not drawn
+    plt.close(other)

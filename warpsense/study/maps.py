@@ -371,6 +371,9 @@ def maps_figure(record: dict, split: str | None = None):
                 axis.plot(xs, ys, "-", color=colour, linewidth=1.5, label=label if k == 0 else None)
                 axis.plot(xs[0], ys[0], "o", color=colour, markerfacecolor="none", markersize=8)
                 axis.plot(xs[-1], ys[-1], "*", color=colour, markersize=13, markeredgecolor="black")
+        from warpsense.study.search_report import draw_proposals  # a [[search]] over the map's keys: its designs
+
+        draw_proposals(axis, entry, record.get("search"), places)
         if entry["learned"]:
             axis.legend(fontsize=7, loc="best")
         mean = entry["best"]["miou"]["mean"]

@@ -143,7 +143,7 @@ def search_lines(search: dict | None, level: str = "95%") -> list[str]:
     width = max((len(p["camera"]) for p in search["proposals"]), default=0)
     for proposal in search["proposals"]:
         score = "-" if proposal["miou"] is None else interval_text(proposal["miou"])
-        lines.append(f"  {proposal['number']:>3d} {proposal['camera']:<{width}s}  {proposal['source']:<14s} "
+        lines.append(f"  {proposal['number']:>3d} {proposal['camera']:<{width}s}  {proposal['source']:<16s} "
                      f"{_state(proposal)}: {score} ({proposal['cells']} cells)")
     return lines
 
@@ -204,9 +204,17 @@ def plot_search(record: dict, path: str | Path) -> bool:
                                                                                    / span),
                      edgecolors="black" if marker != "x" else None, zorder=3)
         axis.annotate(str(proposal["number"]), (x, y), textcoords="offset points", xytext=(5, 5), fontsize=8)
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
     for i in range(len(keys)):
         if search["log"][i]:
+            scale = axis.xaxis if i == 0 else axis.yaxis
             (axis.set_xscale if i == 0 else axis.set_yscale)("log")
+            scale.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))  # 2, not 2 x 10^0
+            scale.set_minor_formatter(NullFormatter())
+            if search["grid"]["source"] == "implied":
+                (axis.set_xticks if i == 0 else axis.set_yticks)([float(f"{v:.3g}") for v in
+                                                                  search["grid"]["values"][i]])
     axis.set_xlabel(keys[0])
     axis.set_ylabel(keys[1] if len(keys) == 2 else f"{search['split']} mIoU")
     mappable = plt.cm.ScalarMappable(cmap=colours, norm=plt.Normalize(low, high))
@@ -216,7 +224,7 @@ def plot_search(record: dict, path: str | Path) -> bool:
                    f"{search['grid_cells']})" + (f"; best {best['camera']} {best['miou']['mean']:.3f}" if best else ""),
                    fontsize=9)
     if len(keys) == 2 and search["grid"]["source"] == "implied":
-        axis.legend(fontsize=7, loc="best")
+        axis.legend(fontsize=7, loc="upper right")
     figure.suptitle("o complete, x pruned, * best; numbers: the order proposed", fontsize=9)
     figure.tight_layout()
     figure.savefig(path, dpi=110)
