@@ -23,7 +23,8 @@ def _config_choices() -> dict[str, tuple]:
 def test_config_choices_are_the_shared_tuples():
     assert _config_choices() == {
         "run.device": choices.DEVICES, "data.dataset": choices.DATASETS, "data.on_device": choices.ON_DEVICE_MODES,
-        "optics.method": choices.PSF_METHODS, "optics.render_precision": choices.RENDER_PRECISIONS, "cfa.pattern": tuple(choices.CFA_LAYOUTS),
+        "optics.method": choices.PSF_METHODS, "optics.render_precision": choices.RENDER_PRECISIONS,
+        "cfa.pattern": tuple(choices.CFA_LAYOUTS),
         "cfa.mode": choices.CFA_MODES, "quantize.mode": choices.QUANTIZE_MODES, "train.compile": choices.COMPILE_MODES,
         "model.name": choices.MODEL_NAMES, "model.context": choices.MODEL_CONTEXTS, "model.input": choices.MODEL_INPUTS,
         "data.scale_fill": choices.SCALE_FILLS, "loss.distill_mode": choices.DISTILL_MODES,

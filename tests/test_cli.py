@@ -194,7 +194,8 @@ def test_progress_bars_are_drawn_on_a_terminal_only(tmp_path, capsys, monkeypatc
 
     from warpsense.data.raw import write_dng
 
-    write_dng(tmp_path / "frame.dng", np.random.default_rng(0).random((32, 48)), "RGGB", black_level=64, white_level=1023)
+    write_dng(tmp_path / "frame.dng", np.random.default_rng(0).random((32, 48)), "RGGB", black_level=64,
+              white_level=1023)
     monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
     assert main(["convert", str(tmp_path / "frame.dng"), "--out", str(tmp_path / "out")]) == 0
     captured = capsys.readouterr()

@@ -49,7 +49,8 @@ def test_presets_load_and_hold_only_overrides(name):
 
 
 def test_preset_base_chain_and_overrides():
-    config = load_config("camvid_ablation_no_optics", ["train.epochs=3", "train.warmup_epochs=1", "data.hflip=false", "optics.lens=phone_80deg"])
+    config = load_config("camvid_ablation_no_optics", ["train.epochs=3", "train.warmup_epochs=1", "data.hflip=false",
+                                                       "optics.lens=phone_80deg"])
     assert config.data.dataset == "camvid"  # from the base preset
     assert config.optics.enabled is False  # the ablation's own change
     assert config.train.epochs == 3 and config.data.hflip is False and config.optics.lens == "phone_80deg"

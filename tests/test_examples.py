@@ -27,7 +27,8 @@ def test_camera_gradients_example_reaches_every_parameter_and_recovers_the_expos
 def test_camera_gradients_example_refuses_a_bad_size_or_step_count_as_a_usage_error():
     """`--size 32` was a ValueError traceback from unpacking, `--size 0x5` one from deep inside psf_conv, and
     `--steps -1` printed a calibration "in -1 steps": each is argparse's usage error naming the option."""
-    for arguments, named in ((["--size", "32"], "--size"), (["--size", "0x5"], "--size"), (["--steps", "-1"], "--steps")):
+    for arguments, named in ((["--size", "32"], "--size"), (["--size", "0x5"], "--size"),
+                             (["--steps", "-1"], "--steps")):
         result = subprocess.run([sys.executable, str(EXAMPLES / "camera_gradients.py"), *arguments],
                                 capture_output=True, text=True, timeout=300)
         assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr

@@ -1,4 +1,5 @@
-"""warpsense.files: the commit and edited-or-not state a run's environment.json records (source_state); output folders checked before anything is written."""
+"""warpsense.files: the commit and edited-or-not state a run's environment.json records (source_state); output folders
+checked before anything is written."""
 
 import subprocess
 

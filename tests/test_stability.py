@@ -119,8 +119,8 @@ def test_half_precision_inputs_compute_in_float32(device, dtype):
     image = torch.rand(1, 3, 6, 6, device=device).to(dtype).requires_grad_()
     with torch.autocast(device, dtype=autocast_dtype):
         raw = cfa_mosaic(image, torch.rand(2, 2, 3, device=device))
-        out = quantize_ste(poisson_gaussian(psf_conv(raw.expand(-1, 3, -1, -1), _psf(3, device=device)).mean(1, keepdim=True),
-                                            0.01, 0.01, 0), 8)
+        blurred = psf_conv(raw.expand(-1, 3, -1, -1), _psf(3, device=device)).mean(1, keepdim=True)
+        out = quantize_ste(poisson_gaussian(blurred, 0.01, 0.01, 0), 8)
     assert out.dtype == torch.float32 and torch.isfinite(out).all()
     (grad,) = torch.autograd.grad(out.sum(), image)
     assert grad.dtype == dtype and torch.isfinite(grad.float()).all()

@@ -90,7 +90,8 @@ def run(device: str = "cuda", quick: bool = False, repeats: int = 20) -> dict:
     with torch.no_grad():
         report["varying_float64_max_error"] = {
             "forward": float((psf_conv(image, psf, "direct") - psf_conv_reference(image, psf)).abs().max()),
-            "grad_image": float((ours[0] - theirs[0]).abs().max()), "grad_psf": float((ours[1] - theirs[1]).abs().max())}
+            "grad_image": float((ours[0] - theirs[0]).abs().max()),
+            "grad_psf": float((ours[1] - theirs[1]).abs().max())}
     return report
 
 

@@ -35,7 +35,8 @@ def tables(payload: dict) -> str:
     records = [r for r in everything if r.get("suite") == "train"]
     accuracy = [r for r in everything if r.get("suite") == "accuracy"]
     if not records and not accuracy:
-        raise ValueError("no train-suite or accuracy records (run `warpsense bench --suite train|accuracy --json FILE`)")
+        raise ValueError("no train-suite or accuracy records "
+                         "(run `warpsense bench --suite train|accuracy --json FILE`)")
     metadata = payload.get("metadata", {})
     first = (records or accuracy)[0]
     header = [f"Device: {metadata.get('device_name') or first.get('device_name') or first['device']} "

@@ -72,7 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--settings", default=",".join(SETTINGS),
                         help=f"comma-separated, of {', '.join(SETTINGS)} (default: %(default)s)")
-    parser.add_argument("--repeats", type=int, default=2, help="measurements per setting and case (default: %(default)s)")
+    parser.add_argument("--repeats", type=int, default=2,
+                        help="measurements per setting and case (default: %(default)s)")
     parser.add_argument("--scenes", type=int, default=64, help="training scenes per epoch (default: %(default)s)")
     parser.add_argument("--json", metavar="OUT", help="write the measurements as JSON")
     args = parser.parse_args(argv)

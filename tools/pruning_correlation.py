@@ -46,7 +46,8 @@ def main(argv: list[str] | None = None) -> int:
     epochs = epoch_ranks(rows)
     cells = cell_ranks(rows, reduction=args.reduction, margin=args.margin)
     print(f"{len(rows)} cells of {len({(r['archive'], r['directory']) for r in rows})} study directories")
-    print("\n| point of the run | epochs used (0-based) | Spearman, cells vs final | Spearman, cameras' means vs final |")
+    print("\n| point of the run | epochs used (0-based) | Spearman, cells vs final "
+          "| Spearman, cameras' means vs final |")
     print("|---|---|---|---|")
     for row in epochs:
         print(f"| {row['fraction']:.0%} | {', '.join(map(str, row['epochs_at']))} | {_value(row['cells'])} | "

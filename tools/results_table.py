@@ -69,14 +69,15 @@ def _spread(values: list[float]) -> str:
 
 def tables(runs: list[dict]) -> str:
     """Per-run and per-preset markdown tables."""
-    lines = ["| preset | seed | epochs | val mIoU (last) | held-out (last) | selected: epoch, held-out, val | best val (epoch) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| preset | seed | epochs | val mIoU (last) | held-out (last) | selected: epoch, held-out, val "
+             "| best val (epoch) |", "|---|---|---|---|---|---|---|"]
     for run in sorted(runs, key=lambda r: (r["preset"], r["seed"])):
         selected = "-" if run["selected"] is None else \
             f"{run['selected'][0]}, {_figure(run['selected'][1])}, {_figure(run['selected'][2])}"
         lines.append(f"| {run['preset']} | {run['seed']} | {run['epochs']} | {_figure(run['val'])} | "
                      f"{_figure(run['held_out'])} | {selected} | {run['best_val']:.3f} ({run['best_val_epoch']}) |")
-    lines += ["", "| preset | seeds | val mIoU (last), mean +- std | held-out (last), mean +- std |", "|---|---|---|---|"]
+    lines += ["", "| preset | seeds | val mIoU (last), mean +- std | held-out (last), mean +- std |",
+              "|---|---|---|---|"]
     presets = sorted({run["preset"] for run in runs})
     for preset in presets:
         group = [run for run in runs if run["preset"] == preset]

@@ -41,21 +41,25 @@ def test_quick_cpu_suite_on_camvid_over_two_seeds(shared_data, tmp_path, capsys)
     # the same network for both methods: the config's (the camvid presets' pyramid context included)
     assert runs[0]["network_parameters"] == runs[1]["network_parameters"] > 0
     for baseline in runs[1::2]:  # each seed's baseline reaches its own final val, at its end at the latest
-        assert baseline["time_to_baseline_final"] is not None and baseline["time_to_baseline_final"] <= baseline["wall_s"]
+        reached = baseline["time_to_baseline_final"]
+        assert reached is not None and reached <= baseline["wall_s"]
     assert runs[0]["curve"] != runs[2]["curve"]  # the seeds train differently
     summaries = [r for r in records if r.get("summary")]
     assert [s["method"] for s in summaries] == ["warpsense recipe", "torch_baseline"]
-    assert summaries[1]["final_val_miou"]["mean"] == pytest.approx((runs[1]["final_val_miou"] + runs[3]["final_val_miou"]) / 2)
+    mean = (runs[1]["final_val_miou"] + runs[3]["final_val_miou"]) / 2
+    assert summaries[1]["final_val_miou"]["mean"] == pytest.approx(mean)
     assert plot.stat().st_size > 0
     printed = capsys.readouterr().out
-    assert "time-to-accuracy  warpsense recipe    1" in printed and "time-to-accuracy summary over seeds [0, 1]" in printed
+    assert "time-to-accuracy  warpsense recipe    1" in printed
+    assert "time-to-accuracy summary over seeds [0, 1]" in printed
 
 
 def test_summary_means_intervals_and_paired_differences_by_hand():
     from warpsense.bench.time_to_accuracy import summarise
 
     def run(method, seed, final, end, reached):
-        return {"method": method, "seed": seed, "final_val_miou": final, "wall_s": end, "time_to_baseline_final": reached}
+        return {"method": method, "seed": seed, "final_val_miou": final, "wall_s": end,
+                "time_to_baseline_final": reached}
 
     records = [run("warpsense recipe", 0, 0.66, 150.0, 100.0), run("torch_baseline", 0, 0.65, 120.0, 110.0),
                run("warpsense recipe", 1, 0.68, 160.0, None), run("torch_baseline", 1, 0.64, 130.0, 125.0),
@@ -63,13 +67,15 @@ def test_summary_means_intervals_and_paired_differences_by_hand():
     recipe, baseline = summarise(records)
     assert recipe["seeds"] == [0, 1, 2] and recipe["final_val_miou"]["mean"] == pytest.approx(0.67)
     half = 4.302652729911275 * 5.0 / 3**0.5  # t(0.975, 2) x sd 5 / sqrt(3)
-    assert recipe["wall_s"]["low"] == pytest.approx(155.0 - half) and recipe["wall_s"]["high"] == pytest.approx(155.0 + half)
+    assert recipe["wall_s"]["low"] == pytest.approx(155.0 - half)
+    assert recipe["wall_s"]["high"] == pytest.approx(155.0 + half)
     # paired by seed: 30, 30, 30 s slower to the end; +0.01, +0.04, +0.01 val
     assert recipe["wall_s_difference"]["mean"] == pytest.approx(30.0) and recipe["wall_s_difference"]["higher"] == 3
     assert recipe["final_val_miou_difference"]["mean"] == pytest.approx(0.02)
     # seed 1 never reached its baseline's final val: no mean is claimed, and the count says why
     assert recipe["time_to_baseline_final"] is None and recipe["time_to_baseline_final_reached"] == 2
-    assert baseline["time_to_baseline_final"]["mean"] == pytest.approx(355.0 / 3) and "wall_s_difference" not in baseline
+    assert baseline["time_to_baseline_final"]["mean"] == pytest.approx(355.0 / 3)
+    assert "wall_s_difference" not in baseline
 
 
 def test_exception_seeds_outside_the_time_to_accuracy_suite_or_repeated():

@@ -220,7 +220,8 @@ def test_camera_fused_equals_per_stage_chain_with_gradients():
     torch.testing.assert_close(fused, expected)
     parameters = [radiance, camera.cfa.logits, camera.exposure.gain_logit, camera.noise.shot_logit]
     grad = torch.randn_like(fused)
-    for mine, theirs in zip(torch.autograd.grad(fused, parameters, grad), torch.autograd.grad(expected, parameters, grad)):
+    for mine, theirs in zip(torch.autograd.grad(fused, parameters, grad),
+                            torch.autograd.grad(expected, parameters, grad)):
         torch.testing.assert_close(mine, theirs)
 
 

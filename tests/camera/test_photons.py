@@ -198,7 +198,8 @@ def test_streak_has_the_stated_length_and_gradcheck():
         measured = _radial_variance(streak, 0.6)
         assert math.sqrt(12 * max(measured - 1 / 6, 0)) == pytest.approx(length, rel=0.03)
     lengths = torch.tensor([2.3, 4.1], dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda length: streak_psfs(length, torch.tensor([0.3, 2.0]), 9, samples=64), (lengths,))
+    assert torch.autograd.gradcheck(lambda length: streak_psfs(length, torch.tensor([0.3, 2.0]), 9, samples=64),
+                                    (lengths,))
 
 
 def test_doubling_the_exposure_doubles_the_corner_blur_length_on_the_psf_grid():

@@ -55,7 +55,8 @@ def test_camvid_real_data(shared_data):
 
 
 def test_augmented_crops_fixed_size_deterministic():
-    config = load_config(None, ["data.scale_min=0.5", "data.scale_max=1.5", "data.crop_height=40", "data.crop_width=56"])
+    config = load_config(None, ["data.scale_min=0.5", "data.scale_max=1.5", "data.crop_height=40",
+                                "data.crop_width=56"])
     dataset = build_dataset(config.data, "train", train=True)
     first = dataset[3]
     assert first[0].shape == (3, 40, 56) and first[1].shape == (40, 56)

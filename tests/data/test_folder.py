@@ -90,7 +90,8 @@ def test_json_table_equals_the_toml_one(tmp_path):
     make_folder(tmp_path)
     (tmp_path / "classes.json").write_text(json.dumps({
         "ignore": 0, "ignore_color": [0, 0, 0],
-        "classes": [{"name": "road", "id": 3, "color": [128, 64, 128]}, {"name": "car", "id": 7, "color": [64, 0, 128]}]}))
+        "classes": [{"name": "road", "id": 3, "color": [128, 64, 128]},
+                    {"name": "car", "id": 7, "color": [64, 0, 128]}]}))
     assert read_class_table(tmp_path / "classes.json").ids == read_class_table(tmp_path / "classes.toml").ids == (3, 7)
 
 

@@ -28,7 +28,8 @@ def test_exception():
         psf_conv(torch.rand(1, 3, 8, 8), torch.rand(3, 1, 1, 3, 3), method="magic")
 
 
-@pytest.mark.parametrize("shape,grid,size", [((2, 1, 5, 7), (1, 1), 3), ((1, 3, 9, 6), (3, 2), 5), ((1, 1, 4, 4), (2, 2), 7)])
+@pytest.mark.parametrize("shape,grid,size", [((2, 1, 5, 7), (1, 1), 3), ((1, 3, 9, 6), (3, 2), 5),
+                                             ((1, 1, 4, 4), (2, 2), 7)])
 def test_cardinality(shape, grid, size):
     assert psf_conv(torch.rand(shape), random_psf(shape[1], *grid, size, torch.float32)).shape == shape
 
@@ -98,7 +99,8 @@ def test_fft_method_exact_for_invariant_psf():
     image = torch.rand(1, 3, 16, 18, dtype=torch.float64)
     psf = random_psf(3, 1, 1, 5)
     torch.testing.assert_close(psf_conv(image, psf, method="fft"), psf_conv(image, psf), rtol=1e-10, atol=1e-12)
-    torch.testing.assert_close(psf_conv_fft(image, psf[:, 0, 0]), psf_conv_reference(image, psf), rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(psf_conv_fft(image, psf[:, 0, 0]), psf_conv_reference(image, psf), rtol=1e-10,
+                               atol=1e-12)
 
 
 def test_alternative_methods_error_versus_direct():
@@ -168,7 +170,8 @@ def test_fft_high_dynamic_range_documented_limit():
     exact = psf_conv_reference(image, psf)
     dark = (slice(None), slice(None), slice(None), slice(20, None))
     torch.testing.assert_close(psf_conv(image, psf, "fft")[dark], exact[dark], rtol=1e-5, atol=0)
-    torch.testing.assert_close(psf_conv(image.float(), psf.float(), "auto")[dark], exact[dark].float(), rtol=1e-5, atol=0)
+    torch.testing.assert_close(psf_conv(image.float(), psf.float(), "auto")[dark], exact[dark].float(), rtol=1e-5,
+                               atol=0)
 
 
 def test_patch_more_nodes_than_pixels_and_autocast_dtype():

@@ -78,8 +78,9 @@ def test_feature_known_answers():
     torch.testing.assert_close(edge_aware_smoothness(step, guide), torch.tensor(0.5 * 4 * 2 / 12, dtype=torch.float64))
     # the same boundary on an image edge of height 1 in the guide: weight exp(-1 / sigma) across it
     guide[..., 2:] = 1.0
+    expected = 0.5 * 4 * 2 * torch.exp(torch.tensor(-2.0)).item() / 12
     torch.testing.assert_close(edge_aware_smoothness(step, guide, sigma=0.5),
-                               torch.tensor(0.5 * 4 * 2 * torch.exp(torch.tensor(-2.0)).item() / 12, dtype=torch.float64))
+                               torch.tensor(expected, dtype=torch.float64))
 
 
 def test_feature_channels_last_is_read_in_place():

@@ -122,7 +122,8 @@ def test_crop_to_energy_and_collapse():
 
 LENS = {
     "name": "t", "focal_length_mm": 4.0, "f_number": 2.0, "diagonal_fov_deg": 70, "pixel_pitch_um": 1.4,
-    "wavelengths_um": [0.6, 0.55, 0.45], "psf_kernel_size": 7, "psf_grid": [2, 2], "zernike_waves": {"4": {"constant": 0.1}},
+    "wavelengths_um": [0.6, 0.55, 0.45], "psf_kernel_size": 7, "psf_grid": [2, 2],
+    "zernike_waves": {"4": {"constant": 0.1}},
 }
 
 
@@ -158,7 +159,8 @@ def test_malformed_lens_file_errors_name_file_and_key(tmp_path, change, message)
     assert "bad_lens.json" in str(error.value)
 
 
-@pytest.mark.parametrize("content", [b"\xff\xfe{", b"[" * 100000 + b"]" * 100000, b'{"f_number": ' + b"9" * 5000 + b"}"])
+@pytest.mark.parametrize("content", [b"\xff\xfe{", b"[" * 100000 + b"]" * 100000,
+                                     b'{"f_number": ' + b"9" * 5000 + b"}"])
 def test_unreadable_lens_json_is_one_line(tmp_path, content):
     path = tmp_path / "odd.json"
     path.write_bytes(content)

@@ -32,7 +32,8 @@ def test_wrong_type_in_a_config_file(section, key, value, tmp_path, capsys):
 
 OUT_OF_RANGE = [
     "train.epochs=0", "train.epochs=-3", "train.lr=-0.1", "train.lr=inf", "train.lr=nan", "train.warmup_epochs=500",
-    "train.eval_every=0", "train.checkpoint_every=0", "train.weight_decay=-1", "train.camera_grad_clip=-1", "train.time_budget_minutes=-1",
+    "train.eval_every=0", "train.checkpoint_every=0", "train.weight_decay=-1", "train.camera_grad_clip=-1",
+    "train.time_budget_minutes=-1",
     "train.compile=fastest", "data.scale_min=2.0", "data.crop_height=0", "data.crop_width=-4", "data.batch_size=0",
     "data.num_workers=-1", "data.dataset=imagenet", "data.on_device=sometimes", "data.scenes_train=0",
     "loss.ohem_fraction=0", "loss.ohem_fraction=1.5", "loss.ohem_weight=-1", "cfa.temperature_end=0",

@@ -26,7 +26,8 @@ CASES = {
     "psf_conv": [
         lambda: psf_conv(IMAGE.numpy(), PSF), lambda: psf_conv(IMAGE, PSF.tolist()), lambda: psf_conv(IMAGE.int(), PSF),
         lambda: psf_conv(IMAGE, PSF.int()), lambda: psf_conv(IMAGE[0], PSF), lambda: psf_conv(IMAGE, PSF[0]),
-        lambda: psf_conv(IMAGE[:, :2], PSF), lambda: psf_conv(IMAGE, PSF[:, :0, :0]), lambda: psf_conv(IMAGE, PSF[:, :0]),
+        lambda: psf_conv(IMAGE[:, :2], PSF), lambda: psf_conv(IMAGE, PSF[:, :0, :0]),
+        lambda: psf_conv(IMAGE, PSF[:, :0]),
         lambda: psf_conv(IMAGE, PSF[:, :, :0]), lambda: psf_conv(IMAGE, PSF[..., :2, :2]),
         lambda: psf_conv(IMAGE, PSF[..., :1]), lambda: psf_conv(IMAGE, PSF, "magic"),
         lambda: psf_conv(IMAGE[:, :, :0], PSF), lambda: psf_conv(IMAGE[:0], PSF), lambda: psf_conv(IMAGE, PSF, "fft"),
@@ -51,7 +52,8 @@ CASES = {
         lambda: poisson_gaussian(RAW, 0.01, 0.002, None),
     ],
     "poisson_gaussian_exact": [
-        lambda: poisson_gaussian_exact(RAW, -0.01, 0.002, 0), lambda: poisson_gaussian_exact(RAW.tolist(), 0.01, 0.0, 0),
+        lambda: poisson_gaussian_exact(RAW, -0.01, 0.002, 0),
+        lambda: poisson_gaussian_exact(RAW.tolist(), 0.01, 0.0, 0),
         lambda: poisson_gaussian_exact(RAW, 0.01, float("nan"), 0), lambda: poisson_gaussian_exact(RAW[:0], 0.01, 0, 0),
     ],
     "quantize_ste": [
@@ -59,7 +61,8 @@ CASES = {
         lambda: quantize_ste(RAW, 64), lambda: quantize_ste(RAW, 10, float("nan")),
         lambda: quantize_ste(RAW, 10, float("inf")), lambda: quantize_ste(RAW, 10, 1e-46),
         lambda: quantize_ste(RAW, 10, 1e39), lambda: quantize_ste(RAW, 10, -1.0), lambda: quantize_ste(RAW, 10, 0.0),
-        lambda: quantize_ste(RAW, 10, True), lambda: quantize_ste(RAW, 10, "1"), lambda: quantize_ste(RAW, 10, 1.0, "x"),
+        lambda: quantize_ste(RAW, 10, True), lambda: quantize_ste(RAW, 10, "1"),
+        lambda: quantize_ste(RAW, 10, 1.0, "x"),
         lambda: quantize_ste(RAW.numpy(), 10), lambda: quantize_ste(RAW.int(), 10), lambda: quantize_ste(RAW[:0], 10),
     ],
     "exposure": [

@@ -146,7 +146,8 @@ def test_plan_keys_seed_offset_and_round_trip(tmp_path):
     assert [c.seed_offset for c in plan.cameras] == [0, 0, 0, 100]
     # 12 + 6 frames less 4 + 2 judged, less the buffer: one frame of each sequence at the ends, two in the middle
     assert [row["train"] for row in fold_sizes(plan)] == [10, 8, 10]
-    assert fold_lines(fold_sizes(plan))[0] == "fold block1: train 10 frames (56% of the labelled frames), judge 6 frames"
+    assert fold_lines(fold_sizes(plan))[0] == ("fold block1: train 10 frames (56% of the labelled frames), judge 6 "
+                                               "frames")
 
 
 @pytest.mark.parametrize(("study", "overrides", "message"), [

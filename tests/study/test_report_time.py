@@ -31,7 +31,8 @@ def test_a_process_of_one_epoch_is_counted_as_it_ran(tmp_path):
     assert steady_run_seconds(metrics) == run_seconds(metrics) == 32.0
     assert steady_run_seconds(tmp_path / "none.jsonl") is None
     torn = tmp_path / "torn.jsonl"
-    torn.write_text(json.dumps({"epoch": 0, "setup_s": 1.0, "wall_s": 5.0}) + "\n" + json.dumps({"epoch": 1, "wall_s": 7.0}) + "\n{\"ep")
+    torn.write_text(json.dumps({"epoch": 0, "setup_s": 1.0, "wall_s": 5.0}) + "\n"
+                    + json.dumps({"epoch": 1, "wall_s": 7.0}) + "\n{\"ep")
     assert steady_run_seconds(torn) == pytest.approx(7.0 - 4.0 + 2.0)  # the torn line dropped
 
 
@@ -40,7 +41,8 @@ def test_the_text_names_both_times(tmp_path):
     from warpsense.study.statistics import t_interval
 
     group = {"camera": "rggb", "light": "night", "seeds": [0], "folds": [], "cells": 1, "run_s": 94.0,
-             "timed_runs": 1, "steady_run_s": 60.0, "miou": t_interval([0.5]), "per_class_iou": {"road": t_interval([0.5])},
+             "timed_runs": 1, "steady_run_s": 60.0, "miou": t_interval([0.5]),
+             "per_class_iou": {"road": t_interval([0.5])},
              "per_class_precision": {"road": None}, "per_class_recall": {"road": None}}
     record = {"study": "s", "directory": str(tmp_path), "level": 0.95, "missing": [], "cells": [], "reference": "rggb",
               "splits": {"val": {"groups": [group], "comparisons": [], "per_sequence": []}}}

@@ -1,7 +1,7 @@
 """`warpsense study run --executor slurm` (submitit) and `warpsense study status`: the executor's options refused in one
 line before anything is written or submitted, the status of each cell from the directory and the scheduler, and
-(marked `slurm`) the smoke study through a real Slurm end to end: a task whose training process is killed mid-run, another
-preempted (submitit checkpoints and requeues it), the study submitted again resumes the killed cell from its
+(marked `slurm`) the smoke study through a real Slurm end to end: a task whose training process is killed mid-run,
+another preempted (submitit checkpoints and requeues it), the study submitted again resumes the killed cell from its
 checkpoint without retraining a finished one, and the report reads the directory.
 
 The `slurm` tests need a Slurm controller that answers with a node taking jobs (`bash tools/slurm/local-cluster.sh

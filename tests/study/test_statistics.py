@@ -164,7 +164,8 @@ def test_a_score_interval_is_clipped_to_its_range_and_marked_over_too_few_values
     assert two["low"] == pytest.approx(0.0723 - T_975_1 * 0.0283)  # the record keeps the t interval as computed
     assert interval_text(two) == f"0.0723 [0.0000, {0.0723 + T_975_1 * 0.0283:.4f}] (n=2, too few)"
     assert interval_text(t_interval([0.5, 0.6, 0.7])) == "0.6000 [0.3516, 0.8484]"  # 3 values: as before
-    assert interval_text(t_interval([0.95, 0.999])) == f"0.9745 [{0.9745 - T_975_1 * 0.0245:.4f}, 1.0000] (n=2, too few)"
+    low = 0.9745 - T_975_1 * 0.0245
+    assert interval_text(t_interval([0.95, 0.999])) == f"0.9745 [{low:.4f}, 1.0000] (n=2, too few)"
     difference = {"mean": -0.4, "low": -1.7, "high": 0.9, "n": 2}  # a difference of scores lies in [-1, 1]
     assert interval_text(difference, signed=True) == "-0.4000 [-1.0000, +0.9000] (n=2, too few)"
     assert interval_text(t_interval([0.42])) == "0.4200 [n=1, no interval]"

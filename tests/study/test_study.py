@@ -707,7 +707,8 @@ def test_ctrl_c_stops_the_local_pool_and_a_rerun_resumes(tmp_path, capsys):
     log = (out / "logs" / f"{cells[0].run_name}.log").read_text()
     assert "resuming" in log  # the interrupted cell continued from its checkpoint
     for cell in cells:
-        records = [json.loads(line) for line in (out / "runs" / cell.run_name / "metrics.jsonl").read_text().splitlines()]
+        metrics = out / "runs" / cell.run_name / "metrics.jsonl"
+        records = [json.loads(line) for line in metrics.read_text().splitlines()]
         assert [record["epoch"] for record in records] == list(range(6))
 
 

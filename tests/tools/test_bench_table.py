@@ -29,7 +29,8 @@ def test_ratios_are_to_the_baseline_of_the_same_loss_and_step(tool, tmp_path):
                {"suite": "train", "device": "cuda", "method": "warpsense", "camera": "codesign",
                 "mode": "eager_cached", "median_ms": 5.0}]
     path = tmp_path / "bench.json"
-    path.write_text(json.dumps({"metadata": {"device_name": "Test GPU", "torch": "x", "warp": "y"}, "records": records}))
+    metadata = {"device_name": "Test GPU", "torch": "x", "warp": "y"}
+    path.write_text(json.dumps({"metadata": metadata, "records": records}))
     lines = tool.main([str(path)]).splitlines()
     assert lines[0].startswith("Device: Test GPU")
     assert "| warpsense | simple | full | eager | 500.0 | 1.25 |" in lines

@@ -43,7 +43,8 @@ def _worker(rank, world_size, port, output_dir, result_dir, extra=("run.device=c
     _check_wrappers_die_before_the_group(engine)
     config = load_config(None, OVERRIDES + [f"run.output_dir={output_dir}", *extra])
     _, model = train(config, progress=False, return_model=True)
-    torch.save({k: v.detach().clone() for k, v in model.state_dict().items()}, os.path.join(result_dir, f"rank{rank}.pt"))
+    torch.save({k: v.detach().clone() for k, v in model.state_dict().items()},
+               os.path.join(result_dir, f"rank{rank}.pt"))
     faulthandler.cancel_dump_traceback_later()
 
 
@@ -77,7 +78,8 @@ def _two_ranks(output_dir, result_dir, extra=("run.device=cpu",)) -> tuple[dict,
             for process in ranks.processes:
                 process.kill()
             pytest.fail(f"a DDP rank did not finish within {HANG_SECONDS + 60} s")
-    return torch.load(result_dir / "rank0.pt", map_location="cpu"), torch.load(result_dir / "rank1.pt", map_location="cpu")
+    return (torch.load(result_dir / "rank0.pt", map_location="cpu"),
+            torch.load(result_dir / "rank1.pt", map_location="cpu"))
 
 
 @pytest.mark.slow
@@ -176,7 +178,8 @@ def test_two_rank_nccl_captured_step_matches_eager(tmp_path):
             if "running_" not in name and "num_batches" not in name:
                 assert torch.equal(rank0[name], rank1[name]), f"graph={graph}: {name} differs between ranks"
         results[graph] = rank0
-        records = [json.loads(line) for line in (folder / "runs" / "default" / "metrics.jsonl").read_text().splitlines()]
+        metrics = folder / "runs" / "default" / "metrics.jsonl"
+        records = [json.loads(line) for line in metrics.read_text().splitlines()]
         assert [bool(record.get("capture_s")) for record in records] == [graph == "true"] * 2  # one capture a phase
     worst = max((results["true"][n] - results["false"][n]).abs().max().item() for n in results["true"]
                 if results["true"][n].is_floating_point())
