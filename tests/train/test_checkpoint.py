@@ -96,3 +96,24 @@ def test_restored_optimizer_moments_keep_the_channels_last_layout(tmp_path):
     assert moment.stride() == resumed.weight.stride() and resumed.weight.stride() != (27, 9, 3, 1)
     step(resumed, resumed_optimizer)
     torch.testing.assert_close(resumed.weight, model.weight)
+
+
+def test_the_header_alone_holds_what_the_whole_checkpoint_holds(tmp_path):
+    """read_header (a run's status, its kept best score) reads the metadata without the tensors: the same
+    {"config", "state"} as read_checkpoint, and the same one-line error for every unreadable file it can tell."""
+    (tmp_path / "run").mkdir()
+    path = tmp_path / "run" / "c.safetensors"
+    save_checkpoint(path, _model(0.5), {"run": {"name": "x"}}, {"epoch": 3, "best_miou": 0.25})
+    assert checkpoint.read_header(path) == read_checkpoint(path)[1] == {
+        "config": {"run": {"name": "x"}}, "state": {"epoch": 3, "best_miou": 0.25}}
+    for bad in _bad_files(tmp_path):
+        if bad.name == "no_model.safetensors":  # only the tensors tell: the header is a run's
+            assert checkpoint.read_header(bad) == {"config": {}, "state": {}}
+            continue
+        with pytest.raises(CheckpointError) as whole:
+            read_checkpoint(bad)
+        with pytest.raises(CheckpointError) as header:
+            checkpoint.read_header(bad)
+        assert str(header.value) == str(whole.value)
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
+        checkpoint.read_header(tmp_path / "absent.safetensors")

@@ -43,11 +43,45 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, config_dict: dict,
     payload = {"config": config_dict, "state": state}
     with atomic_write(path) as temporary:
         save_file(tensors, str(temporary), metadata={METADATA_KEY: json.dumps(payload, sort_keys=True)})
-    write_json(path.with_suffix(".json"), payload, sort_keys=True)
+    write_json(readable_copy(path), payload, sort_keys=True)
+
+
+def readable_copy(path: str | Path) -> Path:
+    """The JSON copy of a checkpoint's metadata written beside it (`save_checkpoint`), for people to read."""
+    return Path(path).with_suffix(".json")
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
     """(tensors, {"config": ..., "state": ...}); every failure is a one-line `CheckpointError` naming the file."""
+    path = _checkpoint_file(path)
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            metadata = handle.metadata() or {}
+        tensors = load_file(str(path))
+    except Exception as error:  # safetensors raises several types for zero-byte, truncated or foreign files
+        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({first_line(error)})") from None
+    meta = _run_metadata(path, metadata)
+    if not any(name.startswith("model.") for name in tensors):
+        raise CheckpointError(f"{path}: holds no model tensors")
+    return tensors, meta
+
+
+def read_header(path: str | Path) -> dict:
+    """{"config": ..., "state": ...} of a checkpoint from its header alone (no tensor is read: a run's status or
+    its kept best score without loading megabytes); failures as `read_checkpoint`'s, but for a file without model
+    tensors, which only reading the tensors tells."""
+    path = _checkpoint_file(path)
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            metadata = handle.metadata() or {}
+    except Exception as error:  # as read_checkpoint's: several types for zero-byte, truncated or foreign files
+        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({first_line(error)})") from None
+    return _run_metadata(path, metadata)
+
+
+def _checkpoint_file(path: str | Path) -> Path:
+    """``path`` as a checkpoint file to read: a folder, a missing file or the readable .json copy is a one-line
+    error naming it."""
     path = Path(path)
     if path.is_dir():
         raise FileNotFoundError(f"{path}: is a folder; name its checkpoint file (e.g. {path}/checkpoint_best"
@@ -56,16 +90,16 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
         raise FileNotFoundError(f"{located(path)}: checkpoint not found")
     if path.suffix.lower() == ".json" and path.with_suffix(".safetensors").is_file():
         raise CheckpointError(f"{path}: the readable copy of a checkpoint; name {path.with_suffix('.safetensors')}")
-    try:
-        with safe_open(str(path), framework="pt") as handle:
-            metadata = handle.metadata() or {}
-        tensors = load_file(str(path))
-    except Exception as error:  # safetensors raises several types for zero-byte, truncated or foreign files
-        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({first_line(error)})") from None
+    return path
+
+
+def _run_metadata(path: Path, metadata: dict) -> dict:
+    """The run's {"config", "state"} from a checkpoint's safetensors ``metadata``, or from the .json beside it for a
+    checkpoint written before the metadata went inside."""
     if METADATA_KEY in metadata:
         text, source = metadata[METADATA_KEY], f"{path} metadata"
     else:
-        sidecar = path.with_suffix(".json")
+        sidecar = readable_copy(path)
         if not sidecar.is_file():
             raise CheckpointError(f"{path}: no run metadata inside and no {sidecar.name} beside it")
         try:
@@ -76,11 +110,9 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
         meta = json.loads(text)
     except (ValueError, RecursionError) as error:  # JSONDecodeError; a 5000-digit number, deep nesting
         raise CheckpointError(f"{source}: invalid JSON ({first_line(error)})") from None
-    if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict) or not isinstance(meta.get("state"), dict):
+    if not (isinstance(meta, dict) and isinstance(meta.get("config"), dict) and isinstance(meta.get("state"), dict)):
         raise CheckpointError(f"{source}: expected an object with 'config' and 'state' objects")
-    if not any(name.startswith("model.") for name in tensors):
-        raise CheckpointError(f"{path}: holds no model tensors")
-    return tensors, meta
+    return meta
 
 
 def restore(tensors: dict, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None = None,
