@@ -239,7 +239,8 @@ def _pointwise_kernels(bench: AccuracyBench, scenes: dict, quick: bool) -> None:
     quantizers = {"warp": quantize_ste, "torch_float32": quantize_reference}
     for bits in (QUANTIZER_BITS[:3] + QUANTIZER_BITS[-2:]) if quick else QUANTIZER_BITS:
         for method, function in quantizers.items():
-            timing = bench.times(lambda r, function=function, bits=bits: function(r, bits), [raws["white_noise"].clone().requires_grad_()])
+            timing = bench.times(lambda r, function=function, bits=bits: function(r, bits),
+                                 [raws["white_noise"].clone().requires_grad_()])
             for name, raw in raws.items():
                 with torch.no_grad():
                     output = function(raw, bits)

@@ -106,9 +106,9 @@ class Bench:
                     timing = time_backward(lambda inputs=inputs: function(*inputs), grads, self.device, self.repeats)
                     self.record(kernel, method, precision, shape, "bwd", timing, None, bytes_bwd)
                     # one autograd call: the host queues the backward while the forward runs, as in training
-                    timing = time_function(lambda inputs=inputs, grads=grads: torch.autograd.grad(function(*inputs).sum(), grads),
-                                           self.device,
-                                           self.repeats)
+                    timing = time_function(
+                        lambda inputs=inputs, grads=grads: torch.autograd.grad(function(*inputs).sum(), grads),
+                        self.device, self.repeats)
                     self.record(kernel, method, precision, shape, "fwd+bwd", timing)
 
 
@@ -210,7 +210,8 @@ def _kernel_suite(device: str, quick: bool) -> list[dict]:
         bench.case("psf_conv_invariant", "cudnn_conv2d" if device == "cuda" else "torch_conv2d", shape,
                    lambda x, p: F.conv2d(F.pad(x, (size // 2,) * 4, mode="replicate"),
                                          p[:, 0, 0].flip(-1, -2).unsqueeze(1), groups=3), [image, invariant])
-        bench.case("psf_conv_invariant", "torch_fft", shape, lambda x, p: psf_conv_fft(x, p[:, 0, 0]), [image, invariant])
+        bench.case("psf_conv_invariant", "torch_fft", shape, lambda x, p: psf_conv_fft(x, p[:, 0, 0]),
+                   [image, invariant])
         bench.case("psf_conv_varying", "warp", shape, lambda x, p: psf_conv(x, p, "direct"), [image, varying])
         # the approximation's error is against the exact varying result, not its own float64 run
         bench.case("psf_conv_varying", "torch_patch", shape, psf_conv_patch, [image, varying],

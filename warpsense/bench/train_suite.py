@@ -1,6 +1,7 @@
 """`warpsense bench --suite train`: the training step and batch-1 latency of the whole system (sensor + network),
-warpsense against the plain-torch baseline (docs/references.md, convention 5) built from `warpsense.ops.reference` and the same
-network and loss run through torch's own ops (`method_ops`: none of warpsense's Warp network or loss ops), in one run.
+warpsense against the plain-torch baseline (docs/references.md, convention 5) built from `warpsense.ops.reference`
+and the same network and loss run through torch's own ops (`method_ops`: none of warpsense's Warp network or loss
+ops), in one run.
 
 Cameras: "simple" = the baseline's camera (one 7x7 Gaussian PSF, exposure, 2x2 softmax CFA, Poisson-Gaussian
 noise, 10-bit ADC); "codesign" = the camvid_codesign preset's camera (learnable 80/68 deg lens rendered every step,
@@ -216,8 +217,10 @@ def run_train_suite(device: str, quick: bool, metadata: dict, overrides: tuple[s
                   else f"{record['median_ms']:8.3f} ms [{record['iqr_ms']:.3f}]" if "median_ms" in record
                   else f"failed: {record['error']}")
         figure += f"  {UNSTABLE_NOTE}" if record.get("unstable") else ""
-        print(f"train-suite {record['method']:>15s} {record['camera']:>9s} {record.get('loss', record.get('mode')):>6s}"
-              f" {record.get('compile', ''):>8s} {'graph' if record.get('cuda_graph') else '':>5s} {figure}", flush=True)
+        kind = record.get("loss", record.get("mode"))
+        print(f"train-suite {record['method']:>15s} {record['camera']:>9s} {kind:>6s}"
+              f" {record.get('compile', ''):>8s} {'graph' if record.get('cuda_graph') else '':>5s} {figure}",
+              flush=True)
 
     cases = [("torch_baseline", "simple"), ("warpsense", "simple"), ("warpsense", "codesign")]
     # (loss, torch.compile mode, whole-step CUDA graph); compiling on a CPU takes minutes of C++ compilation and
@@ -247,7 +250,8 @@ def run_train_suite(device: str, quick: bool, metadata: dict, overrides: tuple[s
                  "median_ms": timing["median_ms"], "iqr_ms": timing["iqr_ms"], "shape": [camera_shape[0], 3,
                                                                                           *camera_shape[1:]]})
     for method, camera_name in cases:
-        modes = ["eager", *(["eager_cached"] if method == "warpsense" else []), *(["graph"] if device == "cuda" else [])]
+        modes = ["eager", *(["eager_cached"] if method == "warpsense" else []),
+                 *(["graph"] if device == "cuda" else [])]
         for mode in modes:
             timing = latency(method, camera_name, device, height, width, mode == "graph", mode == "eager_cached",
                              overrides)

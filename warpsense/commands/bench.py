@@ -52,8 +52,10 @@ def register(commands: argparse._SubParsersAction, name: str) -> None:
                              "step, camera and latency vs the plain-torch baseline; time-to-accuracy: wall time to val "
                              "mIoU levels, the CamVid recipe vs the baseline (needs --camvid); study: cells per "
                              "GPU-hour of a plan's cells one per GPU against --per-gpu N, the same cells' scores side "
-                             "by side (needs --plan and --out); all: kernels, accuracy and train (default: %(default)s)")
-    parser.add_argument("--quick", action="store_true", help="small sizes and few repeats (< 2 min on 2 CPU cores)")
+                             "by side (needs --plan and --out); all: kernels, accuracy and train "
+                             "(default: %(default)s)")
+    parser.add_argument("--quick", action="store_true",
+                        help="small sizes and few repeats (< 2 min on 2 CPU cores)")
     parser.add_argument("--json", metavar="OUT", help="write the records as JSON")
     parser.add_argument("--plot", metavar="OUT.png",
                         help="write the error-against-run-time plot, one Pareto panel per kernel (accuracy suite), or "

@@ -51,11 +51,13 @@ def _source(data_config, split: str, train: bool, seed: int, limit: int = 0):
         raise KeyError(f"unknown dataset {name!r}; valid datasets: {', '.join(DATASETS)}")
     if name == "scenes":
         if split not in SCENE_SPLITS:
-            raise DatasetError(f"scenes: split {split!r}: the generated scenes have the splits {', '.join(SCENE_SPLITS)}")
+            raise DatasetError(f"scenes: split {split!r}: the generated scenes have the splits "
+                               f"{', '.join(SCENE_SPLITS)}")
         count = data_config.scenes_train if train else data_config.scenes_val
         count = min(count, limit) if limit else count  # max_train_images / max_val_images, as for files
-        return StreetScenes(count, data_config.scene_height, data_config.scene_width, seed=seed + (0 if train else 7919),
-                            sequence_blocks=data_config.scene_sequences, stream="train" if train else "val")
+        return StreetScenes(count, data_config.scene_height, data_config.scene_width,
+                            seed=seed + (0 if train else 7919), sequence_blocks=data_config.scene_sequences,
+                            stream="train" if train else "val")
     if not data_config.root:
         raise DatasetError(f"data.root is empty: set it to the {name} folder (train: --set data.root=PATH; "
                            f"eval: --data-root PATH)")
@@ -156,7 +158,8 @@ def load_raw(path):
     return _load_raw(path)
 
 
-__all__ = ["Augmented", "CamVid", "Cityscapes", "DATASETS", "DatasetError", "FolderDataset", "Frames", "HELDOUT_SPLIT", "KITTI360",
+__all__ = ["Augmented", "CamVid", "Cityscapes", "DATASETS", "DatasetError", "FolderDataset", "Frames", "HELDOUT_SPLIT",
+           "KITTI360",
            "StreetScenes", "block_fold", "build_dataset", "build_fold", "build_training", "evaluation_splits",
            "fold_frames", "fold_name", "frame_numbers", "frame_sequences", "holds_out_fold", "labelled_sources",
            "load_raw", "sequence_fold", "sequence_names"]

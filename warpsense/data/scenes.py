@@ -61,7 +61,8 @@ def render_scene(height: int, width: int, rng: np.random.Generator) -> tuple[np.
     pavement = below & ~road & (np.abs(xx - centre) < half_road * 1.6 + 2)
     _paint(image, label, pavement, [0.55, 0.5, 0.45], PAVEMENT, rng)
     _paint(image, label, road, [0.3, 0.3, 0.32], ROAD, rng, texture=0.04)
-    marks = road & (np.abs(xx - centre) < np.maximum(depth * 3, 0.6)) & ((yy * 0.25 + 8 / (np.abs(depth) + 0.05)) % 6 < 3)
+    dashes = (yy * 0.25 + 8 / (np.abs(depth) + 0.05)) % 6 < 3
+    marks = road & (np.abs(xx - centre) < np.maximum(depth * 3, 0.6)) & dashes
     image[marks] = [0.9, 0.9, 0.85]
     # fence along one pavement edge
     if rng.random() < 0.6:

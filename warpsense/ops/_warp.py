@@ -224,8 +224,9 @@ class WarpOp:
                 return self.function(*args, **kwargs)
             if forward_tangents(arguments):
                 raise NotImplementedError(
-                    f"{self.op._qualname}: forward-mode AD (torch.func.jvp, jacfwd, hessian, torch.autograd.forward_ad) "
-                    "is not implemented for warpsense's ops; use reverse mode (Tensor.backward, torch.autograd.grad)")
+                    f"{self.op._qualname}: forward-mode AD (torch.func.jvp, jacfwd, hessian, "
+                    "torch.autograd.forward_ad) is not implemented for warpsense's ops; use reverse mode "
+                    "(Tensor.backward, torch.autograd.grad)")
         return self.op(*args, **kwargs)
 
     @staticmethod

@@ -60,7 +60,8 @@ def white_levels(rows: torch.Tensor, white_level: float, mode: str) -> torch.Ten
 
 
 def quantize_ste(raw: torch.Tensor, bits: int, white_level: float = 1.0, mode: str = "full_well") -> torch.Tensor:
-    """Quantize to ``bits`` with 2^bits - 1 steps on [0, w], straight-through gradient (docs/references.md, convention 1).
+    """Quantize to ``bits`` with 2^bits - 1 steps on [0, w], straight-through gradient (docs/references.md,
+    convention 1).
 
     Q(R) = floor(clip(R, 0, w) / w * (2^b - 1) + 1/2) / (2^b - 1) * w.
 

@@ -56,7 +56,8 @@ def _sensor_capture(rgb: torch.Tensor, phi: torch.Tensor, shot: torch.Tensor, re
 def sensor_capture(rgb: torch.Tensor, phi: torch.Tensor, shot: float | torch.Tensor | None = None,
                    read: float | torch.Tensor | None = None, seed: int | torch.Tensor = 0, bits: int | None = None,
                    white_level: float = 1.0) -> torch.Tensor:
-    """Radiance to quantized RAW in one pass (eqs. 4-6 of the paper, docs/references.md; exposure is folded into ``phi`` by the caller).
+    """Radiance to quantized RAW in one pass (eqs. 4-6 of the paper, docs/references.md; exposure is folded into
+    ``phi`` by the caller).
 
     Args:
         rgb: [B, 3, H, W] linear irradiance.

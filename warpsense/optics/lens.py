@@ -143,7 +143,8 @@ def parse_lens(data: dict, source: str) -> LensSpec:
         if not math.isfinite(values[key]) or values[key] > 1e4:
             raise LensFileError(f"{source}: {key} must be a finite value <= 1e4, got {values[key]}")
     if values["learnable_bound_waves"] < 0:
-        raise LensFileError(f"{source}: learnable_bound_waves must be >= 0 (waves), got {values['learnable_bound_waves']}")
+        raise LensFileError(f"{source}: learnable_bound_waves must be >= 0 (waves), got "
+                            f"{values['learnable_bound_waves']}")
     terms = {}
     for index, entry in values["zernike_waves"].items():
         where = f"{source}: zernike_waves.{index}"
@@ -181,7 +182,8 @@ def read_lens_spec(name_or_path: str | Path) -> LensSpec:
     except UnicodeDecodeError:
         raise LensFileError(f"{path}: not UTF-8 text") from None
     except (ValueError, RecursionError) as error:  # JSONDecodeError, 5000-digit numbers, deep nesting
-        raise LensFileError(f"{path}: invalid JSON: {str(error).splitlines()[0][:200] or 'too deeply nested'}") from None
+        first_line = str(error).splitlines()[0][:200] if str(error) else ""
+        raise LensFileError(f"{path}: invalid JSON: {first_line or 'too deeply nested'}") from None
     return parse_lens(data, str(path))
 
 

@@ -1,4 +1,5 @@
-"""Segmentation losses of eqs. 7-10 of the paper (docs/references.md): OHEM cross-entropy, Lovasz-softmax, edge-aware smoothness."""
+"""Segmentation losses of eqs. 7-10 of the paper (docs/references.md): OHEM cross-entropy, Lovasz-softmax, edge-aware
+smoothness."""
 
 from __future__ import annotations
 
