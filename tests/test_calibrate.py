@@ -7,6 +7,7 @@ DNGs give finite positive estimates."""
 import json
 import math
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -173,12 +174,10 @@ def test_json_fields(captures, tmp_path):
     assert regions["levels"][0] < 0.01 < 0.5 < regions["levels"][1]  # from the black patch to the bright ones
 
 
-def test_preset_loads_and_trains_simulates_and_serves_a_study(captures, tmp_path, monkeypatch):
+def test_preset_loads_and_trains_and_simulates(captures, tmp_path, monkeypatch):
     """--out writes a preset over camvid_raw_fixed whose noise is the estimate: load_config reads it, `train
-    --config` runs a step with it, `simulate --config` captures through it, and a study plan takes it as a camera;
-    --plot draws the figure."""
+    --config` runs a step with it and `simulate --config` captures through it; --plot draws the figure."""
     from warpsense.config import load_config
-    from warpsense.study.plan import load_plan
 
     monkeypatch.chdir(tmp_path)
     preset, plot = tmp_path / "my_sensor.toml", tmp_path / "noise.png"
@@ -207,9 +206,20 @@ def test_preset_loads_and_trains_simulates_and_serves_a_study(captures, tmp_path
 
     _, metadata = load_raw(tmp_path / "sim" / "grey.safetensors")
     assert metadata["simulated"]["noise_shot"] == pytest.approx(record["noise"]["shot"], rel=1e-5)
+
+
+def test_preset_serves_as_a_study_camera(captures, tmp_path, shared_data, monkeypatch):
+    """A study plan takes the --out preset as a camera and the JSON's study_light as a light. The preset inherits
+    the CamVid recipe, whose data a plan checks (run from the repository, where ../shared/data is)."""
+    from warpsense.study.plan import load_plan
+
+    preset = tmp_path / "my_sensor.toml"
+    code, record = _calibrate(tmp_path, captures[LEVELS[0]], "--out", preset)
+    assert code == 0
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
     plan = tmp_path / "plan.toml"
     light = record["study_light"]
-    plan.write_text(f'[study]\nname = "mine"\nseeds = [0]\nreference = "mine"\nset = ["data.dataset=\\"scenes\\""]\n'
+    plan.write_text(f'[study]\nname = "mine"\nseeds = [0]\nreference = "mine"\n'
                     f'[[camera]]\nname = "mine"\npreset = "{preset}"\n'
                     f'[[light]]\nname = "{light["name"]}"\nfull_well_electrons = {light["full_well_electrons"]}\n'
                     f'read_electrons = {light["read_electrons"]}\nbits = {light["bits"]}\n')
