@@ -132,7 +132,8 @@ def test_predict_on_real_capture_and_refuses_non_bayer(shared_data, tmp_path):
 
     config = load_config(None, ["cfa.mode=fixed", "train.epochs=1", "train.warmup_epochs=0", "data.scenes_train=8",
                                 "data.scenes_val=2", "data.batch_size=4", "data.scene_height=32", "data.scene_width=48",
-                                "data.crop_height=32", "data.crop_width=48", f"run.output_dir={tmp_path}", "train.plots=false"])
+                                "data.crop_height=32", "data.crop_width=48", f"run.output_dir={tmp_path}",
+                                "train.plots=false"])
     run = train(config, progress=False)
     dng = shared_data / "dng" / "pidng_indoor_gbrg10.dng"
     out = tmp_path / "pred.png"
@@ -154,8 +155,8 @@ def test_predict_on_real_capture_and_refuses_non_bayer(shared_data, tmp_path):
     assert code == 2 and not (tmp_path / "p.xyz").exists()
     config.cfa.pattern, config.cfa.mode, config.run.name = "RCCC", "fixed", "rccc"
     run = train(config, progress=False)
-    code = main(["predict", str(run / "checkpoint_last.safetensors"), str(shared_data / "dng" / "pidng_indoor_gbrg10.dng"),
-                 "--out", str(tmp_path / "no.png")])
+    code = main(["predict", str(run / "checkpoint_last.safetensors"),
+                 str(shared_data / "dng" / "pidng_indoor_gbrg10.dng"), "--out", str(tmp_path / "no.png")])
     assert code == 2 and not (tmp_path / "no.png").exists()
 
 

@@ -49,7 +49,8 @@ def test_the_design_space_names_and_cells():
     assert spec.design_values("search_f1p76_t14p4") == (1.76, 14.4)
     for name in ("search_f1p76", "search_f1p763_t14p4", "search_f9_t14", "other_f2_t10", "search_t2_f10"):
         assert spec.design_values(name) is None  # not a design: too few keys, unrounded, outside, other names
-    assert spec.rungs(1) == [1, 2] and spec.rungs(5) == [1, 3, 10] and spec.rungs(15) == [1, 3, 9, 30] and spec.design_cost(5) == 10
+    assert spec.rungs(1) == [1, 2] and spec.rungs(5) == [1, 3, 10] and spec.rungs(15) == [1, 3, 9, 30]
+    assert spec.design_cost(5) == 10
     assert [[round(v, 3) for v in row] for row in spec.grid_values()] == [[1.4, 2.503, 4.475, 8.0],
                                                                           [1.0, 3.107, 9.655, 30.0]]
     cell = plan.cell("search_f1p76_t14p4/night/1")  # a design's cell resolves from its name (workers, Slurm tasks)

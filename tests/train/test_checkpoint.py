@@ -55,7 +55,8 @@ def _bad_files(tmp_path):
     for name, content in files.items():
         (tmp_path / f"{name}.safetensors").write_bytes(content)
     torch.save({"model.weight": torch.zeros(2, 2)}, tmp_path / "pickle.safetensors")
-    save_file({"model.weight": torch.zeros(2, 2)}, str(tmp_path / "list_meta.safetensors"), metadata={"warpsense": "[1, 2]"})
+    save_file({"model.weight": torch.zeros(2, 2)}, str(tmp_path / "list_meta.safetensors"),
+              metadata={"warpsense": "[1, 2]"})
     save_file({"model.weight": torch.zeros(2, 2)}, str(tmp_path / "bad_json.safetensors"), metadata={"warpsense": "{"})
     save_file({"model.weight": torch.zeros(2, 2)}, str(tmp_path / "no_meta.safetensors"))
     save_file({"other": torch.zeros(2)}, str(tmp_path / "no_model.safetensors"),

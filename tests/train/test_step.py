@@ -56,7 +56,8 @@ def test_camera_gradient_is_clipped_in_the_joint_phase():
     clip = 1e-4
     step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), 4, False, camera_grad_clip=clip)
     step(model, images, labels, 0, joint=True)
-    norm = math.sqrt(sum(float(p.grad.square().sum()) for p in model.camera.learnable_parameters() if p.grad is not None))
+    norm = math.sqrt(sum(float(p.grad.square().sum()) for p in model.camera.learnable_parameters()
+                         if p.grad is not None))
     assert norm == pytest.approx(clip, rel=1e-4)
 
 

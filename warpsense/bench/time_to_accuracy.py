@@ -166,8 +166,8 @@ def run_time_to_accuracy_suite(device: str, quick: bool, camvid_root: str | None
                 curves[method], starts[method] = trainer(config)
                 starts[method]["process_warmup_s"] = warmup_s
                 # each curve as soon as it exists: a run stopped during the second method keeps the first
-                print(f"time-to-accuracy {method} seed {seed}: " + json.dumps({**starts[method], "curve": curves[method]}),
-                      flush=True)
+                record = {**starts[method], "curve": curves[method]}
+                print(f"time-to-accuracy {method} seed {seed}: " + json.dumps(record), flush=True)
         records += _seed_records(curves, starts, config, device, metadata, seed)
     if len(seeds) > 1:
         records += summarise(records)
@@ -227,9 +227,10 @@ def summarise(records: list[dict]) -> list[dict]:
                 partner = {seed: baseline[seed][key] for seed in reached if baseline[seed][key] is not None}
                 summary[f"{key}_difference"] = paired_difference(reached, partner) if partner else None
         summaries.append(summary)
+        differences = {key: summary.get(key + "_difference") for key in SUMMARISED}
         print(f"time-to-accuracy {method:>17s} " + "  ".join(
-            f"{key} {_interval_text(summary[key])}" + (f" (difference {_interval_text(summary.get(key + '_difference'))})"
-                                                       if summary.get(key + "_difference") else "")
+            f"{key} {_interval_text(summary[key])}"
+            + (f" (difference {_interval_text(differences[key])})" if differences[key] else "")
             for key in SUMMARISED), flush=True)
     return summaries
 

@@ -59,8 +59,8 @@ def run(args: argparse.Namespace) -> int:
     # 2 a side: the fixed ISP's demosaic pads by reflection, a torch error (traceback) on a 1-pixel side
     height, width = parse_size(args.latency_size or "192x640", "--latency-size", "192x640", minimum=2)
     run_eval(args.checkpoint, args.data, args.data_root, args.split, args.json, args.sweep, args.latency,
-             (height, width), args.latency_batch or 1, args.device, args.batch_size, args.limit, args.plot, args.flip_tta,
-             progress=show_progress(args))
+             (height, width), args.latency_batch or 1, args.device, args.batch_size, args.limit, args.plot,
+             args.flip_tta, progress=show_progress(args))
     return 0
 
 

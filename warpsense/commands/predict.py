@@ -65,7 +65,8 @@ def legend_strip(class_names: list[str], present: set[int], num_classes: int, wi
     except TypeError:  # Pillow < 10.1: the fixed bitmap font
         font = ImageFont.load_default()
     row_height, swatch, gap = font_size + 8, font_size, font_size
-    entries = [(index, class_names[index] if index < len(class_names) else f"class {index}") for index in sorted(present)]
+    entries = [(index, class_names[index] if index < len(class_names) else f"class {index}")
+               for index in sorted(present)]
     strip = Image.new("RGB", (width, row_height), "white")
     draw = ImageDraw.Draw(strip)
     rows, x = [strip], 4

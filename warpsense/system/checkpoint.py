@@ -141,7 +141,8 @@ def _load_states(tensors: dict, model: torch.nn.Module, optimizer: torch.optim.O
         for group in optimizer.param_groups:
             for parameter in group["params"]:
                 for key, value in optimizer.state.get(parameter, {}).items():
-                    if torch.is_tensor(value) and value.shape == parameter.shape and value.stride() != parameter.stride():
+                    if (torch.is_tensor(value) and value.shape == parameter.shape
+                            and value.stride() != parameter.stride()):
                         optimizer.state[parameter][key] = torch.empty_like(parameter, dtype=value.dtype).copy_(value)
 
 

@@ -290,8 +290,7 @@ def _check_evaluation_files(datasets: _Datasets, config) -> None:
     """Stop before the first epoch on an unreadable image or label of a set the run evaluates (val or the
     held-out sequence, the held-out prefix, the final evaluation's other splits): they are read only at the first
     evaluation, after epochs are spent (training images are read in the first epoch, before any checkpoint). PIL's
-    verify reads the file's header and chunk checksums without decoding it (CamVid's val: 0.3 ms a file, a tenth of
-    a decode)."""
+    verify reads the file's header and chunk checksums without decoding it, a fraction of a decode's time."""
     val_name = f"held-out {fold_name(config.data)}" if holds_out_fold(config.data) else config.data.val_split
     checked = [(val_name, datasets.val), (f"held-out prefix {config.data.holdout_prefix}", datasets.selection)]
     checked += [(split, build_dataset(config.data, split, train=False, seed=config.run.seed))
@@ -385,8 +384,9 @@ def superseded_name(name: str, epochs: int) -> str:
 def _supersede_final_files(run_dir: Path, start_epoch: int) -> None:
     """At the first epoch a continuation completes (`--extend`, or more epochs with --allow-config-change), move the
     earlier end's `EVALUATION` and plots aside (`superseded_name`), before config.json and the checkpoint change:
-    until the continuation's own end writes them again the run holds no evaluation, so it reads as unfinished (`warpsense
-    study` resumes the cell instead of reporting the old end's scores beside a newer checkpoint) and no plot shows
+    until the continuation's own end writes them again the run holds no evaluation, so it reads as unfinished
+    (`warpsense study` resumes the cell instead of reporting the old end's scores beside a newer checkpoint) and no
+    plot shows
     the old end as the current one. A continuation refused or stopped before this epoch completes moves nothing."""
     for path in [run_dir / EVALUATION, *sorted(run_dir.glob("*.png"))]:
         if path.is_file() and ".epoch" not in path.name:
@@ -462,17 +462,20 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         if not resume:  # a continuation's own files wait for its first complete epoch (`_write_run_files`)
             _write_run_files(run_dir, config, versions, history, start_epoch, resume, inputs)
         print(f"run directory: {run_dir}")
+        camera_parameters = sum(p.numel() for p in model.camera.learnable_parameters())
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
-              f"{sum(p.numel() for p in model.camera.learnable_parameters()):,}; device: {device}; ranks: {context.world_size}")
+              f"{camera_parameters:,}; device: {device}; ranks: {context.world_size}")
 
     teacher = None
     if config.loss.distill_weight > 0:  # read for training only: the checkpoint keeps the student alone
         teacher = load_teacher(config.loss.teacher, num_classes, device)
         if context.is_main:
             print(f"distilling {config.loss.teacher} ({count_parameters(teacher.network):,} parameters), weight "
-                  f"{config.loss.distill_weight}, T = {config.loss.distill_temperature}, {config.loss.distill_mode}-wise")
-    training_step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(), schedule.epochs * steps_per_epoch,
-                                 amp, config.train.camera_grad_clip, config.train.compile, config.train.cuda_graph,
+                  f"{config.loss.distill_weight}, T = {config.loss.distill_temperature}, "
+                  f"{config.loss.distill_mode}-wise")
+    training_step = TrainingStep(config.loss, optimizer, model.camera.learnable_parameters(),
+                                 schedule.epochs * steps_per_epoch, amp, config.train.camera_grad_clip,
+                                 config.train.compile, config.train.cuda_graph,
                                  config.train.micro_batch, teacher, data_parallel=context.enabled,
                                  radiance_jitter=RadianceJitter.from_config(config.data))
     wrapped, wrapped_phase = model, None
@@ -510,7 +513,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
             record["capture_s"] = capture_s  # of this epoch's time: the CUDA graph capture of a new phase
         if every(epoch, config.train.eval_every, schedule.epochs):
             record.update(_validate(model, datasets, config, context, amp, progress))
-        record["wall_s"] = time.perf_counter() - run_started  # this process's time so far, setup and evaluation included
+        # this process's time so far, setup and evaluation included
+        record["wall_s"] = time.perf_counter() - run_started
         record.update(model.camera.summary())
         score = record.get("selection_miou", record.get("val_miou", -1.0))
         is_best = score > best_miou
@@ -597,7 +601,8 @@ def run_summary(run_dir: Path, config) -> str:
                      f"{first_line(error)})")
     if best is not None:
         if "selection_miou" in best:
-            score = f"held-out {config.data.holdout_prefix} mIoU {best['selection_miou']:.4f}, val {best['val_miou']:.4f}"
+            score = (f"held-out {config.data.holdout_prefix} mIoU {best['selection_miou']:.4f}, "
+                     f"val {best['val_miou']:.4f}")
         elif holds_out_fold(config.data):
             score = f"held-out {fold_name(config.data)} mIoU {best['val_miou']:.4f}"
         else:

@@ -101,7 +101,8 @@ def changed_input(run_dir: Path, config) -> str | None:
             continue
         now, then = _digest(Path(path)), recorded[path]["sha256"]
         if now != then:
-            return f"{path} ({key}): its content changed since {run_dir} read it (sha256 {then[:12]}... -> {now[:12]}...)"
+            return (f"{path} ({key}): its content changed since {run_dir} read it (sha256 {then[:12]}... -> "
+                    f"{now[:12]}...)")
     return None
 
 

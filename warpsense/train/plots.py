@@ -128,8 +128,9 @@ def plot_predictions(model, dataset, device, path: Path, count: int = 4) -> None
         logits, sensed = model(image[None].to(device))
         image, label = image.cpu(), label.cpu()
         prediction = logits.argmax(dim=1)[0].cpu().numpy()
-        panels = [image.permute(1, 2, 0).numpy(), sensed[0].float().cpu().clamp(0, 1).permute(1, 2, 0).numpy().squeeze(),
-                  colorize(prediction, num_classes), colorize(label.numpy(), num_classes)]
+        sensor = sensed[0].float().cpu().clamp(0, 1).permute(1, 2, 0).numpy().squeeze()
+        panels = [image.permute(1, 2, 0).numpy(), sensor, colorize(prediction, num_classes),
+                  colorize(label.numpy(), num_classes)]
         titles = (f"input (sRGB), frame {index}", "sensor output", "prediction", "label")
         for axis, panel, title in zip(axes[row], panels, titles):
             axis.imshow(panel, cmap="gray" if panel.ndim == 2 else None)
