@@ -63,8 +63,8 @@ def sequential_judgements(plan: Plan, out: Path) -> list[dict]:
         reference = _scores(plan, out, plan.reference, light.name)
         for camera in cameras:
             if camera != plan.reference:
-                judgement = judge(plan.sequential, plan.seeds, plan.fold_names(), _scores(plan, out, camera, light.name),
-                                  reference)
+                scores = _scores(plan, out, camera, light.name)
+                judgement = judge(plan.sequential, plan.seeds, plan.fold_names(), scores, reference)
                 judgements.append({"camera": camera, "light": light.name, **judgement})
     return judgements
 
@@ -85,8 +85,8 @@ def sequential_cells(plan: Plan, out: Path, say=None) -> list[Cell]:
                 wanted.update(_seed_cells(plan, camera, judgement["light"], judgement["needs_seeds"]))
     cells = [cell for cell in plan.cells() if cell in wanted and cell_state(out, cell) != "done"]
     if cells and say is not None:
-        say(f"study: sequential: {len(unsettled)} comparison(s) unsettled ("
-            + "; ".join(f"{j['camera']} at {j['light']}: {stop_text(j)}" for j in unsettled) + f"): {len(cells)} cell(s)")
+        stops = "; ".join(f"{j['camera']} at {j['light']}: {stop_text(j)}" for j in unsettled)
+        say(f"study: sequential: {len(unsettled)} comparison(s) unsettled ({stops}): {len(cells)} cell(s)")
     return cells
 
 
@@ -128,7 +128,8 @@ def run_adaptive(plan: Plan, out: Path, train: Callable[[Plan, list[Cell]], int]
         round_plan, cells = next_cells(plan, out, say)
         if not cells:
             if plan.sequential is not None:
-                stops = "; ".join(f"{j['camera']} at {j['light']}: {stop_text(j)}" for j in sequential_judgements(plan, out))
+                stops = "; ".join(f"{j['camera']} at {j['light']}: {stop_text(j)}"
+                                  for j in sequential_judgements(plan, out))
                 say(f"study: sequential: every comparison has stopped ({stops})")
             elif plan.search is not None and (out / "search.json").is_file():
                 say(f"study: {search_summary(plan, out)}")

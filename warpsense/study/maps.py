@@ -18,16 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from warpsense.study.keys import LEARNED_KEYS  # swept key -> (its learnable flag, its learned value's key)
 from warpsense.study.plan import Plan, PlanError
 from warpsense.study.runner import read_record, run_dir
 from warpsense.study.statistics import bounded, interval_text
 from warpsense.train.run_dir import METRICS, read_metrics
-
-LEARNED_KEYS = {"optics.f_number": ("optics.f_number_learnable", "f_number"),
-                "optics.exposure_ms": ("optics.exposure_learnable", "exposure_ms"),
-                "photons.analog_gain": ("photons.gain_learnable", "analog_gain")}
-"""Swept config key -> (the config flag that makes it learnable, the key of its learned value in each epoch's
-metrics record)."""
 
 CONFIG = "config.json"
 """A run directory's resolved config (`warpsense.config.Config.save`)."""

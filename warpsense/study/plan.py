@@ -79,6 +79,7 @@ from warpsense.config import Config, ConfigError, flatten_keys, load_config, par
 from warpsense.data import DatasetError, build_dataset, sequence_names
 from warpsense.resources import CONFIG_DIR
 from warpsense.study.conflicts import check_conflicts
+from warpsense.study.keys import LEARNED_KEYS, value_label
 from warpsense.study.search_space import SearchError, SearchSpec, corner_designs, parse_search
 from warpsense.study.sequential import SequentialRule, check_rule
 
@@ -409,14 +410,6 @@ def _config_key(key: str, where: str) -> None:
         raise PlanError(f"{where}: {key!r} is not a config key (section.key, e.g. optics.f_number)")
 
 
-def value_label(value) -> str:
-    """A grid value as it appears in a camera name: "1.4" -> "1p4", -2 -> "m2", True -> "true"."""
-    if isinstance(value, bool):
-        return str(value).lower()
-    text = f"{value:g}" if isinstance(value, float) else str(value)
-    return text.replace("+", "").replace("-", "m").replace(".", "p")
-
-
 def _sweep(table: dict, where: str) -> SweepSpec:
     """A checked ``[[sweep]]`` table with its points (the grid's Cartesian product, first key slowest)."""
     table = _table(table, SWEEP_KEYS, where, ("name", "grid"))
@@ -645,7 +638,6 @@ def _check_designs(plan: Plan) -> None:
     stages' checks), says the searched values in its config (nothing later in a cell's overrides, a light's keys
     or --set, changes them), no plan camera is named as a design, a known camera's design lies within the bounds
     and a learned camera learns a searched key; else a PlanError naming the search."""
-    from warpsense.study.maps import LEARNED_KEYS
     from warpsense.system import check_config
 
     search, where = plan.search, f"{plan.source}: search[0]"

@@ -24,7 +24,7 @@ from warpsense.study.runner import (
     throughput_line,
 )
 from warpsense.study.search_report import search_lines, search_record
-from warpsense.study.sequential import judged_comparison, sequential_lines
+from warpsense.study.sequential_report import judged_comparison, sequential_lines
 from warpsense.study.statistics import (
     LEVEL,
     block_bootstrap_difference,

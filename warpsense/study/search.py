@@ -47,6 +47,7 @@ import warnings
 from pathlib import Path
 
 from warpsense.files import write_json
+from warpsense.study.keys import LEARNED_KEYS
 from warpsense.study.plan import Cell, Plan, PlanError
 from warpsense.study.runner import cell_state, read_evaluation, read_record, run_dir
 
@@ -162,8 +163,6 @@ def learned_design(plan: Plan, out: Path, camera: str) -> tuple[float, ...]:
     """A learned camera's design in the search's keys: per key the mean over its finished runs at the search's
     light (geometric for a log-scaled key) of the learned value its evaluation records, or of its config's value for
     a key it does not learn; a PlanError naming the camera where none of its runs is finished."""
-    from warpsense.study.maps import LEARNED_KEYS
-
     spec = plan.search
     cells = [cell for cell in plan.cells() if cell.camera == camera and cell.light == spec.light
              and cell_state(out, cell) == "done"]
@@ -181,8 +180,9 @@ def learned_design(plan: Plan, out: Path, camera: str) -> tuple[float, ...]:
             learns = flag is not None and config.get(flag.split(".")[0], {}).get(flag.split(".")[1]) is True
             value = learned.get(field) if learns else config.get(section, {}).get(name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise PlanError(f"{run_dir(out, cell)}: {'evaluation.json camera.' + field if learns else 'config.json ' + key}: "
-                                f"expected a number to start the search from, got {value!r}")
+                where = f"evaluation.json camera.{field}" if learns else f"config.json {key}"
+                raise PlanError(f"{run_dir(out, cell)}: {where}: expected a number to start the search from, got "
+                                f"{value!r}")
             samples.append(float(value))
         if log:
             values.append(math.exp(sum(math.log(max(v, 1e-12)) for v in samples) / len(samples)))

@@ -24,7 +24,7 @@ becomes a camera of the plan.
     seed = 0                        # the sampler's seed
     grid_points = { "optics.f_number" = 4, "optics.exposure_ms" = 4 }  # without a [[sweep]]: the grid it replaces
 
-A design is a camera named ``<name>_<label><value>_...`` (`warpsense.study.plan.value_label`: "1p76" for 1.76),
+A design is a camera named ``<name>_<label><value>_...`` (`warpsense.study.keys.value_label`: "1p76" for 1.76),
 with the search's preset and overrides and ``key=value`` per searched key; its cells are the plan's folds x the
 first ``seeds`` seeds at ``light``. The name alone says the design (`design_values` reads it back), so a worker
 process, a Slurm task or ``--cell`` resolves a design's cell from the plan and its name, without the search's state.
@@ -39,6 +39,7 @@ import math
 from dataclasses import dataclass
 
 from warpsense.config import Config, flatten_keys
+from warpsense.study.keys import value_label
 
 SEARCH_KEYS = {"name": str, "preset": str, "set": list, "bounds": dict, "log": dict, "labels": dict, "digits": int,
                "budget": int, "seeds": int, "light": str, "start": list, "known": list, "learned": list, "batch": int,
@@ -96,8 +97,6 @@ class SearchSpec:
 
     def camera(self, values) -> str:
         """The design camera's name: ``<name>_<label><value>_...``."""
-        from warpsense.study.plan import value_label
-
         return "_".join([self.name, *(f"{label}{value_label(float(v))}" for label, v in zip(self.labels, values))])
 
     def overrides(self, values) -> list[str]:
@@ -305,7 +304,8 @@ def parse_search(table: dict, where: str, lights: list[str], cameras: list[str])
         high=tuple(float(bounds[k][1]) for k in parameters), log=tuple(bool(log.get(k, False)) for k in parameters),
         labels=names, budget=table["budget"], light=light, preset=table.get("preset", ""),
         set=tuple(table.get("set", [])), digits=table.get("digits", 3), seeds=table.get("seeds", 1),
-        start=tuple(start), known=tuple(known), learned=tuple(learned), batch=table.get("batch", 1), reduction=table.get("reduction", 3),
+        start=tuple(start), known=tuple(known), learned=tuple(learned), batch=table.get("batch", 1),
+        reduction=table.get("reduction", 3),
         prune_margin=float(table.get("prune_margin", 0.0)), sampler=table.get("sampler", "gp"),
         seed=table.get("seed", 0), grid_points=tuple(grid.get(k, DEFAULT_GRID_POINTS) for k in parameters))
     if not all(isinstance(text, str) for text in spec.set):

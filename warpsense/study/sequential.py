@@ -7,24 +7,24 @@ per fold): it goes on only while its interval holds 0 and is wider than ``tolera
 once the interval excludes 0 (a verdict where the bootstrap agrees), or once it holds 0 within the tolerance (the
 smallest difference it could call is below what matters), or at ``max_seeds``.
 
-Why a group-sequential boundary. Looking after every seed and stopping on a significant interval makes the fixed
-95% t interval call a camera twice as often as it should (the A/A simulation, docs/results.md: the rate of a
-"difference" between one camera and itself grows with every look). Two fixes keep the rate: an anytime-valid
-confidence sequence (Howard, Ramdas, McAuliffe and Sekhon 2021, Ann. Statist. 49: valid at any number of looks
-and any stopping rule) or a group-sequential boundary (Pocock 1977, Biometrika 64; Jennison and Turnbull 2000,
-"Group Sequential Methods", ch. 2-3: valid for the looks planned). The looks here are planned (one a seed, from
-``min_seeds`` to ``max_seeds``) and few (1-10), the paired differences are Gaussian-like with an unknown variance
-estimated from 5-40 pairs, and the cost of a wider interval is GPU hours: a confidence sequence pays for looks that
-never happen (the two-sided normal-mixture boundary of Howard et al., even with a known variance and tuned for 15
-pairs, is 1.87x the fixed 95% interval's half-width at 15 pairs), the Pocock boundary only for the planned ones
-(1.27x the fixed t interval's at the first of 6 looks of 15-40 pairs: 5 folds x 3-8 seeds). So: a Pocock-type boundary on the paired t statistic, one nominal two-sided level
-a' at every look (Jennison and Turnbull's "significance level" form for t statistics, whose degrees of freedom grow
-with the looks), with a' calibrated so that a camera compared with itself crosses at some look with probability
-1 - level. The interval at a look, mean +- t_{1-a'/2, n-1} s / sqrt(n), is a repeated confidence interval
-(Jennison and Turnbull 1984): all looks' intervals cover the true difference together with probability >= level,
-so the interval where the comparison stopped keeps its level whatever the stopping rule (stopping early for
-``tolerance`` only removes chances to cross). The report's other interval, the block bootstrap over frames, stays a
-condition of the verdict as in the fixed rule: requiring both can only lower the error rate.
+Why a group-sequential boundary. Looking after every seed and stopping on a significant interval makes the fixed 95% t
+interval call a camera different from itself 12-15% of the time instead of 5% (the A/A simulation, docs/results.md: the
+rate of a "difference" between one camera and itself grows with every look). Two fixes keep the rate: an anytime-valid
+confidence sequence (Howard, Ramdas, McAuliffe and Sekhon 2021, Ann. Statist. 49: valid at any number of looks and any
+stopping rule) or a group-sequential boundary (Pocock 1977, Biometrika 64; Jennison and Turnbull 2000, "Group Sequential
+Methods", ch. 2-3: valid for the looks planned). The looks here are planned (one a seed, from ``min_seeds`` to
+``max_seeds``) and few (1-10), the paired differences are Gaussian-like with an unknown variance estimated from 5-40
+pairs, and the cost of a wider interval is GPU hours: a confidence sequence pays for looks that never happen (the
+two-sided normal-mixture boundary of Howard et al., even with a known variance and tuned for 15 pairs, is 1.87x the
+fixed 95% interval's half-width at 15 pairs), the Pocock boundary only for the planned ones (1.27x the fixed t
+interval's at the first of 6 looks of 15-40 pairs: 5 folds x 3-8 seeds). So: a Pocock-type boundary on the paired t
+statistic, one nominal two-sided level a' at every look (Jennison and Turnbull's "significance level" form for t
+statistics, whose degrees of freedom grow with the looks), with a' calibrated so that a camera compared with itself
+crosses at some look with probability at most 1 - level. The interval at a look, mean +- t_{1-a'/2, n-1} s / sqrt(n), is
+a repeated confidence interval (Jennison and Turnbull 1984): all looks' intervals cover the true difference together
+with probability >= level, so the interval where the comparison stopped keeps its level whatever the stopping rule
+(stopping early for ``tolerance`` only removes chances to cross). The report's other interval, the block bootstrap over
+frames, stays a condition of the verdict as in the fixed rule: requiring both can only lower the error rate.
 
 Calibration (`nominal_level`): under the null the paired t statistics of the looks have a joint law that depends on
 the looks' sizes alone (not on the mean or the variance), so it is simulated once per set of looks: per replicate
@@ -278,48 +278,3 @@ def stop_text(judgement: dict) -> str:
            "max_seeds": f"max_seeds ({judgement['max_seeds']})"}[judgement["stop"]]
     return f"stopped at {look}: {why}"
 
-
-def judged_comparison(plan: dict, runs: dict, reference: dict, sequences: dict, block: int,
-                      resamples: int) -> dict | None:
-    """A report's comparison under ``study.sequential`` (None for a plan without): the camera's and the reference's
-    runs of one split, by (fold, seed), judged where the rule stopped (`judge`), the bootstrap over that look's
-    pairs (`warpsense.study.statistics.block_bootstrap_difference`, frames drawn in blocks within ``sequences``).
-
-    Returns the fields that replace the fixed rule's: {"paired" (the repeated interval), "bootstrap", "verdict",
-    "sequential": the judgement's state, stop, look, pairs, seeds, nominal level, looks, tolerance and history}; the
-    fixed rule's intervals are kept (and the verdict is "not distinguishable") before the first look is complete."""
-    if not plan.get("sequential"):
-        return None
-    from warpsense.study.plan import Plan
-    from warpsense.study.statistics import block_bootstrap_difference
-
-    def bootstrap(keys: list) -> dict:
-        pairs = [(runs[key]["image_counts"], reference[key]["image_counts"], key[0]) for key in keys]
-        return block_bootstrap_difference(pairs, sequences, block, resamples)
-
-    judgement = judge(SequentialRule.from_dict(plan["sequential"]), tuple(plan["seeds"]),
-                      Plan.from_dict(plan).fold_names(), {key: run["miou"] for key, run in runs.items()},
-                      {key: run["miou"] for key, run in reference.items()}, bootstrap)
-    summary = {key: judgement[key] for key in ("state", "stop", "look", "pairs", "seeds", "needs_seeds",
-                                                "nominal_level", "looks", "tolerance", "min_seeds", "max_seeds",
-                                                "history")}
-    summary["text"] = stop_text(judgement)
-    if not judgement["look"]:
-        return {"verdict": NOT_DISTINGUISHABLE, "sequential": summary}
-    return {"paired": judgement["paired"], "bootstrap": judgement["bootstrap"], "verdict": judgement["verdict"],
-            "sequential": summary}
-
-
-def sequential_lines(split: str, part: dict, level: float = LEVEL) -> list[str]:
-    """The report's lines on where each comparison of ``part`` stopped (none without study.sequential)."""
-    comparisons = [c for c in part["comparisons"] if c.get("sequential")]
-    if not comparisons:
-        return []
-    first = comparisons[0]["sequential"]
-    lines = [f"[{split}] sequential verdicts: {first['min_seeds']}..{first['max_seeds']} seeds, another seed while the "
-             f"interval holds 0 and is wider than +-{first['tolerance']:g}; the paired interval above is the "
-             f"repeated {level:.0%} interval of the look where it stopped (Pocock-type, t at nominal level "
-             f"{first['nominal_level']:.4f} at each of {len(first['looks'])} looks)"]
-    width = max(len(c["camera"]) for c in comparisons)
-    lines += [f"  {c['light']:>8s}  {c['camera']:<{width}s}  {c['sequential']['text']}" for c in comparisons]
-    return lines
