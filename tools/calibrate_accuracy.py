@@ -18,7 +18,8 @@ calibrated in memory exactly as a `.safetensors` capture of it is (the mosaic sp
 bounds), by `warpsense.calibration.single.estimate_capture`. The report gives, per scene kind and level, the median
 and worst relative errors of shot and read, and the captures whose read noise was not resolved (interval from 0).
 
-    python tools/calibrate_accuracy.py                       # the guide's table (about 10 minutes on 2 cores)
+    python tools/calibrate_accuracy.py --frames 8 --seeds 3  # the guide's CamVid column (about 5 minutes on 2 cores)
+    python tools/calibrate_accuracy.py --seeds 10 --kinds textured,no-black  # its synthetic columns
     python tools/calibrate_accuracy.py --frames 2 --seeds 2  # a quick look
     python tools/calibrate_accuracy.py --json all.json       # every capture's estimate
 """
