@@ -4,12 +4,14 @@ The plane (the pixels of one site of the CFA tile, so that the colour pattern is
 With u0 = (1, 1, 1) / sqrt 3, u1 = (1, 0, -1) / sqrt 2 and u2 = (1, -2, 1) / sqrt 6, each block gives:
 
 - its mean ``m`` (the box filter u0 u0^T, over 3): an estimate of the local signal;
-- its detail energy ``e``, the mean square of its 4 detail coefficients sum(f * block) for f = u1 u1^T, u1 u2^T,
-  u2 u1^T, u2 u2^T. The four filters are orthonormal, and orthogonal to the box, so under Gaussian noise of variance
-  v the coefficients are independent N(0, v), independent of m, and E[e] = v. Each is a product of two
-  zero-sum factors, so each annihilates every signal of the form f(x) + g(y): rows, columns, horizontal and
-  vertical edges, gradients; only corners, curvature across both axes and fine texture leak signal into e. They
-  play the part of the wavelet detail coefficients of Foi et al. 2008 (section IV).
+- its detail coefficients sum(f * block) for the four detail filters f = u1 u1^T, u1 u2^T, u2 u1^T, u2 u2^T. The
+  four are orthonormal, and orthogonal to the box, so under Gaussian noise of variance v the coefficients are
+  independent N(0, v), independent of m. Each is a product of two zero-sum factors, so each annihilates every
+  signal of the form f(x) + g(y): rows, columns, horizontal and vertical edges, gradients; only corners, curvature
+  across both axes and fine texture leak signal into them. They play the part of the wavelet detail coefficients of
+  Foi et al. 2008 (section IV). The sample's energy ``e`` is the square of the u2 u2^T one (`CENTRE`, E[e] = v);
+  the other three give the block's own roughness (`OWN`), which the choice of samples reads; at the lower clip the
+  four `SIDES` filters (a box along one axis) join them (``energy_black``).
 
 A sample is a block with its ring, the 8 blocks around it (a 9 x 9 window). The ring's mean gives the sample's
 level, and the ring's mean detail energy its roughness; neither shares a pixel with the centre block, so choosing
