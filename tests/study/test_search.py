@@ -135,6 +135,8 @@ def test_the_search_warm_starts_prunes_losers_holds_its_budget_and_resumes(tmp_p
     printed = capsys.readouterr().out
     record = read_search(out)
     designs = record["designs"]
+    assert "study: search: design 2 search_f2p8_t10 (2.8, 10) started (start)" in printed
+    assert f"cells of a budget of 12; best search_f2p8_t10 {designs[1]['value']:.4f}" in printed
     assert [d["source"] for d in designs[:3]] == ["camera:start", "start", "learned:learned"]
     assert designs[0]["camera"] == "start" and designs[0]["known"] and designs[0]["values"] == [5.6, 2.0]
     assert designs[2]["values"] == [5.04, 2.4]  # the learned camera's end (f x 0.9, t x 1.2 in the stand-in), rounded
@@ -155,8 +157,11 @@ def test_the_search_warm_starts_prunes_losers_holds_its_budget_and_resumes(tmp_p
     spent = sum(len(cells) for cells in trained.values())
     assert spent <= 12 and spent + 2 > 12  # stopped when the next design would pass the budget
     assert any(d["state"] == "pruned" for d in designs)
-    assert "study: search: design 2 search_f2p8_t10 (2.8, 10) started (start)" in printed
-    assert f"cells of a budget of 12; best search_f2p8_t10 {designs[1]['value']:.4f}" in printed
+    capsys.readouterr()
+    assert main(["study", "status", str(out)]) == 0  # the designs' cells trained so far, not only the plan's
+    status = capsys.readouterr().out
+    assert f"{4 + spent} cells: {4 + spent} done, 0 running, 0 pending, 0 failed" in status
+    assert "search_f2p8_t10/night/1" in status
 
     # the same study interrupted (Ctrl-C in its 7th cell), then run again: the same designs, in the same order
     interrupted = FakeTraining(_score, stop_after=6)

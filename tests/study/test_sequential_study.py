@@ -108,6 +108,8 @@ def test_only_unsettled_comparisons_get_more_seeds_and_the_report_judges_where_t
            "pairs): needs seed(s) 0, 1, 2)" in printed
     record = study_record(out, resamples=50)
     assert record["missing"] == []  # seeds past a comparison's stop are not missing
+    assert main(["study", "status", str(out)]) == 0  # ... nor pending
+    assert f"{len(expected)} cells: {len(expected)} done, 0 running, 0 pending" in capsys.readouterr().out
     far, twin = record["splits"]["val"]["comparisons"]
     assert far["camera"] == "far" and far["verdict"] == "better"
     assert far["sequential"]["stop"] == "excludes_zero" and far["sequential"]["look"] == 2

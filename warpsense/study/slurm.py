@@ -449,9 +449,13 @@ def study_status(out: Path, plan: Plan, cells: list[Cell] | None = None) -> tupl
 def print_status(study_dir: str | Path) -> int:
     """`warpsense study status DIR`: one line per cell (pending, running, done or failed, from the directory and the
     scheduler) and the counts."""
+    from warpsense.study.adaptive import expected_cells
+
     out = Path(study_dir)
-    plan = Plan.from_dict(runner.read_plan_record(out))
-    statuses, answered = study_status(out, plan)
+    record = runner.read_plan_record(out)
+    plan = Plan.from_dict(record)
+    # study.sequential and [[search]]: the cells needed so far (a search's designs among them), not every seed
+    statuses, answered = study_status(out, plan, expected_cells(out, record))
     submissions = read_jobs(out)
     jobs = f" (Slurm job{'s' if len(submissions) > 1 else ''} {', '.join(s['job_id'] for s in submissions)})" \
         if submissions else ""
