@@ -13,7 +13,7 @@ from tests.train.test_training import TINY
 from warpsense.cli import main
 from warpsense.config import ConfigError, load_config
 from warpsense.train import engine
-from warpsense.train.run_dir import LAST, RunLock, newest_run, read_metrics, resumed_config
+from warpsense.train.run_dir import LAST, RunDir, RunLock, newest_run, read_metrics, resumed_config
 
 
 def _run(tmp_path, name="tiny", extra=()):
@@ -200,3 +200,76 @@ def test_eval_latency_alone_reads_no_dataset_and_scores_nothing(tmp_path):
     assert {"sensor_plus_network_ms", "network_ms"} <= set(payload["latency"])
     assert payload["latency"]["sensor_plus_network_ms"] > 0 and payload["latency"]["camera_cached"] is True
     assert json.loads((tmp_path / "latency.json").read_text())["latency"] == payload["latency"]
+
+
+def test_the_run_folder_names_its_files_as_they_are_on_disk(tmp_path):
+    """RunDir is the one owner of a run folder's names; the module names callers wrote before it are the same."""
+    from warpsense.train import inputs, run_dir
+
+    run = RunDir(tmp_path / "run")
+    assert {name: getattr(run, name).name for name in ("config", "metrics", "last", "best", "evaluation",
+                                                        "environment", "inputs", "best_copy")} == {
+        "config": "config.json", "metrics": "metrics.jsonl", "last": "checkpoint_last.safetensors",
+        "best": "checkpoint_best.safetensors", "evaluation": "evaluation.json", "environment": "environment.json",
+        "inputs": "inputs.json", "best_copy": "checkpoint_best.json"}
+    assert run.earlier_config(3) == tmp_path / "run" / "config.epoch3.json"
+    assert run.plot("curves") == tmp_path / "run" / "curves.png" and run.lock().path == tmp_path / "run" / "train.lock"
+    assert (run_dir.LAST, run_dir.BEST, run_dir.METRICS, run_dir.LOCK, engine.EVALUATION, inputs.INPUTS) == (
+        "checkpoint_last.safetensors", "checkpoint_best.safetensors", "metrics.jsonl", "train.lock",
+        "evaluation.json", "inputs.json")
+    assert os.fspath(run) == str(run) == str(tmp_path / "run")
+
+
+def test_the_kept_best_score_comes_from_the_best_checkpoints_header(tmp_path):
+    import torch
+
+    from warpsense.system.checkpoint import save_checkpoint
+
+    run = RunDir(tmp_path)
+    assert run.kept_best() == -1.0 and run.checkpoint_state(run.last) is None  # none written yet
+    save_checkpoint(run.best, torch.nn.Linear(1, 1), {}, {"epoch": 2, "best_miou": 0.375})
+    assert run.kept_best() == 0.375 and run.checkpoint_state(run.best) == {"epoch": 2, "best_miou": 0.375}
+    save_checkpoint(run.best, torch.nn.Linear(1, 1), {}, {"epoch": 2, "best_miou": float("nan")})
+    assert run.kept_best() == -1.0  # not a score: the next best epoch writes it
+    run.best.write_bytes(b"torn")
+    assert run.kept_best() == -1.0 and run.checkpoint_state(run.best) is None
+    assert run.holds_run() and not run.resumable() and not run.finished()
+
+
+def test_a_changed_config_keeps_the_earlier_one_once(tmp_path):
+    run = RunDir(tmp_path)
+    first, second = load_config(None, TINY), load_config(None, [*TINY, "train.epochs=5"])
+    run.write_config(first)
+    run.write_config(first, continued_from=2)  # unchanged: nothing to keep
+    assert not run.earlier_config(2).exists()
+    run.write_config(second, continued_from=2)
+    assert json.loads(run.earlier_config(2).read_text()) == json.loads(json.dumps(first.to_dict()))
+    run.write_config(load_config(None, [*TINY, "train.epochs=6"]), continued_from=2)  # the first config stays kept
+    assert json.loads(run.earlier_config(2).read_text()) == json.loads(json.dumps(first.to_dict()))
+    assert run.saved_config().train.epochs == 6
+
+
+def test_a_continuation_moves_the_earlier_ends_files_aside(tmp_path):
+    run = RunDir(tmp_path)
+    for name, text in (("evaluation.json", "{}"), ("curves.png", "a"), ("camera.epoch1.png", "b"),
+                       ("config.json", "{}")):
+        (tmp_path / name).write_text(text)
+    run.supersede_final_files(4)
+    assert sorted(path.name for path in tmp_path.iterdir()) == [
+        "camera.epoch1.png", "config.json", "curves.epoch4.png", "evaluation.epoch4.json"]
+
+
+def test_an_unfinished_run_leaves_nothing_but_a_best_checkpoint(tmp_path):
+    created = tmp_path / "out"
+    run = RunDir(created / "runs" / "a")
+    run.path.mkdir(parents=True)
+    run.write_metrics([{"epoch": 0}])
+    run.remove_unfinished(created)
+    assert not created.exists()
+    run.path.mkdir(parents=True)
+    run.best.write_bytes(b"")
+    run.remove_unfinished(created)
+    assert run.best.exists()  # that model is the user's
+    run.best.unlink()
+    run.remove_unfinished(None)  # made by someone else: kept
+    assert run.path.is_dir()

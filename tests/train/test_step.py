@@ -11,7 +11,7 @@ from tests.train.test_training import TINY
 from warpsense.camera import Camera
 from warpsense.camera.geometry import cfa_flip, cfa_unflip
 from warpsense.config import load_config
-from warpsense.system import SensingModel, build_system
+from warpsense.system import SensingModel, build_system, read_checkpoint
 from warpsense.train import engine
 from warpsense.train.distributed import DistributedContext
 from warpsense.train.engine import train
@@ -87,7 +87,7 @@ def test_diverged_run_stops_before_saving(tmp_path, monkeypatch):
     with pytest.raises(FloatingPointError, match="epoch 2"):
         train(config, progress=False)
     run = tmp_path / "default"
-    state = engine.read_checkpoint(run / engine.LAST)[1]["state"]
+    state = read_checkpoint(run / engine.LAST)[1]["state"]
     assert state["epoch"] == 0 and math.isfinite(state["best_miou"])
 
 

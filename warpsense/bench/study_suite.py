@@ -21,8 +21,8 @@ from pathlib import Path
 
 from warpsense.study.plan import PlanError, load_plan
 from warpsense.study.report import run_times
-from warpsense.study.runner import THROUGHPUT, evaluation_path, read_record, read_throughput, run_cells, run_dir
-from warpsense.train.run_dir import METRICS, read_metrics
+from warpsense.study.runner import THROUGHPUT, read_record, read_throughput, run_cells, run_dir
+from warpsense.train.run_dir import RunDir
 
 
 class SuiteStopped(Exception):
@@ -51,8 +51,8 @@ def judged_miou(evaluation: dict, source: str | Path = "evaluation") -> tuple[st
 def _cell_times(path: Path) -> dict:
     """{"wall_s": wall seconds of the run, summed over the processes of a resumed one (`run_seconds`),
     "steady_s": the same without a fresh process's first-use costs (`steady_run_seconds`), "epoch_s": the median
-    epoch seconds after the first} from its metrics.jsonl, read once."""
-    records = read_metrics(path / METRICS)
+    epoch seconds after the first} from its metrics (`RunDir.read_metrics`), read once."""
+    records = RunDir(path).read_metrics()
     wall, steady = run_times(records)
     epochs = [record["epoch_time_s"] for record in records[1:] if "epoch_time_s" in record]
     return {"wall_s": wall, "steady_s": steady, "epoch_s": statistics.median(epochs) if epochs else None}
@@ -102,9 +102,9 @@ def run_study_suite(plan: str, out: str | Path, cells: int = 0, gpus: list[str] 
     for cell in chosen:
         row = {"cell": cell.id}
         for name, folder in (("alone", alone), ("shared", shared)):
-            path = evaluation_path(folder, cell)
-            split, miou = judged_miou(read_record(path, dict), path)
-            row["split"], row[name] = split, {"miou": miou, **_cell_times(run_dir(folder, cell))}
+            run = RunDir(run_dir(folder, cell))
+            split, miou = judged_miou(read_record(run.evaluation, dict), run.evaluation)
+            row["split"], row[name] = split, {"miou": miou, **_cell_times(run.path)}
         row["miou_difference"] = row["shared"]["miou"] - row["alone"]["miou"]
         row["speedup"] = slots * row["alone"]["steady_s"] / row["shared"]["steady_s"]
         rows.append(row)

@@ -40,7 +40,7 @@ from warpsense.train.distributed import DistributedContext
 from warpsense.train.engine import build_train_batches, eval_batch_size, every, train
 from warpsense.train.evaluate import evaluate
 from warpsense.train.losses import segmentation_loss
-from warpsense.train.run_dir import METRICS, read_metrics
+from warpsense.train.run_dir import RunDir
 from warpsense.train.step import TrainingStep
 
 LEVELS = (0.5, 0.6, 0.65, 0.7)
@@ -139,7 +139,7 @@ def recipe_curve(config) -> tuple[list[dict], dict]:
     """Train the recipe with `warpsense train`'s engine; its validation curve and start times from the run's
     metrics."""
     run, model = train(config, progress=False, return_model=True)
-    records = read_metrics(run / METRICS)
+    records = RunDir(run).read_metrics()
     start = {"setup_s": records[0]["setup_s"], "first_epoch_s": records[0]["epoch_time_s"],
              "capture_s": sum(r.get("capture_s", 0.0) for r in records),  # CUDA graphs, both phases
              "network_parameters": count_parameters(model.network)}

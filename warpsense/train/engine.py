@@ -4,9 +4,6 @@ camera gradients, CFA temperature annealing, AdamW + cosine schedule, checkpoint
 from __future__ import annotations
 
 import itertools
-import json
-import math
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -35,35 +32,26 @@ from warpsense.data.on_device import DecodedDataset, DeviceBatches, dataset_mega
 from warpsense.data.photometric import RadianceJitter
 from warpsense.data.transforms import EpochSampler
 from warpsense.errors import first_line
-from warpsense.files import atomic_write, environment, write_json
+from warpsense.files import environment
 from warpsense.models import count_parameters
 from warpsense.system import build_system, check_config, load_teacher
-from warpsense.system.checkpoint import (
-    METADATA_KEY,
-    CheckpointError,
-    read_checkpoint,
-    restore,
-    resume_state,
-    save_checkpoint,
-)
+from warpsense.system.checkpoint import CheckpointError, restore, save_checkpoint
 from warpsense.train.distributed import DistributedContext, launch_rank, wrap_data_parallel
 from warpsense.train.evaluate import evaluate
-from warpsense.train.inputs import check_inputs, input_digests, record_inputs
+from warpsense.train.inputs import check_inputs, input_digests
 from warpsense.train.reproducibility import deterministic_algorithms
 from warpsense.train.run_dir import (
-    BEST,
-    LAST,
-    METRICS,
-    RunLock,
+    RunDir,
     fresh_run_dir,
     newest_run,
-    read_metrics,
     resumed_config,
+    superseded_name,  # noqa: F401 - under this module too, for older callers
 )
 from warpsense.train.schedule import Schedule
 from warpsense.train.step import TrainingStep
 
-EVALUATION = "evaluation.json"
+# the run folder's names under this module, for callers written before `RunDir` (warpsense.study, the tests)
+LAST, BEST, METRICS, EVALUATION = RunDir.LAST, RunDir.BEST, RunDir.METRICS, RunDir.EVALUATION
 
 
 def _fit_time_budget(schedule: Schedule, budget_minutes: float, epoch_seconds: float, context) -> Schedule:
@@ -158,7 +146,7 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
     Args:
         config: a resolved `warpsense.config.Config`; None when resuming to continue with the run's own config.
         resume: False for a new run (a fresh directory <output_dir>/<name>[-N]); True to continue the newest run
-            <output_dir>/<name>[-N]; or a run directory path. Resuming restores the run's config (config.json),
+            <output_dir>/<name>[-N]; or a run directory path. Resuming restores the run's config (`RunDir.CONFIG`),
             weights, optimizer, RNG and epoch from the last checkpoint (written atomically at every epoch end), so
             at most the interrupted epoch is redone. A ``config`` that differs from the run's is refused unless
             ``allow_config_change``.
@@ -171,11 +159,12 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
     """
     if resume:
         run_dir = Path(resume) if not isinstance(resume, bool) else newest_run(config.run.output_dir, config.run.name)
-        if not (run_dir / LAST).is_file():
-            raise FileNotFoundError(f"{run_dir}: no {LAST} to resume from")
+        run = RunDir(run_dir)
+        if not run.resumable():
+            raise FileNotFoundError(f"{run_dir}: no {run.LAST} to resume from")
         config = resumed_config(run_dir, config, allow_config_change)
-        check_config(config, f"{run_dir / 'config.json'}")
-        finished = _finished_epochs(run_dir, config)
+        check_config(config, f"{run.config}")
+        finished = _finished_epochs(run, config)
         if finished:
             if launch_rank() == 0:  # no process group yet: one line from torchrun's rank 0, not one a rank
                 print(f"{run_dir}: already finished ({finished[0]} of {finished[1]} epochs); nothing to resume "
@@ -187,8 +176,9 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
     else:
         check_config(config, f"config {config.run.name}")
         run_dir = fresh_run_dir(Path(config.run.output_dir) / config.run.name)
+        run = RunDir(run_dir)
     context = DistributedContext.from_environment(config.run.device)
-    lock = RunLock(run_dir)
+    lock = run.lock()
     # the outermost folder this call creates (the run's, or an output_dir above it): removed if no epoch completes
     created = next((folder for folder in (*reversed(run_dir.parents), run_dir) if not folder.exists()), None) \
         if context.is_main else None
@@ -196,7 +186,7 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
         try:
             run_dir.mkdir(parents=True, exist_ok=True)
         except OSError as error:  # e.g. a folder under /proc, or one another user owns: name the key, not errno
-            _discard_unfinished(run_dir, created)  # the output folders made above it
+            run.remove_unfinished(created)  # the output folders made above it
             raise ValueError(f"run.output_dir {config.run.output_dir}: cannot create the run folder {run_dir} "
                              f"({error.strerror})") from None
         lock.acquire()
@@ -204,60 +194,25 @@ def train(config, resume: str | Path | bool = False, progress: bool = True, retu
         with deterministic_algorithms(config.run.deterministic):
             return _train(config, run_dir, bool(resume), context, progress, return_model)
     except KeyboardInterrupt:
-        _discard_unfinished(run_dir, created)
+        run.remove_unfinished(created)
         raise TrainingInterrupted(run_dir) from None
     except Exception:
-        _discard_unfinished(run_dir, created)
+        run.remove_unfinished(created)
         raise
     finally:
         lock.release()
 
 
-def _finished_epochs(run_dir: Path, config) -> tuple[int, int] | None:
+def _finished_epochs(run: RunDir, config) -> tuple[int, int] | None:
     """(epochs trained, epochs planned) of a run with nothing left to resume: its last checkpoint holds every epoch
     of its plan (the saved one, or the one ``config`` changes it to) and its final evaluation is written; None
     otherwise (a run stopped after its last epoch but before that evaluation resumes to write it)."""
-    if not (run_dir / EVALUATION).is_file():
+    if not run.finished():
         return None
-    checkpoint = run_dir / LAST
-    tensors, meta = read_checkpoint(checkpoint)
-    state = resume_state(checkpoint, tensors, meta)
-    schedule = _resumed_schedule(state, Schedule.from_config(config.train), checkpoint)
+    _, state = run.read_resume_point()
+    schedule = _resumed_schedule(state, Schedule.from_config(config.train), run.last)
     trained = state["epoch"] + 1
     return (trained, schedule.epochs) if trained >= schedule.epochs else None
-
-
-def _kept_best(run_dir: Path) -> float:
-    """The score of the run's best checkpoint as it was written (its header's state.best_miou), -1 where it has none
-    or it cannot be read. A run resumed from a resume point before that checkpoint's epoch (stopped between an
-    epoch's best checkpoint and its checkpoint_last, or between resume points) replaces it only with a better epoch,
-    never with a redone one that scored less."""
-    from safetensors import safe_open
-
-    try:
-        with safe_open(str(run_dir / BEST), framework="pt") as handle:
-            value = json.loads((handle.metadata() or {})[METADATA_KEY])["state"]["best_miou"]
-    except Exception:  # noqa: BLE001 - absent or unreadable: the next best epoch writes it
-        return -1.0
-    finite = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    return float(value) if finite else -1.0
-
-
-def _discard_unfinished(run_dir: Path, created: Path | None) -> None:
-    """Remove the folders this call created (``created``: the outermost) when the run holds no checkpoint yet (a
-    config the model refuses, a missing dataset, Ctrl-C in the first epoch): nothing partial is left on disk, and
-    nothing suggests a resume. A run with a best checkpoint but no resume point yet (stopped between an epoch's best
-    checkpoint and its checkpoint_last, or before train.checkpoint_every's first) is kept: that model is the user's."""
-    if created is None or (run_dir / LAST).exists() or (run_dir / BEST).exists():
-        return
-    shutil.rmtree(run_dir, ignore_errors=True)
-    for folder in run_dir.parents:  # the output folders made for it, while empty (another run may use them now)
-        if not folder.is_relative_to(created):
-            break
-        try:
-            folder.rmdir()
-        except OSError:
-            break
 
 
 class _Datasets(NamedTuple):
@@ -350,59 +305,16 @@ def _run_epoch(training_step, model, batches, steps: int, step: int, joint: bool
     return step
 
 
-def _write_run_files(run_dir: Path, config, versions: dict, history: list[dict], start_epoch: int,
-                     resume: bool, inputs: dict | None = None) -> None:
-    """The run's config.json, environment.json, metrics.jsonl (``history``: the records it keeps) and, with
-    ``inputs``, the digests of the files it read (`warpsense.train.inputs.record_inputs`), each written
-    atomically. A new run writes them before its first epoch; a continuation only at the end of its first epoch,
-    after every check and that epoch have passed, so a continuation refused or stopped before then leaves the run
-    as it was. A continuation that changed the config first copies the old config.json to
-    config.epoch<start_epoch>.json, the config the epochs before it trained with (one already there is that
-    config, from an earlier continuation of the same epoch that kept no epoch of its own, and stays); a copy, not a
-    move, so that a kill between the two writes still leaves a config.json."""
-    saved = run_dir / "config.json"
-    if resume and saved.is_file() and json.loads(saved.read_text()) != json.loads(json.dumps(config.to_dict())):
-        earlier = run_dir / f"config.epoch{start_epoch}.json"
-        if not earlier.exists():
-            with atomic_write(earlier) as temporary:
-                shutil.copyfile(saved, temporary)
-    config.save(saved)
-    if inputs is not None:
-        record_inputs(run_dir, inputs)
-    write_json(run_dir / "environment.json", versions)
-    with atomic_write(run_dir / METRICS) as temporary:
-        temporary.write_text("".join(json.dumps(r) + "\n" for r in history))
-
-
-def superseded_name(name: str, epochs: int) -> str:
-    """Where a continuation moves a final file of the run's earlier end: "evaluation.json" -> "evaluation.epoch<E>.json"
-    (``epochs``: the epochs that end had trained), as `_write_run_files` keeps the old config.epoch<E>.json."""
-    stem, dot, suffix = name.partition(".")
-    return f"{stem}.epoch{epochs}.{suffix}" if dot else f"{name}.epoch{epochs}"
-
-
-def _supersede_final_files(run_dir: Path, start_epoch: int) -> None:
-    """At the first epoch a continuation completes (`--extend`, or more epochs with --allow-config-change), move the
-    earlier end's `EVALUATION` and plots aside (`superseded_name`), before config.json and the checkpoint change:
-    until the continuation's own end writes them again the run holds no evaluation, so it reads as unfinished
-    (`warpsense study` resumes the cell instead of reporting the old end's scores beside a newer checkpoint) and no
-    plot shows
-    the old end as the current one. A continuation refused or stopped before this epoch completes moves nothing."""
-    for path in [run_dir / EVALUATION, *sorted(run_dir.glob("*.png"))]:
-        if path.is_file() and ".epoch" not in path.name:
-            path.replace(run_dir / superseded_name(path.name, start_epoch))
-
-
 def _write_epoch(run_dir: Path, model, optimizer, config, state: dict, is_best: bool, is_resume_point: bool) -> None:
-    """Append the epoch's record to metrics.jsonl, then write the checkpoints: the best one when the epoch scored
+    """Append the epoch's record to the run's metrics, then write the checkpoints: the best one when the epoch scored
     best, and the last one (with optimizer and RNG state, for resuming) when the epoch is a resume point
     (``train.checkpoint_every``; a resume drops the records after it)."""
-    with open(run_dir / METRICS, "a") as log:
-        log.write(json.dumps(state["record"]) + "\n")
+    run = RunDir(run_dir)
+    run.append_metrics(state["record"])
     if is_best:
-        save_checkpoint(run_dir / BEST, model, config.to_dict(), state)
+        save_checkpoint(run.best, model, config.to_dict(), state)
     if is_resume_point:
-        save_checkpoint(run_dir / LAST, model, config.to_dict(), state, optimizer, torch.get_rng_state())
+        save_checkpoint(run.last, model, config.to_dict(), state, optimizer, torch.get_rng_state())
 
 
 def _epoch_line(record: dict, schedule: Schedule, config) -> str:
@@ -415,6 +327,7 @@ def _epoch_line(record: dict, schedule: Schedule, config) -> str:
 
 
 def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_model: bool):
+    run = RunDir(run_dir)
     run_started = time.perf_counter()
     device = context.device
     torch.manual_seed(config.run.seed)
@@ -442,14 +355,13 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
 
     requested = schedule = Schedule.from_config(config.train)
     if resume:
-        tensors, meta = read_checkpoint(run_dir / LAST)
-        state = resume_state(run_dir / LAST, tensors, meta)
-        restore(tensors, model, optimizer, source=run_dir / LAST)
+        tensors, state = run.read_resume_point()
+        restore(tensors, model, optimizer, source=run.last)
         start_epoch, step, best_miou = state["epoch"] + 1, state["step"], state["best_miou"]
-        best_miou = max(best_miou, _kept_best(run_dir))
-        schedule = _resumed_schedule(state, requested, run_dir / LAST)
+        best_miou = max(best_miou, run.kept_best())
+        schedule = _resumed_schedule(state, requested, run.last)
         torch.set_rng_state(tensors["rng"])
-        history = read_metrics(run_dir / METRICS, state["epoch"])
+        history = run.read_metrics(state["epoch"])
         if context.is_main:
             print(f"resuming {run_dir} from epoch {start_epoch + 1}/{schedule.epochs}" if start_epoch < schedule.epochs
                   else f"resuming {run_dir}: all {schedule.epochs} epochs trained; writing its final evaluation")
@@ -459,8 +371,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         torch.manual_seed(config.run.seed * 1000 + context.rank + 1)
     if context.is_main:
         versions = environment()
-        if not resume:  # a continuation's own files wait for its first complete epoch (`_write_run_files`)
-            _write_run_files(run_dir, config, versions, history, start_epoch, resume, inputs)
+        if not resume:  # a continuation's own files wait for its first complete epoch (`RunDir.write_run_files`)
+            run.write_run_files(config, versions, history, inputs=inputs)
         print(f"run directory: {run_dir}")
         camera_parameters = sum(p.numel() for p in model.camera.learnable_parameters())
         print(f"network parameters: {count_parameters(model.network):,}; camera parameters: "
@@ -521,8 +433,8 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         best_miou = max(best_miou, score)
         if context.is_main:
             if resume and epoch == start_epoch:
-                _supersede_final_files(run_dir, start_epoch)  # first: a kill after it leaves an unfinished run
-                _write_run_files(run_dir, config, versions, history, start_epoch, resume, inputs)
+                run.supersede_final_files(start_epoch)  # first: a kill after it leaves an unfinished run
+                run.write_run_files(config, versions, history, continued_from=start_epoch, inputs=inputs)
             state = {"epoch": epoch, "step": step, "best_miou": best_miou, "num_classes": num_classes,
                      "class_names": list(datasets.train.classes), "record": record, "environment": versions,
                      "schedule": {**schedule.to_dict(), "requested": [requested.epochs, requested.warmup_epochs]}}
@@ -532,13 +444,13 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
         context.barrier()
         epoch += 1
     if context.is_main:
-        final_evaluation(run_dir, model, datasets, config, schedule.epochs - 1, num_classes, device, amp, progress)
+        final_evaluation(run, model, datasets, config, schedule.epochs - 1, num_classes, device, amp, progress)
     if context.is_main and config.train.plots:
         from warpsense.train.plots import write_run_plots
 
         write_run_plots(run_dir, model, datasets.val, device)
     if context.is_main:
-        print(run_summary(run_dir, config))
+        print(run_summary(run, config))
     # the DDP wrapper's reducer holds the process group: freed after destroy_process_group, gloo's destructor can
     # deadlock (seen on CPU, 1 run in ~3), so it goes first
     del wrapped
@@ -548,10 +460,10 @@ def _train(config, run_dir: Path, resume: bool, context, progress: bool, return_
     return (run_dir, model) if return_model else run_dir
 
 
-def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, epoch: int, num_classes: int, device,
+def final_evaluation(run: RunDir, model, datasets: _Datasets, config, epoch: int, num_classes: int, device,
                      amp: bool, progress: bool = False) -> dict:
     """Judge the model as training left it (the final epoch) on every labelled split (`evaluation_splits`) and write
-    `EVALUATION`: per split mIoU, pixel accuracy, per-class IoU, each image's per-class (TP, FP, FN) pixel counts
+    `RunDir.EVALUATION`: per split mIoU, pixel accuracy, per-class IoU, each image's per-class (TP, FP, FN) pixel counts
     (what `warpsense study report` resamples) and the split's confusion matrix (which class the errors went to),
     with the camera's learned state; ``epoch``: the plan's last (0-based).
     Returns the record."""
@@ -569,7 +481,7 @@ def final_evaluation(run_dir: Path, model, datasets: _Datasets, config, epoch: i
         metrics["image_counts"] = metrics["image_counts"].tolist()
         metrics["image_sequences"] = _sequences(dataset, distinct=False)
         record["splits"][split] = metrics
-    write_json(run_dir / EVALUATION, record)
+    run.write_evaluation(record)
     return record
 
 
@@ -589,15 +501,14 @@ def _sequences(dataset, distinct: bool = True) -> list[str] | None:
     return sorted(set(names)) if distinct else names
 
 
-def run_summary(run_dir: Path, config) -> str:
+def run_summary(run: RunDir, config) -> str:
     """The closing lines of a run: the best checkpoint's score and epoch, and where everything went."""
-    best_json = run_dir / Path(BEST).with_suffix(".json")
-    lines = [f"done: {run_dir}"]
+    lines = [f"done: {run}"]
     try:
-        best = json.loads(best_json.read_text())["state"]["record"] if best_json.is_file() else None
+        best = run.best_record()
     except (OSError, ValueError, KeyError, TypeError) as error:  # the run is trained: name the damage, go on
         best = None
-        lines.append(f"  best: {BEST} (its readable copy {best_json} is damaged: {type(error).__name__}: "
+        lines.append(f"  best: {run.BEST} (its readable copy {run.best_copy} is damaged: {type(error).__name__}: "
                      f"{first_line(error)})")
     if best is not None:
         if "selection_miou" in best:
@@ -607,7 +518,7 @@ def run_summary(run_dir: Path, config) -> str:
             score = f"held-out {fold_name(config.data)} mIoU {best['val_miou']:.4f}"
         else:
             score = f"val mIoU {best['val_miou']:.4f}"
-        lines.append(f"  best: {BEST} (epoch {best['epoch'] + 1}, {score})")
-    lines.append(f"  last: {LAST}; metrics: metrics.jsonl; config: config.json"
+        lines.append(f"  best: {run.BEST} (epoch {best['epoch'] + 1}, {score})")
+    lines.append(f"  last: {run.LAST}; metrics: {run.METRICS}; config: {run.CONFIG}"
                  + ("; plots: *.png" if config.train.plots else ""))
     return "\n".join(lines)

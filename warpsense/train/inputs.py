@@ -1,22 +1,19 @@
 """The files a run reads besides its config and its images, by content: the folder dataset's class table, the split
-lists, the lens file and the teacher checkpoint. A run records their SHA-256 in its directory (`INPUTS`) when it
-starts, and a continuation (`--resume`, `--resume-dir`, `--extend`) compares them before anything is written: a file
+lists, the lens file and the teacher checkpoint. A run records their SHA-256 in its directory (`RunDir.INPUTS`) when
+it starts, and a continuation (`--resume`, `--resume-dir`, `--extend`) compares them before anything is written: a file
 that kept its path but changed (a class table with two ids swapped) would train the later epochs on another task
 than the earlier ones, and the config, which names only the path, cannot see it."""
 
 from __future__ import annotations
 
 import hashlib
-import json
 from pathlib import Path
 
 from warpsense.config import ConfigError
-from warpsense.errors import first_line
-from warpsense.files import write_json
+from warpsense.train.run_dir import RunDir
 
-INPUTS = "inputs.json"
-"""A run directory's record of the files it read: {"files": {path: {"key": the config key that named it,
-"sha256": its content's digest}}}."""
+INPUTS = RunDir.INPUTS
+"""A run directory's record of the files it read (`RunDir.INPUTS`), under the name callers before `RunDir` import."""
 
 SPLIT_LIST_DATASETS = ("camvid", "folder")
 """Datasets whose splits are lists <data.root>/<split>.txt (`warpsense.data.datasets.read_split_lists`)."""
@@ -68,25 +65,13 @@ def input_digests(config) -> dict[str, dict]:
 
 
 def record_inputs(run_dir: Path, digests: dict[str, dict]) -> None:
-    """Write the run's `INPUTS` (atomically), the digests taken when it started reading them."""
-    write_json(Path(run_dir) / INPUTS, {"files": digests})
+    """Write the run's record of the files it read (`RunDir.record_inputs`), the digests taken when it started."""
+    RunDir(run_dir).record_inputs(digests)
 
 
 def read_inputs(run_dir: Path) -> dict[str, dict] | None:
-    """The digests a run recorded (`record_inputs`), None for a run written before runs recorded them; a damaged
-    record is a one-line ConfigError naming the file and field."""
-    path = Path(run_dir) / INPUTS
-    if not path.is_file():
-        return None
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, ValueError, RecursionError) as error:
-        raise ConfigError(f"{path}: unreadable: {first_line(error)}") from None
-    files = record.get("files") if isinstance(record, dict) else None
-    if not isinstance(files, dict) or not all(
-            isinstance(entry, dict) and isinstance(entry.get("sha256"), str) for entry in files.values()):
-        raise ConfigError(f"{path}: files: expected an object of path -> {{key, sha256}}, got {files!r}")
-    return files
+    """The digests a run recorded (`RunDir.read_inputs`), None for a run written before runs recorded them."""
+    return RunDir(run_dir).read_inputs()
 
 
 def changed_input(run_dir: Path, config) -> str | None:

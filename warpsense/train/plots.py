@@ -13,7 +13,7 @@ import torch  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from warpsense.data.labels import colorize  # noqa: E402
-from warpsense.train.run_dir import METRICS, read_metrics  # noqa: E402
+from warpsense.train.run_dir import RunDir  # noqa: E402
 
 
 def epoch_axis(axis, epochs: list[int]) -> None:
@@ -171,9 +171,11 @@ def plot_sweep(rows: list[dict], path: str | Path, title: str = "") -> None:
 
 
 def write_run_plots(run_dir: Path, model, val_set, device) -> None:
-    records = read_metrics(run_dir / METRICS)
+    """The run's plots (`RunDir.plot`): its curves and camera design over the epochs, its camera, predictions."""
+    run = RunDir(run_dir)
+    records = run.read_metrics()
     if records:
-        plot_curves(records, run_dir / "curves.png")
-        plot_design(records, run_dir / "design.png")
-    plot_camera(model, run_dir / "camera.png")
-    plot_predictions(model, val_set, device, run_dir / "predictions.png")
+        plot_curves(records, run.plot("curves"))
+        plot_design(records, run.plot("design"))
+    plot_camera(model, run.plot("camera"))
+    plot_predictions(model, val_set, device, run.plot("predictions"))

@@ -1,5 +1,6 @@
-"""A training run's directory: where a new run goes, which run `--resume` means, the config a resumed run keeps,
-its metrics log, and a lock so that two trainings never write into one run."""
+"""A training run's directory: the files in it and how each is read and written (`RunDir`, the one place that names
+them), where a new run goes, which run `--resume` means, the config a resumed run keeps, its metrics log, and a lock
+so that two trainings never write into one run."""
 
 from __future__ import annotations
 
@@ -7,16 +8,291 @@ import json
 import math
 import os
 import re
+import shutil
 import socket
 from pathlib import Path
 
 from warpsense.config import Config, ConfigError, config_from_dict, flatten_keys
 from warpsense.errors import first_line
+from warpsense.files import atomic_write, write_json
 
-LAST = "checkpoint_last.safetensors"
-BEST = "checkpoint_best.safetensors"
-METRICS = "metrics.jsonl"  # one JSON record per epoch
-LOCK = "train.lock"
+
+class RunDir:
+    """A training run's directory: the one owner of its files' names and of how each is read and written.
+
+    Files: `CONFIG` (the run's resolved config, `Config.save`; a continuation that changed it keeps the earlier one
+    as config.epoch<E>.json, `earlier_config`), `METRICS` (one JSON record per epoch), the checkpoints `LAST` (the
+    resume point: weights, optimizer, RNG) and `BEST` (the best-scoring epoch's weights), each with a readable JSON
+    copy of its header beside it, `EVALUATION` (the final evaluation; present once the run is finished),
+    `ENVIRONMENT` (versions and source commit), `INPUTS` (the digests of the files it read, `warpsense.train.inputs`),
+    the plots (``<name>.png``) and `LOCK` (`RunLock`). Readers of damaged files raise one-line errors naming the file
+    and field (`read_metrics`, `warpsense.system.checkpoint`); writers write atomically (`warpsense.files`).
+
+    Args:
+        path: the run directory (it need not exist yet).
+    """
+
+    CONFIG = "config.json"
+    METRICS = "metrics.jsonl"
+    LAST = "checkpoint_last.safetensors"
+    BEST = "checkpoint_best.safetensors"
+    EVALUATION = "evaluation.json"
+    ENVIRONMENT = "environment.json"
+    INPUTS = "inputs.json"
+    """{"files": {path: {"key": the config key that named it, "sha256": its content's digest}}}."""
+    LOCK = "train.lock"
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    def __repr__(self) -> str:
+        return f"RunDir({str(self.path)!r})"
+
+    def __str__(self) -> str:
+        return str(self.path)
+
+    def __fspath__(self) -> str:
+        return str(self.path)
+
+    # --- where each file is ------------------------------------------------------------------------------------
+
+    @property
+    def config(self) -> Path:
+        return self.path / self.CONFIG
+
+    @property
+    def metrics(self) -> Path:
+        return self.path / self.METRICS
+
+    @property
+    def last(self) -> Path:
+        return self.path / self.LAST
+
+    @property
+    def best(self) -> Path:
+        return self.path / self.BEST
+
+    @property
+    def evaluation(self) -> Path:
+        return self.path / self.EVALUATION
+
+    @property
+    def environment(self) -> Path:
+        return self.path / self.ENVIRONMENT
+
+    @property
+    def inputs(self) -> Path:
+        return self.path / self.INPUTS
+
+    @property
+    def best_copy(self) -> Path:
+        """The readable JSON copy of the best checkpoint's header."""
+        from warpsense.system.checkpoint import readable_copy
+
+        return readable_copy(self.best)
+
+    def earlier_config(self, epoch: int) -> Path:
+        """Where a continuation from ``epoch`` keeps the config the epochs before it trained with."""
+        return self.path / superseded_name(self.CONFIG, epoch)
+
+    def plot(self, name: str) -> Path:
+        """The run's plot ``name`` (curves, design, camera, predictions) as a PNG."""
+        return self.path / f"{name}.png"
+
+    # --- what it holds -------------------------------------------------------------------------------------------
+
+    def holds_run(self) -> bool:
+        """Whether it holds a run: its resume point, or a best checkpoint (a run interrupted before its first resume
+        point keeps the best one it wrote: a model of the user's)."""
+        return self.last.exists() or self.best.exists()
+
+    def resumable(self) -> bool:
+        """Whether it holds a resume point (`LAST`)."""
+        return self.last.is_file()
+
+    def finished(self) -> bool:
+        """Whether its final evaluation is written (`EVALUATION`: after the plan's last epoch)."""
+        return self.evaluation.is_file()
+
+    # --- config --------------------------------------------------------------------------------------------------
+
+    def read_config(self) -> dict:
+        """The saved config's sections as JSON (`CONFIG`); a one-line ConfigError naming the file where it cannot
+        be read or is not a JSON object."""
+        path = self.config
+        try:
+            data = json.loads(path.read_text())
+        except OSError as error:
+            raise ConfigError(f"{path}: cannot read the run's config: {error.strerror}") from None
+        except (ValueError, RecursionError) as error:  # JSONDecodeError, UnicodeDecodeError (a torn or foreign file)
+            raise ConfigError(f"{path}: invalid JSON: {first_line(error)}") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: expected a JSON object of config sections, got {type(data).__name__}")
+        return data
+
+    def saved_config(self) -> Config:
+        """The run's own config (`read_config`, read as this version reads a config)."""
+        return config_from_dict(self.read_config(), str(self.config))
+
+    def write_config(self, config: Config, continued_from: int | None = None) -> None:
+        """Write ``config`` as the run's `CONFIG` (atomically). A continuation (``continued_from``: its first epoch)
+        whose config differs from the saved one first copies that to `earlier_config`, the config the epochs before
+        it trained with (one already there is that config, from an earlier continuation of the same epoch that kept
+        no epoch of its own, and stays); a copy, not a move, so that a kill between the two writes still leaves a
+        config."""
+        saved = self.config
+        if continued_from is not None and saved.is_file() and \
+                json.loads(saved.read_text()) != json.loads(json.dumps(config.to_dict())):
+            earlier = self.earlier_config(continued_from)
+            if not earlier.exists():
+                with atomic_write(earlier) as temporary:
+                    shutil.copyfile(saved, temporary)
+        config.save(saved)
+
+    def write_run_files(self, config: Config, versions: dict, history: list[dict], continued_from: int | None = None,
+                        inputs: dict | None = None) -> None:
+        """The run's config (`write_config`), environment (``versions``), metrics (``history``: the records it
+        keeps) and, with ``inputs``, the digests of the files it read (`record_inputs`), each written atomically.
+        A new run writes them before its first epoch; a continuation (``continued_from``: its first epoch) only at
+        the end of its first epoch, after every check and that epoch have passed, so a continuation refused or
+        stopped before then leaves the run as it was."""
+        self.write_config(config, continued_from)
+        if inputs is not None:
+            self.record_inputs(inputs)
+        self.write_environment(versions)
+        self.write_metrics(history)
+
+    # --- metrics -------------------------------------------------------------------------------------------------
+
+    def read_metrics(self, up_to_epoch: int | None = None) -> list[dict]:
+        """Its `METRICS` records up to ``up_to_epoch`` (`read_metrics`: checked, a torn last line dropped)."""
+        return read_metrics(self.metrics, up_to_epoch)
+
+    def append_metrics(self, record: dict) -> None:
+        """Add an epoch's record to `METRICS`."""
+        with open(self.metrics, "a") as log:
+            log.write(json.dumps(record) + "\n")
+
+    def write_metrics(self, records: list[dict]) -> None:
+        """Replace `METRICS` by ``records`` (atomically)."""
+        with atomic_write(self.metrics) as temporary:
+            temporary.write_text("".join(json.dumps(record) + "\n" for record in records))
+
+    # --- checkpoints ---------------------------------------------------------------------------------------------
+
+    def read_resume_point(self) -> tuple[dict, dict]:
+        """(tensors, training state) of `LAST`, checked (`warpsense.system.checkpoint.resume_state`); a one-line
+        CheckpointError naming the file otherwise."""
+        from warpsense.system.checkpoint import read_checkpoint, resume_state
+
+        tensors, meta = read_checkpoint(self.last)
+        return tensors, resume_state(self.last, tensors, meta)
+
+    def trained_epochs(self) -> int:
+        """How many epochs its resume point holds."""
+        return self.read_resume_point()[1]["epoch"] + 1
+
+    def checkpoint_state(self, checkpoint: Path) -> dict | None:
+        """The training state in the header of ``checkpoint`` (`last` or `best`), read without its tensors
+        (`warpsense.system.checkpoint.read_header`); None where it is absent or cannot be read."""
+        from warpsense.system.checkpoint import read_header
+
+        try:
+            return read_header(checkpoint)["state"]
+        except (OSError, ValueError):  # absent (FileNotFoundError), damaged (CheckpointError)
+            return None
+
+    def kept_best(self) -> float:
+        """The score of the best checkpoint as it was written (its header's state.best_miou), -1 where it has none
+        or it cannot be read. A run resumed from a resume point before that checkpoint's epoch (stopped between an
+        epoch's best checkpoint and its checkpoint_last, or between resume points) replaces it only with a better
+        epoch, never with a redone one that scored less."""
+        value = (self.checkpoint_state(self.best) or {}).get("best_miou")
+        finite = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        return float(value) if finite else -1.0
+
+    def best_record(self) -> dict | None:
+        """The metrics record of the best epoch, from the best checkpoint's readable copy (`best_copy`); None where
+        there is none. A damaged copy raises (OSError, ValueError, KeyError or TypeError)."""
+        path = self.best_copy
+        return json.loads(path.read_text())["state"]["record"] if path.is_file() else None
+
+    # --- the end of a run ----------------------------------------------------------------------------------------
+
+    def write_evaluation(self, record: dict) -> None:
+        """Write the final evaluation (`EVALUATION`, atomically): the run is finished."""
+        write_json(self.evaluation, record)
+
+    def supersede_final_files(self, start_epoch: int) -> None:
+        """At the first epoch a continuation completes (`--extend`, or more epochs with --allow-config-change), move
+        the earlier end's `EVALUATION` and plots aside (`superseded_name`), before the config and the checkpoint
+        change: until the continuation's own end writes them again the run holds no evaluation, so it reads as
+        unfinished (`warpsense study` resumes the cell instead of reporting the old end's scores beside a newer
+        checkpoint) and no plot shows the old end as the current one. A continuation refused or stopped before this
+        epoch completes moves nothing."""
+        for path in [self.evaluation, *sorted(self.path.glob("*.png"))]:
+            if path.is_file() and ".epoch" not in path.name:
+                path.replace(self.path / superseded_name(path.name, start_epoch))
+
+    # --- inputs, environment, lock -------------------------------------------------------------------------------
+
+    def record_inputs(self, digests: dict[str, dict]) -> None:
+        """Write `INPUTS` (atomically): the digests of the files the run read, taken when it started reading them."""
+        write_json(self.inputs, {"files": digests})
+
+    def read_inputs(self) -> dict[str, dict] | None:
+        """The digests the run recorded (`record_inputs`), None for a run written before runs recorded them; a
+        damaged record is a one-line ConfigError naming the file and field."""
+        path = self.inputs
+        if not path.is_file():
+            return None
+        try:
+            record = json.loads(path.read_text())
+        except (OSError, ValueError, RecursionError) as error:
+            raise ConfigError(f"{path}: unreadable: {first_line(error)}") from None
+        files = record.get("files") if isinstance(record, dict) else None
+        if not isinstance(files, dict) or not all(
+                isinstance(entry, dict) and isinstance(entry.get("sha256"), str) for entry in files.values()):
+            raise ConfigError(f"{path}: files: expected an object of path -> {{key, sha256}}, got {files!r}")
+        return files
+
+    def write_environment(self, versions: dict) -> None:
+        """Write `ENVIRONMENT` (atomically): what produced the run (`warpsense.files.environment`)."""
+        write_json(self.environment, versions)
+
+    def lock(self) -> RunLock:
+        """The run's `RunLock` (not yet acquired)."""
+        return RunLock(self.path)
+
+    def remove_unfinished(self, created: Path | None) -> None:
+        """Remove the folders a training created (``created``: the outermost, None where it created none) when the
+        run holds no checkpoint yet (a config the model refuses, a missing dataset, Ctrl-C in the first epoch):
+        nothing partial is left on disk, and nothing suggests a resume. A run with a best checkpoint but no resume
+        point yet (stopped between an epoch's best checkpoint and its checkpoint_last, or before
+        train.checkpoint_every's first) is kept: that model is the user's."""
+        if created is None or self.holds_run():
+            return
+        shutil.rmtree(self.path, ignore_errors=True)
+        for folder in self.path.parents:  # the output folders made for it, while empty (another run may use them now)
+            if not folder.is_relative_to(created):
+                break
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+
+# the files' names as module constants, for callers written before `RunDir` (warpsense.study)
+LAST, BEST, METRICS, LOCK = RunDir.LAST, RunDir.BEST, RunDir.METRICS, RunDir.LOCK
+
+
+def superseded_name(name: str, epochs: int) -> str:
+    """Where a continuation moves a file of the run's earlier end: "evaluation.json" -> "evaluation.epoch<E>.json"
+    (``epochs``: the epochs that end had trained), and where it keeps the earlier config (`RunDir.earlier_config`)."""
+    stem, dot, suffix = name.partition(".")
+    return f"{stem}.epoch{epochs}.{suffix}" if dot else f"{name}.epoch{epochs}"
+
+
 # keys a resumed run may change without asking: where the run is found and which device it runs on
 RELOCATABLE_KEYS = ("run.output_dir", "run.name", "run.device")
 # keys that make a run another task (what it trains and is judged on, its classes, its network's shape), refused for
@@ -29,9 +305,8 @@ TASK_KEYS = ("data.dataset", "data.root", "data.train_split", "data.val_split", 
 
 
 def holds_run(folder: Path) -> bool:
-    """Whether ``folder`` holds a run: its resume point, or a best checkpoint (a run interrupted before its first
-    resume point keeps the best one it wrote: a model of the user's)."""
-    return (Path(folder) / LAST).exists() or (Path(folder) / BEST).exists()
+    """Whether ``folder`` holds a run (`RunDir.holds_run`)."""
+    return RunDir(folder).holds_run()
 
 
 def fresh_run_dir(base: Path) -> Path:
@@ -67,7 +342,7 @@ def newest_run(output_dir: str | Path, name: str) -> Path:
     if output_dir.is_dir():
         for entry in output_dir.iterdir():
             match = pattern.match(entry.name)
-            if match and (entry / LAST).is_file():
+            if match and RunDir(entry).resumable():
                 runs.append((int(match.group(1) or 1), entry))
     if not runs:
         raise FileNotFoundError(f"no run named {name!r} with a checkpoint in {output_dir} to resume")
@@ -99,20 +374,11 @@ def task_changes(saved: Config, requested: Config) -> list[str]:
 
 
 def resumed_config(run_dir: Path, requested: Config | None, allow_change: bool = False) -> Config:
-    """The config a resumed run trains with: its own config.json. A ``requested`` config that differs from it (other
-    than `RELOCATABLE_KEYS`) is refused with the differing keys named, unless ``allow_change``; then it is used. A
-    change of task (`task_changes`) is refused either way: that is a new run. An allowed change is printed (the keys,
-    old -> new). Reads only; writes nothing."""
-    path = run_dir / "config.json"
-    try:
-        data = json.loads(path.read_text())
-    except OSError as error:
-        raise ConfigError(f"{path}: cannot read the run's config: {error.strerror}") from None
-    except (ValueError, RecursionError) as error:  # JSONDecodeError, UnicodeDecodeError (a torn or foreign file)
-        raise ConfigError(f"{path}: invalid JSON: {first_line(error)}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a JSON object of config sections, got {type(data).__name__}")
-    saved = config_from_dict(data, str(path))
+    """The config a resumed run trains with: its own (`RunDir.saved_config`). A ``requested`` config that differs
+    from it (other than `RELOCATABLE_KEYS`) is refused with the differing keys named, unless ``allow_change``; then it
+    is used. A change of task (`task_changes`) is refused either way: that is a new run. An allowed change is printed
+    (the keys, old -> new). Reads only; writes nothing."""
+    saved = RunDir(run_dir).saved_config()
     if requested is None:
         return saved
     changes = config_changes(saved, requested)
@@ -139,10 +405,10 @@ METRIC_SECONDS = ("wall_s", "setup_s", "setup_data_s", "epoch_time_s", "capture_
 
 
 def read_metrics(path: Path, up_to_epoch: int | None = None) -> list[dict]:
-    """The records of metrics.jsonl up to ``up_to_epoch`` (None: all of them); a torn (unparsable) last line, left by
-    a kill while it was written, is dropped. A torn line elsewhere, a line that is not a JSON object, an epoch that
-    is not an integer >= 0 or a time (`METRIC_SECONDS`) that is not a finite number >= 0 is a one-line ValueError
-    naming the file, line and field."""
+    """The records of a metrics log (`RunDir.METRICS`) up to ``up_to_epoch`` (None: all of them); a torn
+    (unparsable) last line, left by a kill while it was written, is dropped. A torn line elsewhere, a line that is
+    not a JSON object, an epoch that is not an integer >= 0 or a time (`METRIC_SECONDS`) that is not a finite number
+    >= 0 is a one-line ValueError naming the file, line and field."""
     path = Path(path)
     if not path.exists():
         return []
@@ -186,7 +452,7 @@ class RunLock:
     it is the lock of that task, killed on its node), anything else is refused naming the host."""
 
     def __init__(self, run_dir: Path):
-        self.path = Path(run_dir) / LOCK
+        self.path = Path(run_dir) / RunDir.LOCK
         self.held = False
 
     def acquire(self) -> "RunLock":
