@@ -65,7 +65,9 @@ def _add_run(subcommands: argparse._SubParsersAction) -> None:
         description="Run every cell of a plan into OUT/runs/<camera>.<light>[.<fold>].seed<N>. Finished cells are "
         "skipped, interrupted ones resume, failed ones are reported and the others go on. With GPUs the cells run "
         "on a local pool of worker processes (--per-gpu on each GPU), each taking the next cell; the first GPU "
-        "(id 0) at one cell a GPU, and a CPU, run them in this process.",
+        "(id 0) at one cell a GPU, and a CPU, run them in this process. A plan with study.sequential (seeds added "
+        "to unsettled comparisons) or a [[search]] (designs proposed by Bayesian optimisation, losers stopped early) "
+        "chooses its next cells from the finished ones, round after round, on the same runner.",
         epilog="shipped plans: configs/studies/")
     parser.add_argument("plan", help="a study plan TOML file or a shipped plan name (configs/studies/)")
     parser.add_argument("--out", required=True, help="the study directory")
