@@ -118,7 +118,7 @@ def test_study_run_passes_its_auto_choice_to_the_pool_and_falls_back_when_mps_fa
 
     calls = []
 
-    def run_cells(plan, out, gpus=None, per_gpu=1, mps="auto", **kwargs):
+    def run_cells(plan, out, cells=None, gpus=None, per_gpu=1, mps="auto", **kwargs):
         calls.append((gpus, per_gpu, mps))
         if per_gpu > 1 and fail:
             raise MPSError("nvidia-cuda-mps-control -d exited 1: cannot start")

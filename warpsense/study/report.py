@@ -496,16 +496,24 @@ def _per_sequence_lines(split: str, part: dict, reference: str) -> list[str]:
     return lines
 
 
+def _protocol_text(record: dict) -> str:
+    """How the study's cells were trained and judged, in words."""
+    if record.get("folds") == "sequence":
+        return (f"sequence folds (held out: {', '.join(record['sequences'])}): each cell trains on the other sequences' "
+                f"frames and is judged on its own")
+    if record.get("folds") == "blocks":
+        plan = record.get("plan", {})
+        return (f"block folds ({plan.get('blocks')} blocks of every sequence, buffer {plan.get('block_buffer')} frame "
+                f"numbers): each cell is judged on one block of every sequence and trains on the rest, less the buffer "
+                f"around it")
+    return "no folds: trained on train, judged on val"
+
+
 def render_text(record: dict) -> str:
     """The console report (every number comes from ``record``)."""
     level = f"{record['level']:.0%}"
     folds = record.get("folds") in ("sequence", "blocks")
-    protocol = {"sequence": f"sequence folds (held out: {', '.join(record['sequences'])}): each cell trains on the "
-                            f"other sequences' frames and is judged on its own",
-                "blocks": f"block folds ({record['plan'].get('blocks')} blocks of every sequence, buffer "
-                          f"{record['plan'].get('block_buffer')} frame numbers): each cell is judged on one block of "
-                          f"every sequence and trains on the rest, less the buffer around it"}.get(
-        record.get("folds"), "no folds: trained on train, judged on val")
+    protocol = _protocol_text(record)
     lines = [f"study {record['study']} ({record['directory']}): {len(record['cells'])} cells evaluated, "
              f"{len(record['missing'])} missing; judged at the final epoch; {protocol}; intervals {level}"]
     for row in record.get("fold_sizes") or []:
