@@ -235,12 +235,14 @@ def test_cell_work_counts_epochs_frames_and_crop_pixels(tmp_path, monkeypatch):
     plan = load_plan(_plan_file(tmp_path, '''
 [[camera]]
 name = "long"
-set = ["data.crop_height=32", "data.max_train_images=10"]
+set = ["data.max_train_images=10"]
 '''), [*FAST, "train.epochs=3"])
     cells = plan.cells()
     work = runner.cell_work(plan, cells)
     assert {cell.camera: work[cell] for cell in cells} == {"rggb": 3 * 16 * 48 * 64, "rccb": 3 * 16 * 48 * 64,
-                                                           "learned": 3 * 16 * 48 * 64, "long": 3 * 10 * 32 * 64}
+                                                           "learned": 3 * 16 * 48 * 64, "long": 3 * 10 * 48 * 64}
+    plan = load_plan(_plan_file(tmp_path), [*FAST, "train.epochs=2", "data.crop_height=32"])  # crop pixels count
+    assert set(runner.cell_work(plan, plan.cells()).values()) == {2 * 16 * 32 * 64}
 
     def unreadable(data_config, seed=0):
         raise engine.DatasetError("train.txt: no such file")

@@ -213,13 +213,13 @@ def run_study(plan_name: str, out: str, overrides: list[str], cell: str | None =
         elsewhere = devices[:1] if devices and "0" not in devices else None
         if elsewhere:
             check_local_gpus(devices)
-        return run_cells(plan, Path(out), local, gpus=elsewhere, mps="off",
+        return run_cells(plan, Path(out), cells=local, gpus=elsewhere, mps="off",
                          progress=progress, record=False, reuse=reuse_dirs)
     def run_pool(per_gpu: int, mps: str, round_plan=plan, cells=None) -> int:
         # in this process where that is one cell at a time on its own cuda:0 (or the CPU); one worker process
         # for another single GPU (--gpus 1): this process's training would take cuda:0 whatever --gpus says
         here = not devices or (devices == ["0"] and per_gpu == 1)
-        return run_cells(round_plan, Path(out), local if cells is None else cells, gpus=None if here else devices,
+        return run_cells(round_plan, Path(out), cells=local if cells is None else cells, gpus=None if here else devices,
                          per_gpu=per_gpu, progress=progress, sample_gpus=devices, reuse=reuse_dirs, mps=mps)
 
     chosen = per_gpu == "auto"

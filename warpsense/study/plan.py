@@ -564,7 +564,6 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
         _sequential_rule(study, source, len(plan.fold_names()))
     if search is not None:
         _check_designs(plan)
-    check_conflicts(plan, PlanError)  # two tables setting one key differently: the plan would not say what runs
     checked_data = set()
     for camera in plan.cameras:  # every cell's config resolves (seeds only change run.seed, folds the held-out name)
         for light in plan.lights:
@@ -589,6 +588,7 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                         build_dataset(config.data, split, train=train, seed=0)
                 except DatasetError as error:
                     raise PlanError(f"{where}: data: {error}") from None
+    check_conflicts(plan, PlanError)  # two tables setting one key differently: the plan would not say what runs
     return plan
 
 
