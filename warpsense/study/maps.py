@@ -124,7 +124,7 @@ def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: di
         that mean where more than one does, and then no point is the best), learned (per learned camera: its learned
         keys, miou interval, difference to the best mean, whether its mean lies inside the best point's interval
         (None without one, or where the points tie), and per run its trajectory and final score), cost (runs and
-        seconds of the grid and of each learned camera) and folds (the plan's: "sequence" or "none").
+        seconds of the grid and of each learned camera) and folds (the plan's: "blocks", "sequence" or "none").
     """
     study_dir, plan_spec = Path(study_dir), Plan.from_dict(plan)
     swept = {camera for sweep in plan_spec.sweeps for camera, _ in sweep.points}
@@ -196,7 +196,7 @@ def _runs(count: int) -> str:
 
 def _over(entry: dict) -> str:
     """What a map's means are over: (fold, seed) cells with sequence folds, seeds without."""
-    return "(fold, seed)" if entry.get("folds") == "sequence" else "seeds"
+    return "(fold, seed)" if entry.get("folds", "none") != "none" else "seeds"
 
 
 def _comparison(learned: dict, tied: list) -> str:
