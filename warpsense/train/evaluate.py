@@ -1,5 +1,5 @@
 """Evaluation of a model on a dataset: mIoU / per-class IoU / pixel accuracy, and the robustness sweep (mIoU as one
-camera factor moves off the operating point). The `warpsense eval` command is `warpsense.commands.eval`."""
+camera factor moves off the operating point). `warpsense eval` scores a checkpoint with them: `warpsense.evaluation`."""
 
 from __future__ import annotations
 
