@@ -194,7 +194,7 @@ def test_batch_problems_are_reported_and_the_batch_goes_on(tmp_path, capsys):
 
 
 def test_predict_legend_scales_with_the_image_and_the_overlay_has_no_checkerboard():
-    from warpsense.commands.predict import legend_strip
+    from warpsense.predict import legend_strip
 
     small = legend_strip(["sky", "road"], {0, 1}, 2, 480)
     large = legend_strip(["sky", "road"], {0, 1}, 2, 1734)
