@@ -118,6 +118,7 @@ FREE_STRINGS = {
     "study run plan": [("missing_plan", [], ("no_such_plan",))],  # replaced below
     "study run --out": [("a_file", ["--out", "file.txt"], ("file.txt",))],
     "study run --set": [("unknown_key", ["--set", "train.epoch=3"], ("train.epoch",))],
+    "study run --cells": [("matches_nothing", ["--cells", "no/such*"], ("no/such*",))],
     "study run --cell": [("unknown_cell", ["--cell", "no/such/0"], ("no/such/0",))],
     "study run --gpus": [("not_ids", ["--gpus", "one,two"], ("--gpus",)), ("empty", ["--gpus", ","], ("--gpus",)),
                          ("absent_gpu", ["--gpus", "97"], ("--gpus 97",))],
