@@ -164,12 +164,12 @@ RETIRED_VALUE = ("model.name", "packunet")
 def test_a_retired_key_or_value_is_refused_in_one_line_naming_it_and_where_to_read_why(key, tmp_path):
     """Every retired key (any value, even that of the behaviour that stayed: a config asking for it is out of date)
     and retired value is refused from --set and from a TOML file, by a one-line error naming it, saying it was
-    retired and pointing at docs/history.md."""
+    retired and pointing at docs/records/history.md."""
     key, _, value = key.partition("=")
     retired = RETIRED.get(key) or RETIRED_VALUES[key, value]
     named = f"{key} = {value!r}" if value else key
     text = f'{key}="{value}"' if value else f"{key}=1"
-    why = f"{named} was retired ({retired.what}; {retired.verdict}: docs/history.md)"
+    why = f"{named} was retired ({retired.what}; {retired.verdict}: docs/records/history.md)"
     with pytest.raises(ConfigError) as refused:
         load_config(None, [text])
     assert str(refused.value) == f"{why}; drop --set {text}"
@@ -200,5 +200,5 @@ def test_a_saved_config_drops_retired_keys_that_ask_for_the_behaviour_that_staye
             config_from_dict(asking, "runs/old/config.json")
         message = str(refused.value)
         assert message.startswith(f"{key} = {value!r} was retired (") and "\n" not in message
-        assert message.endswith("docs/history.md); runs/old/config.json asks for it: read that run with the "
+        assert message.endswith("docs/records/history.md); runs/old/config.json asks for it: read that run with the "
                                 "warpsense version that made it")

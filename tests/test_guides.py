@@ -1,5 +1,5 @@
 """The guides (docs/guide/) say how to do a thing; measurements, device timings, commit hashes and issue numbers
-live in docs/results.md, docs/benchmarks.md and docs/history.md, which the guides point to."""
+live in docs/results.md, docs/benchmarks.md and docs/records/history.md, which the guides point to."""
 
 import re
 from pathlib import Path

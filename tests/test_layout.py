@@ -91,7 +91,7 @@ def test_the_code_cites_only_references_that_ship():
 
 def test_no_measurement_rounds_in_the_product():
     """The product is not a lab notebook: the README, the package, the kernels and the configs name no measurement
-    round (the history of how each choice was reached is docs/history.md)."""
+    round (the history of how each choice was reached is docs/records/history.md)."""
     root = PACKAGE.parent
     paths = [root / "README.md", *(path for folder in ("warpsense", "kernels", "configs")
                                    for path in sorted((root / folder).rglob("*")) if path.suffix in (".py", ".toml"))]

@@ -1,7 +1,7 @@
 """The verdict rules' false-verdict rate with the same camera twice (A/A), from the measured seed variance of archived
 studies (warpsense.study.false_verdicts): docs/results.md's table.
 
-    python tools/aa_simulation.py                       # every docs/runs/*/*_runs.tar.xz, 200,000 A/A studies a row
+    python tools/aa_simulation.py                       # every docs/records/*/*_runs.tar.xz, 200,000 A/A studies a row
     python tools/aa_simulation.py ARCHIVE_OR_STUDY_DIR... --replicates 20000 --json aa.json
 
 It prints the measured within-fold seed spread (which archives and study directories, how many runs), then per row
@@ -44,7 +44,7 @@ folds 0001TP, 0006R0 and 0016E5; a block fold's few runs are pooled with the res
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("archives", nargs="*", help="study archives (.tar.xz) or study directories (default: "
-                        "docs/runs/*/*_runs.tar.xz)")
+                        "docs/records/*/*_runs.tar.xz)")
     parser.add_argument("--min-seeds", type=int, default=3)
     parser.add_argument("--max-seeds", type=int, default=8)
     parser.add_argument("--tolerance", type=float, default=0.01, help="the sequential rule's (mIoU)")
@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", metavar="OUT", help="write the measurements and every row's result")
     args = parser.parse_args(argv)
-    archives = args.archives or sorted(glob.glob(str(ROOT / "docs" / "runs" / "*" / "*_runs.tar.xz")))
+    archives = args.archives or sorted(glob.glob(str(ROOT / "docs" / "records" / "*" / "*_runs.tar.xz")))
     if not archives:
         print("aa_simulation: no archives", file=sys.stderr)
         return 2

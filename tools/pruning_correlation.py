@@ -1,7 +1,7 @@
 """How early archived studies rank their cameras as their final scores do (warpsense.study.early_ranks): the
 measurement behind pruning designs early in a search, docs/results.md's table.
 
-    python tools/pruning_correlation.py                 # every docs/runs/*/*_runs.tar.xz
+    python tools/pruning_correlation.py                 # every docs/records/*/*_runs.tar.xz
     python tools/pruning_correlation.py ARCHIVE_OR_STUDY_DIR... --margin 0.02 --json ranks.json
 
 Prints, per early point of a run (10% .. 75% of its epochs), the median (and lowest) Spearman rank correlation
@@ -33,12 +33,12 @@ def _value(summary: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("archives", nargs="*", help="study archives (.tar.xz) or study directories (default: "
-                        "docs/runs/*/*_runs.tar.xz)")
+                        "docs/records/*/*_runs.tar.xz)")
     parser.add_argument("--reduction", type=int, default=3, help="the first rung keeps the top 1/N (default 3)")
     parser.add_argument("--margin", type=float, default=0.0, help="... or those within this of its best")
     parser.add_argument("--json", metavar="OUT")
     args = parser.parse_args(argv)
-    archives = args.archives or sorted(glob.glob(str(ROOT / "docs" / "runs" / "*" / "*_runs.tar.xz")))
+    archives = args.archives or sorted(glob.glob(str(ROOT / "docs" / "records" / "*" / "*_runs.tar.xz")))
     if not archives:
         print("pruning_correlation: no archives", file=sys.stderr)
         return 2

@@ -341,7 +341,7 @@ EVERY_VALUE = object()
 
 @dataclass(frozen=True)
 class Retired:
-    """A config key (or one value of a key) removed because it was not adopted; docs/history.md says why (the
+    """A config key (or one value of a key) removed because it was not adopted; docs/records/history.md says why (the
     measurements).
 
     Attributes:
@@ -388,7 +388,7 @@ def _retired_error(name: str, retired: Retired, source: str, saved: bool) -> Con
         remedy = f"drop {source}"
     else:
         remedy = f"remove it from {source}"
-    return ConfigError(f"{name} was retired ({retired.what}; {retired.verdict}: docs/history.md); {remedy}")
+    return ConfigError(f"{name} was retired ({retired.what}; {retired.verdict}: docs/records/history.md); {remedy}")
 
 
 def _apply(config: Config, overrides: dict, source: str, saved: bool = False) -> None:

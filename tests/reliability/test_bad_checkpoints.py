@@ -34,9 +34,9 @@ def _model_checkpoints(folder):
           names=("train.lr",))
     write("unknown_section", {**config.to_dict(), "extra": {}}, names=("extra",))
     write("retired_behaviour", {**config.to_dict(), "loss": {**config.to_dict()["loss"], "class_balance": 0.5}},
-          names=("loss.class_balance = 0.5 was retired", "docs/history.md"))
+          names=("loss.class_balance = 0.5 was retired", "docs/records/history.md"))
     write("retired_network", {**config.to_dict(), "model": {**config.to_dict()["model"], "name": "packunet"}},
-          names=("model.name = 'packunet' was retired", "docs/history.md"))
+          names=("model.name = 'packunet' was retired", "docs/records/history.md"))
     write("no_num_classes", config.to_dict(), state_dict={"epoch": 0}, names=("num_classes",))
     write("other_width", config.to_dict(), tensors_model=build_system(load_config(None, ["model.width=4"]), 11),
           names=("model",))

@@ -380,8 +380,8 @@ def _config_cases():
 
 CONFIG_CASES = list(_config_cases())
 # retired keys and values (`warpsense.config.RETIRED`, `RETIRED_VALUES`): refused naming them and where to read why
-CONFIG_CASES += [(key, "retired", [f"{key}=1"], (key, "docs/history.md")) for key in RETIRED]
-CONFIG_CASES += [(key, "retired_value", [f'{key}="{value}"'], (key, repr(value), "docs/history.md"))
+CONFIG_CASES += [(key, "retired", [f"{key}=1"], (key, "docs/records/history.md")) for key in RETIRED]
+CONFIG_CASES += [(key, "retired_value", [f'{key}="{value}"'], (key, repr(value), "docs/records/history.md"))
                  for key, value in RETIRED_VALUES]
 
 

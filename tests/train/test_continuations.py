@@ -126,8 +126,8 @@ def test_a_run_saved_with_a_retired_behaviour_is_refused_unchanged(run, capsys):
     _saved_with(run, loss__lovasz_stride=2)
     error = _refused(["--resume-dir", str(run), "--extend", "1"], capsys, run)
     assert error.endswith(f"loss.lovasz_stride = 2 was retired (the Lovasz term on every Nth pixel; measured, not "
-                          f"adopted: docs/history.md); {run / 'config.json'} asks for it: read that run with the "
-                          "warpsense version that made it")
+                          f"adopted: docs/records/history.md); {run / 'config.json'} asks for it: read that run with "
+                          "the warpsense version that made it")
 
 
 def test_a_run_saved_with_retired_keys_at_todays_behaviour_continues(run, capsys):

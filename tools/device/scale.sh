@@ -19,7 +19,7 @@
 #                                           SIDES=all runs the all-rank side only (SIDES=1: the 1-rank side)
 # Each torchrun is stopped after $LIMIT s (default 300: a rank that hangs at exit must not eat the call).
 # Extra overrides for the study runs go in $SET (e.g. SET="--set run.deterministic=true" for the per-cell equality
-# check, which the throughput figures should not carry: it costs 31% of the step, docs/history.md).
+# check, which the throughput figures should not carry: it costs 31% of the step, docs/records/history.md).
 # Cells per hour and the GPUs' busy fraction are in each study's throughput.json; everything comes back as
 # $OUT/scale.tgz (no plots, no weights).
 set -u
@@ -32,7 +32,7 @@ case $what in
   warm|studies)
     started=$(date +%s)
     # shellcheck disable=SC2086  # $SET first: its own kernels (run.deterministic) are warmed too
-    python -m warpsense study run docs/runs/plans/camvid_scaling.toml --out .device/state/scale_warm --gpus 0 --per-gpu 1 \
+    python -m warpsense study run docs/records/plans/camvid_scaling.toml --out .device/state/scale_warm --gpus 0 --per-gpu 1 \
       --set data.root=.device/camvid ${SET:-} --set train.epochs=2 --set train.warmup_epochs=1 > "$OUT/scale_warm.log" 2>&1
     echo "warm-up (untimed by the studies): exit $?, $(( $(date +%s) - started )) s"
     [ "$what" = studies ] && sides="0 auto" || sides=""
@@ -42,7 +42,7 @@ case $what in
     for side in $sides; do
       name=scale_$([ "$side" = auto ] && echo all || echo 1gpu)
       # shellcheck disable=SC2086  # $SET is a list of arguments
-      python -m warpsense study run docs/runs/plans/camvid_scaling.toml --out ".device/state/$name" --gpus "$side" --per-gpu 1 \
+      python -m warpsense study run docs/records/plans/camvid_scaling.toml --out ".device/state/$name" --gpus "$side" --per-gpu 1 \
         --set data.root=.device/camvid ${SET:-} > "$OUT/$name.log" 2>&1
       python -m warpsense study report ".device/state/$name" --json "$OUT/$name.json" > "$OUT/$name.txt"
       grep -E "^\[|^study" "$OUT/$name.log" | tail -3; cat ".device/state/$name/throughput.json"

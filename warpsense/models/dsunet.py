@@ -167,7 +167,7 @@ class DSUNet(nn.Module):
     The full-resolution path (stem, ``enc1``, ``dec1`` and the head's input) carries ``full_width`` channels (0: w)
     through ``full_depth`` separable blocks in the encoder and in the decoder (1: one each). It is where a pole or a
     sign a few pixels wide is seen whole. It costs little in parameters (width 40 adds 5.6k, depth 2 adds 2.4k at
-    w = 24) and much in activations, which are full-resolution there (longer runs: docs/history.md, the
+    w = 24) and much in activations, which are full-resolution there (longer runs: docs/records/history.md, the
     full-resolution path).
 
     ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 it doubles the training speed (batch
