@@ -13,9 +13,9 @@ The ReLU's mask is recomputed from x (the same `affine` as the forward's), so ne
 
 Layout: each thread owns a pair of channels (2p, 2p + 1) and walks the rows g, g + G, g + 2G, ... of x [R, C], so a
 warp's loads are one contiguous run of memory. bfloat16 data comes as int32 words [R, C / 2], one pair per 4-byte
-load (two bfloat16 loads would halve the bytes per instruction; 8 channels per thread in one 16-byte load take
-64-96 registers a thread and were slower); float32 and float64 data as [R, C]. Arithmetic is float32 for bfloat16
-and float32, float64 for float64. The reductions write
+load (two bfloat16 loads would halve the bytes per instruction; more channels a thread in one wider load need
+more registers, leaving fewer warps to hide the loads); float32 and float64 data as [R, C]. Arithmetic is float32
+for bfloat16 and float32, float64 for float64. The reductions write
 one partial sum per row group [G, 2, C] in a fixed order (the op adds them up): deterministic, no atomics. The
 statistics sum x - x[0] (a shift inside the data's range keeps E[x^2] - E[x]^2 from cancelling).
 """

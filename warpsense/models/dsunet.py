@@ -170,10 +170,11 @@ class DSUNet(nn.Module):
     w = 24) and much in activations, which are full-resolution there (longer runs: docs/records/history.md, the
     full-resolution path).
 
-    ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 it doubles the training speed (batch
-    norm and depthwise convolutions have fast NHWC kernels; their NCHW bf16 backward is slow). The output is the
-    same up to float rounding. While torch's deterministic algorithms are on (``run.deterministic``), the
-    upsampling and pooling take the forms in `warpsense.models.resample`, whose CUDA backward is deterministic.
+    ``channels_last`` keeps weights and activations in NHWC: on CUDA in bf16 batch norm and depthwise convolutions
+    have fast NHWC kernels, where their NCHW bf16 backward is slow (docs/benchmarks.md, measurements behind code
+    choices). The output is the same up to float rounding. While torch's deterministic algorithms are on
+    (``run.deterministic``), the upsampling and pooling take the forms in `warpsense.models.resample`, whose CUDA
+    backward is deterministic.
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 11, width: int = 16, tile: int = 2,

@@ -117,8 +117,8 @@ FORWARD_BLOCK = kernels.FORWARD_BOUNDS[0]
 more warps a multiprocessor than Warp's 256 for a kernel of many registers a thread (docs/benchmarks.md, PSF
 convolution)."""
 CELLS_BLOCK = 128
-"""Threads per block of the PSF-adjoint launch: blocks of 128 were faster than 256 when the adjoint took 96 registers
-a thread (docs/benchmarks.md, PSF convolution); at its 114 now both sizes fit 16 warps a multiprocessor."""
+"""Threads per block of the PSF-adjoint launch: as the forward's, blocks of 128 never hold fewer warps a
+multiprocessor than blocks of 256 for a kernel of many registers a thread (docs/benchmarks.md, PSF convolution)."""
 
 
 def _nodes(cells: torch.Tensor) -> Vectors:

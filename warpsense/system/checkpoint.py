@@ -2,8 +2,9 @@
 training state; a JSON copy of that metadata is written beside it for people to read.
 
 The checkpoint is one file, written to a temporary name and renamed: a kill at any moment leaves either the old
-checkpoint or the new one, never a mix (a sidecar replaced before its tensors once resumed from mismatched state).
-Reading takes the metadata inside the file; the sidecar is consulted only for checkpoints written before this.
+checkpoint or the new one, never a mix (metadata in a file of its own could be replaced apart from the tensors it
+describes). Reading takes the metadata inside the file; the sidecar is consulted only for older checkpoints that hold
+none.
 """
 
 from __future__ import annotations

@@ -18,8 +18,8 @@ LOCATING_KEYS = ("run.output_dir=", "run.name=")
 
 def check_device_keys(config, source: str = "") -> None:
     """The keys that need the run's device to be a CUDA GPU, checked before the run folder is made, the data read or
-    the model built (train.cuda_graph failed only when the training step was set up, after the run directory was
-    printed and the model built). ``source`` prefixes the message (a continued run's `RunDir.config`)."""
+    the model built, so that a run its machine cannot train leaves nothing behind and costs no set-up. ``source``
+    prefixes the message (a continued run's `RunDir.config`)."""
     from warpsense.system import resolve_device
 
     if config.train.cuda_graph:
