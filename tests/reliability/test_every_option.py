@@ -234,13 +234,14 @@ def refuse_work(monkeypatch):
     import warpsense.bench.runner
     import warpsense.study.runner
     import warpsense.study.slurm
+    import warpsense.study.worker
 
     def accepted(*args, **kwargs):
         raise Accepted("the bad value was accepted")
 
     monkeypatch.setattr(warpsense.bench.runner, "run_bench", accepted)
     monkeypatch.setattr(warpsense.study.runner, "run_cells", accepted)
-    monkeypatch.setattr(warpsense.study.runner, "cell_worker", accepted)
+    monkeypatch.setattr(warpsense.study.worker, "cell_worker", accepted)
     monkeypatch.setattr(warpsense.study.slurm, "submit_study", accepted)
 
 

@@ -5,7 +5,7 @@ verdicts, searches) are checked by hand in a second."""
 import json
 from pathlib import Path
 
-from warpsense.study import runner
+from warpsense.study.study_dir import run_dir
 
 CLASSES = ["sky", "road"]
 
@@ -21,8 +21,9 @@ def evaluation(miou: float, camera: dict | None = None, frames: int = 4) -> dict
 
 
 class FakeTraining:
-    """``runner.train_cell`` replaced: ``score(config, cell) -> mIoU``; ``trained`` lists the cells' ids in the order
-    trained; with ``stop_after`` the next cell raises KeyboardInterrupt (as Ctrl-C would) once that many trained."""
+    """``warpsense.study.training.train_cell`` replaced: ``score(config, cell) -> mIoU``; ``trained`` lists the
+    cells' ids in the order trained; with ``stop_after`` the next cell raises KeyboardInterrupt (as Ctrl-C would)
+    once that many trained."""
 
     def __init__(self, score, stop_after: int | None = None):
         self.score, self.stop_after, self.trained = score, stop_after, []
@@ -31,8 +32,8 @@ class FakeTraining:
         from warpsense.train.engine import TrainingInterrupted
 
         if self.stop_after is not None and len(self.trained) >= self.stop_after:
-            raise TrainingInterrupted(runner.run_dir(out, cell))
-        directory = runner.run_dir(Path(out), cell)
+            raise TrainingInterrupted(run_dir(out, cell))
+        directory = run_dir(Path(out), cell)
         directory.mkdir(parents=True, exist_ok=True)
         config = plan.config(cell, Path(out) / "runs")
         (directory / "config.json").write_text(json.dumps(config.to_dict()))

@@ -12,7 +12,7 @@ from tests.reliability.conftest import assert_clean_failure
 from warpsense.study import load_plan
 from warpsense.study.plan import PlanError
 from warpsense.study.report import study_record
-from warpsense.study.runner import evaluation_path, read_throughput, record_plan, run_dir
+from warpsense.study.study_dir import StudyDir, evaluation_path, record_plan, run_dir
 from warpsense.train.run_dir import read_metrics
 
 CLASSES = ["sky", "road"]
@@ -154,7 +154,7 @@ def test_a_torn_evaluation_and_throughput_entry_are_named(tmp_path, capsys):
                          (str(out / "throughput.json"), "entry 1: cells_per_hour: expected a finite number"))
     with pytest.raises(PlanError, match="entry 1: expected a JSON object"):
         (out / "throughput.json").write_text("[3]")
-        read_throughput(out / "throughput.json")
+        StudyDir(out).read_throughput()
     (out / "throughput.json").unlink()
     path = evaluation_path(out, plan.cells()[0])
     path.write_text('{"epoch": 1, "splits": {"val"')

@@ -186,7 +186,7 @@ def test_smoke_study_by_sequence_folds_runs_resumes_and_reports(tmp_path, monkey
 
 @pytest.mark.parametrize("miou", [float("nan"), float("inf"), 1.5, -0.1, "0.5"])
 def test_report_refuses_a_cell_with_scores_that_are_not_finite_in_0_1(tmp_path, miou):
-    from warpsense.study.runner import evaluation_path, record_plan
+    from warpsense.study.study_dir import evaluation_path, record_plan
 
     plan = load_plan("smoke")
     out = tmp_path / "study"

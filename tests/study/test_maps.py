@@ -14,7 +14,7 @@ from warpsense.study import load_plan, render_text
 from warpsense.study.maps import map_path, plot_maps, trajectory
 from warpsense.study.plan import Plan, PlanError, value_label
 from warpsense.study.report import study_record
-from warpsense.study.runner import record_plan, run_dir
+from warpsense.study.study_dir import record_plan, run_dir
 
 PHOTONS = ('set = ["data.scenes_train=8", "data.scenes_val=4", "optics.enabled=true", "optics.normalize_mean=0.0", '
            '"exposure.enabled=false", "cfa.mode=\\"fixed\\"", "noise.enabled=false", "photons.enabled=true"]\n')

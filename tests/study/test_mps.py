@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from warpsense.study import mps, runner
+from warpsense.study import gpus, mps, runner, work, worker
 from warpsense.study.mps import MPSError, mps_daemon, wanted
 
 FAKE = """#!/bin/sh
@@ -46,8 +46,8 @@ def test_daemon_started_with_its_own_folders_and_quit(fake_control):
     with mps_daemon(True) as environment:
         pipe = Path(environment["CUDA_MPS_PIPE_DIRECTORY"])
         assert pipe.is_dir() and Path(environment["CUDA_MPS_LOG_DIRECTORY"]).is_dir()
-        worker = runner.worker_environment("1", 2, environ={}, cores=8, extra=environment)
-        assert worker["CUDA_MPS_PIPE_DIRECTORY"] == str(pipe) and worker["CUDA_VISIBLE_DEVICES"] == "1"
+        variables = worker.worker_environment("1", 2, environ={}, cores=8, extra=environment)
+        assert variables["CUDA_MPS_PIPE_DIRECTORY"] == str(pipe) and variables["CUDA_VISIBLE_DEVICES"] == "1"
     calls = fake_control.read_text().splitlines()
     assert calls == [f"args=-d pipe={pipe} log={pipe.parent / 'log'}", f"args= pipe={pipe} log={pipe.parent / 'log'}",
                      "quit"]
@@ -96,14 +96,14 @@ def test_study_run_says_what_per_gpu_auto_chose(fake_control, monkeypatch, capsy
     from warpsense.study import load_plan
     from warpsense.study.mps import RECIPE_PIXELS
 
-    seen, measure = {}, runner.step_pixels
+    seen, measure = {}, work.step_pixels
 
     def pixels(plan):
         seen["pixels"] = measure(plan)
         return RECIPE_PIXELS
 
-    monkeypatch.setattr(runner, "gpu_memory_gib", lambda gpus: [79.6] * len(gpus))
-    monkeypatch.setattr(runner, "step_pixels", pixels)
+    monkeypatch.setattr(gpus, "gpu_memory_gib", lambda gpus: [79.6] * len(gpus))
+    monkeypatch.setattr(work, "step_pixels", pixels)
     assert pool_cells_per_gpu(load_plan("smoke"), ["0", "1"], "auto") == 3
     assert "3 cell(s) at once on each GPU (--per-gpu auto: CUDA MPS, 80 GiB free a GPU" in capsys.readouterr().out
     config = load_plan("smoke").config(load_plan("smoke").cells()[0], "runs")

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from warpsense.study.report import run_seconds, steady_run_seconds
+from warpsense.study.run_times import run_seconds, steady_run_seconds
 
 
 def _write(path, records):

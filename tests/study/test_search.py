@@ -13,7 +13,7 @@ import pytest
 from tests.study.fakes import FakeTraining
 from warpsense.cli import main
 from warpsense.resources import CONFIG_DIR
-from warpsense.study import load_plan, runner, slurm, study_record
+from warpsense.study import load_plan, slurm, slurm_status, study_record, training
 from warpsense.study.plan import Plan, PlanError
 from warpsense.study.search import SEARCH_RECORD, read_search
 from warpsense.study.search_report import plot_search, search_lines
@@ -129,7 +129,7 @@ def _by_hand(record: dict, scores: dict, reduction: int = 3, margin: float = 0.0
 def test_the_search_warm_starts_prunes_losers_holds_its_budget_and_resumes(tmp_path, monkeypatch, capsys):
     overrides = ["search.budget=12", "search.prune_margin=0.0"]
     fake = FakeTraining(_score)
-    monkeypatch.setattr(runner, "train_cell", fake)
+    monkeypatch.setattr(training, "train_cell", fake)
     out = tmp_path / "whole"
     assert main(_arguments(out, overrides)) == 0
     printed = capsys.readouterr().out
@@ -165,17 +165,17 @@ def test_the_search_warm_starts_prunes_losers_holds_its_budget_and_resumes(tmp_p
 
     # the same study interrupted (Ctrl-C in its 7th cell), then run again: the same designs, in the same order
     interrupted = FakeTraining(_score, stop_after=6)
-    monkeypatch.setattr(runner, "train_cell", interrupted)
+    monkeypatch.setattr(training, "train_cell", interrupted)
     resumed = tmp_path / "resumed"
     assert main(_arguments(resumed, overrides)) == 130
     assert len(interrupted.trained) == 6 and (resumed / SEARCH_RECORD).is_file()
     rest = FakeTraining(_score)
-    monkeypatch.setattr(runner, "train_cell", rest)
+    monkeypatch.setattr(training, "train_cell", rest)
     assert main(_arguments(resumed, overrides)) == 0
     assert interrupted.trained + rest.trained == fake.trained  # nothing trained twice, nothing left out
     assert read_search(resumed) == record
     again = FakeTraining(_score)
-    monkeypatch.setattr(runner, "train_cell", again)
+    monkeypatch.setattr(training, "train_cell", again)
     assert main(_arguments(resumed, overrides)) == 0 and again.trained == []  # finished: nothing more
     shutil.rmtree(resumed / "runs" / "search_f2p8_t10.night.seed1")  # deleted to retrain it: trained again, alone
     assert main(_arguments(resumed, overrides)) == 0 and again.trained == ["search_f2p8_t10/night/1"]
@@ -210,16 +210,16 @@ def test_the_search_runs_through_the_slurm_executor(tmp_path, monkeypatch, capsy
     """--executor slurm --wait: each round is one job array; the tasks (submitit's CellTask, here run at once as a
     cluster would) resolve a design's cell from its name alone."""
     fake = FakeTraining(_score)
-    monkeypatch.setattr(runner, "train_cell", fake)
+    monkeypatch.setattr(training, "train_cell", fake)
     monkeypatch.setattr(slurm, "require_slurm", lambda: None)
     monkeypatch.setattr(slurm, "check_submission", lambda *args: None)
-    monkeypatch.setattr(slurm, "queue_states", lambda: {})
+    monkeypatch.setattr(slurm_status, "queue_states", lambda: {})
     arrays = []
 
     def submit(plan, out, cells, options, gpus):
         task = slurm.CellTask(str(Path(plan.source).absolute()), plan.overrides, str(out))
         for cell in cells:
-            task(cell.id)
+            task(cell)
         arrays.append([cell.id for cell in cells])
         return str(len(arrays))
 

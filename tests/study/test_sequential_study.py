@@ -13,7 +13,7 @@ from scipy import stats
 from tests.study.fakes import FakeTraining
 from warpsense.cli import main
 from warpsense.resources import CONFIG_DIR
-from warpsense.study import load_plan, runner, slurm, study_record
+from warpsense.study import load_plan, slurm, slurm_status, study_record, training
 from warpsense.study.plan import Plan
 from warpsense.study.report import render_text
 from warpsense.study.sequential import critical_value, nominal_level
@@ -90,7 +90,7 @@ def _by_hand(values: list[float], looks: tuple[int, ...]) -> tuple[float, float]
 def test_only_unsettled_comparisons_get_more_seeds_and_the_report_judges_where_they_stopped(tmp_path, monkeypatch,
                                                                                            capsys):
     fake = FakeTraining(_score)
-    monkeypatch.setattr(runner, "train_cell", fake)
+    monkeypatch.setattr(training, "train_cell", fake)
     out = tmp_path / "study"
     assert main(["study", "run", str(_plan_file(tmp_path)), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
@@ -128,11 +128,11 @@ def test_only_unsettled_comparisons_get_more_seeds_and_the_report_judges_where_t
 
     # the same study stopped by Ctrl-C in its 8th cell and run again: the same cells, none trained twice
     interrupted = FakeTraining(_score, stop_after=7)
-    monkeypatch.setattr(runner, "train_cell", interrupted)
+    monkeypatch.setattr(training, "train_cell", interrupted)
     again = tmp_path / "again"
     assert main(["study", "run", str(_plan_file(tmp_path)), "--out", str(again)]) == 130
     rest = FakeTraining(_score)
-    monkeypatch.setattr(runner, "train_cell", rest)
+    monkeypatch.setattr(training, "train_cell", rest)
     assert main(["study", "run", str(_plan_file(tmp_path)), "--out", str(again)]) == 0
     assert interrupted.trained + rest.trained == expected
 
@@ -141,12 +141,12 @@ def _fake_cluster(monkeypatch, arrays: list) -> None:
     """Slurm's commands answered here; a submitted array's tasks run at once in this process (submitit's CellTask)."""
     monkeypatch.setattr(slurm, "require_slurm", lambda: None)
     monkeypatch.setattr(slurm, "check_submission", lambda *args: None)
-    monkeypatch.setattr(slurm, "queue_states", lambda: {})
+    monkeypatch.setattr(slurm_status, "queue_states", lambda: {})
 
     def submit(plan, out, cells, options, gpus):
         task = slurm.CellTask(str(Path(plan.source).absolute()), plan.overrides, str(out))
         for cell in cells:
-            task(cell.id)
+            task(cell)
         arrays.append([cell.id for cell in cells])
         return str(len(arrays))
 
@@ -154,7 +154,7 @@ def _fake_cluster(monkeypatch, arrays: list) -> None:
 
 
 def test_slurm_rounds_with_and_without_wait(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(runner, "train_cell", FakeTraining(_score))
+    monkeypatch.setattr(training, "train_cell", FakeTraining(_score))
     arrays = []
     _fake_cluster(monkeypatch, arrays)
     plan = str(_plan_file(tmp_path))

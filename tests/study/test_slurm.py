@@ -21,7 +21,8 @@ import pytest
 
 from tests.reliability.conftest import assert_clean_failure
 from warpsense.cli import main
-from warpsense.study import load_plan, slurm
+from warpsense.study import load_plan, slurm, slurm_status, work
+from warpsense.study.study_dir import StudyDir, record_plan, run_dir
 
 FAST = ["train.epochs=8", "data.scenes_train=16", "data.scenes_val=4", "train.eval_every=8"]
 EPOCHS = 8
@@ -111,27 +112,27 @@ def test_slurm_options_map_onto_submitit_and_sbatch():
 def test_status_reads_the_directory_and_the_queue(tmp_path, monkeypatch, capsys):
     """Each cell: done (evaluated), running or pending as squeue lists its task, failed where its task is gone
     without an evaluation (the reason from its log), pending where never submitted (with its checkpoint)."""
-    from warpsense.study import runner
     from warpsense.train.run_dir import LAST, METRICS
 
     plan = load_plan("smoke", FAST)
     out = tmp_path / "study"
-    runner.record_plan(plan, out)
+    record_plan(plan, out)
     done, running, queued, failed, fresh, partial = plan.cells()
     for cell in (done, running, failed, partial):
-        folder = runner.run_dir(out, cell)
+        folder = run_dir(out, cell)
         folder.mkdir(parents=True)
         (folder / LAST).write_bytes(b"")
         (folder / METRICS).write_text(json.dumps({"epoch": 0}) + "\n" + json.dumps({"epoch": 1}) + "\n")
         (folder / "config.json").write_text(json.dumps({"train": {"epochs": EPOCHS}}))
-    (runner.run_dir(out, done) / "evaluation.json").write_text(json.dumps({"splits": {"val": {"miou": 0.25}}}))
+    (run_dir(out, done) / "evaluation.json").write_text(json.dumps({"splits": {"val": {"miou": 0.25}}}))
     ids = {done.id: "7_0", running.id: "7_1", queued.id: "7_2", failed.id: "7_3"}
     (out / "slurm").mkdir()
-    (out / slurm.JOBS).write_text(json.dumps({"submissions": [{"job_id": "7", "cells": ids}]}))
+    (out / StudyDir.JOBS).write_text(json.dumps({"submissions": [{"job_id": "7", "cells": ids}]}))
     log = out / "slurm" / "7_3" / "7_3_0_log.err"
     log.parent.mkdir()
     log.write_text("slurmstepd: error: *** STEP 7.0 ON vm CANCELLED AT 2026-01-01T00:00:00 ***\n")
-    monkeypatch.setattr(slurm, "queue_states", lambda: {"7_1": ("RUNNING", "None"), "7_2": ("PENDING", "Resources")})
+    monkeypatch.setattr(slurm_status, "queue_states",
+                        lambda: {"7_1": ("RUNNING", "None"), "7_2": ("PENDING", "Resources")})
 
     assert main(["study", "status", str(out)]) == 0
     lines = capsys.readouterr().out.splitlines()
@@ -155,23 +156,22 @@ def test_status_of_a_stopped_cell_names_the_epoch_it_resumes_after(tmp_path):
     import torch
     from safetensors.torch import save_file
 
-    from warpsense.study import runner
     from warpsense.system.checkpoint import METADATA_KEY
     from warpsense.train.run_dir import LAST, METRICS
 
     plan = load_plan("smoke", FAST)
     out = tmp_path / "study"
-    runner.record_plan(plan, out)
+    record_plan(plan, out)
     behind, level, unsaved = plan.cells()[:3]
     for cell, saved_epoch in ((behind, 4), (level, 6), (unsaved, None)):
-        folder = runner.run_dir(out, cell)
+        folder = run_dir(out, cell)
         folder.mkdir(parents=True)
         (folder / METRICS).write_text("".join(json.dumps({"epoch": epoch}) + "\n" for epoch in range(7)))
         (folder / "config.json").write_text(json.dumps({"train": {"epochs": EPOCHS}}))
         if saved_epoch is not None:
             save_file({"model.w": torch.zeros(1)}, str(folder / LAST),
                       metadata={METADATA_KEY: json.dumps({"config": {}, "state": {"epoch": saved_epoch}})})
-    detail = {cell: slurm.cell_status(out, cell, None, None) for cell in (behind, level, unsaved)}
+    detail = {cell: slurm_status.cell_status(out, cell, None, None) for cell in (behind, level, unsaved)}
     assert {status.state for status in detail.values()} == {"pending"}
     assert detail[behind].detail == f"stopped at epoch 7 of {EPOCHS}, resumes after epoch 5 (its last checkpoint)"
     assert detail[level].detail == f"stopped at epoch 7 of {EPOCHS}, resumes there"
@@ -181,18 +181,17 @@ def test_status_of_a_stopped_cell_names_the_epoch_it_resumes_after(tmp_path):
 
 def test_status_names_a_cell_whose_metrics_are_damaged_and_shows_the_others(tmp_path, capsys):
     """A damaged line inside one cell's metrics.jsonl (not its torn last line) failed the whole `study status`."""
-    from warpsense.study import runner
 
     plan = load_plan("smoke", FAST)
     out = tmp_path / "study"
-    runner.record_plan(plan, out)
+    record_plan(plan, out)
     damaged, other = plan.cells()[:2]
     for cell, text in ((damaged, '{"epoch": 0}\nnot json\n{"epoch": 2}\n'), (other, '{"epoch": 0}\n')):
-        runner.run_dir(out, cell).mkdir(parents=True)
-        (runner.run_dir(out, cell) / "metrics.jsonl").write_text(text)
+        run_dir(out, cell).mkdir(parents=True)
+        (run_dir(out, cell) / "metrics.jsonl").write_text(text)
     assert main(["study", "status", str(out)]) == 0
     printed = capsys.readouterr().out
-    metrics = runner.run_dir(out, damaged) / "metrics.jsonl"
+    metrics = run_dir(out, damaged) / "metrics.jsonl"
     assert f"stopped at epoch ? ({metrics}:2: not a JSON record)" in printed
     assert "stopped at epoch 1 of " in printed  # the other cell's own line
 
@@ -201,23 +200,23 @@ def test_a_local_run_refuses_cells_that_slurm_tasks_hold(tmp_path, monkeypatch, 
     """`study run` without --executor slurm on a study whose cells are queued or running on Slurm trained them here
     too, into the same run directories (the run lock sees processes of this machine only); it is refused in one line
     naming the cells and their tasks, before anything is written. A task that has ended holds nothing."""
-    from warpsense.study import runner
 
     plan = load_plan("smoke", FAST)
     out = tmp_path / "study"
-    runner.record_plan(plan, out)
+    record_plan(plan, out)
     cells = plan.cells()
     (out / "slurm").mkdir()
-    (out / slurm.JOBS).write_text(json.dumps({"submissions": [{"job_id": "7", "cells": {
+    (out / StudyDir.JOBS).write_text(json.dumps({"submissions": [{"job_id": "7", "cells": {
         cells[0].id: "7_0", cells[1].id: "7_1", cells[2].id: "7_2"}}]}))
-    monkeypatch.setattr(slurm, "queue_states", lambda: {"7_0": ("RUNNING", "None"), "7_1": ("PENDING", "Priority")})
+    monkeypatch.setattr(slurm_status, "queue_states",
+                        lambda: {"7_0": ("RUNNING", "None"), "7_1": ("PENDING", "Priority")})
     run = ["study", "run", "smoke", "--out", str(out), "--gpus", "none", *SETS]
     assert_clean_failure(capsys, run, (f"{cells[0].id} (job 7_0)", f"{cells[1].id} (job 7_1)", "queued or running"),
                          watched=tmp_path)
     assert cells[2].id not in capsys.readouterr().err
     assert_clean_failure(capsys, [*run, "--cell", cells[1].id], (f"{cells[1].id} (job 7_1)",), watched=tmp_path)
-    monkeypatch.setattr(slurm, "queue_states", lambda: None)  # no squeue here: said, and not refused
-    slurm.check_not_queued(out, cells)
+    monkeypatch.setattr(slurm_status, "queue_states", lambda: None)  # no squeue here: said, and not refused
+    slurm_status.check_not_queued(out, cells)
     assert "squeue does not answer" in capsys.readouterr().err
 
 
@@ -225,14 +224,13 @@ def test_submitting_refuses_cells_a_local_run_trains_now(tmp_path, monkeypatch, 
     """--executor slurm submitted a cell that a local `study run` of this machine was training (its run lock held by
     a live process): the task, on another node, would have taken the run directory over. Refused in one line naming
     the cell and the process; nothing submitted or written."""
-    from warpsense.study import runner
 
     plan = load_plan("smoke", FAST)
     out = tmp_path / "study"
-    runner.record_plan(plan, out)
+    record_plan(plan, out)
     busy = plan.cells()[1]
-    runner.run_dir(out, busy).mkdir(parents=True)
-    (runner.run_dir(out, busy) / "train.lock").write_text(str(os.getpid()))  # a live process holds it
+    run_dir(out, busy).mkdir(parents=True)
+    (run_dir(out, busy) / "train.lock").write_text(str(os.getpid()))  # a live process holds it
     monkeypatch.setattr(slurm, "require_slurm", lambda: None)
     monkeypatch.setattr(slurm, "check_submission", lambda *args: pytest.fail("asked Slurm"))
     monkeypatch.setattr(slurm, "submit", lambda *args: pytest.fail("submitted"))
@@ -241,9 +239,9 @@ def test_submitting_refuses_cells_a_local_run_trains_now(tmp_path, monkeypatch, 
                          watched=tmp_path)
     # a cell submitted before, whose task is gone: its lock is the killed task's (a pid of another node), not a local
     # run's, and the cell is submitted again
-    (out / slurm.JOBS).parent.mkdir()
-    (out / slurm.JOBS).write_text(json.dumps({"submissions": [{"job_id": "7", "cells": {busy.id: "7_1"}}]}))
-    monkeypatch.setattr(slurm, "queue_states", lambda: {})
+    (out / StudyDir.JOBS).parent.mkdir()
+    (out / StudyDir.JOBS).write_text(json.dumps({"submissions": [{"job_id": "7", "cells": {busy.id: "7_1"}}]}))
+    monkeypatch.setattr(slurm_status, "queue_states", lambda: {})
     monkeypatch.setattr(slurm, "check_submission", lambda *args: None)
     submitted = []
     monkeypatch.setattr(slurm, "submit", lambda plan, out, cells, options, gpus: submitted.extend(cells) or "8")
@@ -252,12 +250,12 @@ def test_submitting_refuses_cells_a_local_run_trains_now(tmp_path, monkeypatch, 
 
 
 def test_the_job_array_holds_the_longest_cells_first(tmp_path, monkeypatch, capsys):
-    """Slurm starts an array's tasks by index: the cells go in longest first (`runner.cell_work`), ties in plan order,
-    so that with fewer nodes than cells the short ones fill the end (as the local pool hands them out)."""
-    from warpsense.study import runner
+    """Slurm starts an array's tasks by index: the cells go in longest first (`warpsense.study.work.cell_work`), ties
+    in plan order, so that with fewer nodes than cells the short ones fill the end (as the local pool hands them
+    out)."""
 
     frames = {"rggb": 1, "rccb": 3, "learned": 2}
-    monkeypatch.setattr(runner, "cell_work", lambda plan, cells: {cell: frames[cell.camera] for cell in cells})
+    monkeypatch.setattr(work, "cell_work", lambda plan, cells: {cell: frames[cell.camera] for cell in cells})
     monkeypatch.setattr(slurm, "require_slurm", lambda: None)
     monkeypatch.setattr(slurm, "check_submission", lambda *args: None)
     submitted = []
@@ -278,10 +276,10 @@ def test_the_job_array_holds_the_longest_cells_first(tmp_path, monkeypatch, caps
 ], ids=["partition", "option", "gpus"])
 def test_options_slurm_refuses_are_one_line_errors_with_nothing_submitted(arguments, names, cluster, tmp_path,
                                                                           capsys):
-    before = slurm.queue_states()
+    before = slurm_status.queue_states()
     assert_clean_failure(capsys, ["study", "run", "smoke", "--out", str(tmp_path / "study"), "--executor", "slurm",
                                   *arguments], names, watched=tmp_path)
-    assert slurm.queue_states() == before
+    assert slurm_status.queue_states() == before
 
 
 def _wait_for(condition, what: str, timeout: float = 60.0):
@@ -309,7 +307,7 @@ def test_smoke_study_on_slurm_killed_and_preempted_tasks_resume(cluster, tmp_pat
     assert main(run) == 0  # returns once submitted
     printed = capsys.readouterr().out
     assert "study: submitted 6 cell(s) (0 resuming from a checkpoint) as Slurm job" in printed
-    first = slurm.latest_jobs(out)
+    first = slurm_status.latest_jobs(out)
     assert list(first) == [cell.id for cell in cells]
 
     def checkpointed(cell):
@@ -335,7 +333,7 @@ def test_smoke_study_on_slurm_killed_and_preempted_tasks_resume(cluster, tmp_pat
         for cell in [cell for cell in actions if checkpointed(cell)]:
             actions.pop(cell)(cell)
         time.sleep(0.05)
-    _wait_for(lambda: first[killed.id] not in (slurm.queue_states() or {first[killed.id]: 0}),
+    _wait_for(lambda: first[killed.id] not in (slurm_status.queue_states() or {first[killed.id]: 0}),
               "the killed task to end", timeout=180.0)
     for cell in (killed, preempted):
         assert not (out / "runs" / cell.run_name / "evaluation.json").exists(), f"{cell.id} finished first"
@@ -349,7 +347,7 @@ def test_smoke_study_on_slurm_killed_and_preempted_tasks_resume(cluster, tmp_pat
     printed = capsys.readouterr()
     assert "study: submitted 1 cell(s) (1 resuming from a checkpoint)" in printed.out
     assert "not submitted again" in printed.out and "study finished; report:" in printed.out
-    submissions = slurm.read_jobs(out)
+    submissions = slurm_status.read_jobs(out)
     assert len(submissions) == 2 and list(submissions[1]["cells"]) == [killed.id]
     for cell in cells:
         assert f"{cell.id}: done after" in printed.out or f"{cell.id}: finished earlier" in printed.out

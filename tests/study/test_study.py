@@ -14,9 +14,22 @@ from tests.reliability.conftest import assert_clean_failure
 from warpsense.cli import main
 from warpsense.config import load_config, tomllib
 from warpsense.resources import CONFIG_DIR
-from warpsense.study import load_plan, render_text, run_cells, runner, study_record
+from warpsense.study import gpus as study_gpus
+from warpsense.study import (
+    load_plan,
+    render_text,
+    reuse,
+    run_cells,
+    runner,
+    study_dir,
+    study_record,
+    training,
+    work,
+    worker,
+)
 from warpsense.study.plan import PlanError
-from warpsense.study.report import precision_recall, run_seconds
+from warpsense.study.report import precision_recall
+from warpsense.study.run_times import run_seconds
 from warpsense.train import engine
 
 FAST = ["train.epochs=2", "data.scenes_train=16", "data.scenes_val=4", "train.eval_every=2"]
@@ -193,14 +206,15 @@ def test_fewer_cells_than_slots_spread_over_the_gpus(tmp_path, capsys):
 FAKE_WORKER = """
 import json, pathlib, sys, time
 out = pathlib.Path(sys.argv[1])
-for line in sys.stdin:  # the pool's protocol: a cell id a line, answered "done <id>" once its evaluation is written
-    cell = line.strip()
-    *head, seed = cell.split("/")
-    run = out / "runs" / ".".join([*head, f"seed{seed}"])
+for line in sys.stdin:  # the pool's protocol: a cell's fields a line, answered done once its evaluation is written
+    cell = json.loads(line)
+    assert isinstance(cell["seed"], int)
+    name = ".".join([cell["camera"], cell["light"], *([cell["fold"]] if cell["fold"] else []), f"seed{cell['seed']}"])
+    run = out / "runs" / name
     run.mkdir(parents=True, exist_ok=True)
     time.sleep(0.2)
     (run / "evaluation.json").write_text(json.dumps({"splits": {"val": {"miou": 0.5}}}))
-    print(f"done {cell}", flush=True)
+    print(json.dumps({"cell": cell, "done": True, "reason": ""}), flush=True)
 """
 
 
@@ -214,8 +228,8 @@ def test_the_pool_hands_out_the_longest_cells_first_and_balances_each_gpus_work(
 
     plan = load_plan(_plan_file(tmp_path), FAST + ["study.seeds=[0,1,2,3]"])
     frames = {"rggb": 163, "rccb": 406, "learned": 367}  # the shortest first in plan order
-    monkeypatch.setattr(runner, "cell_work", lambda plan, cells: {cell: frames[cell.camera] for cell in cells})
-    monkeypatch.setattr(runner, "worker_command",
+    monkeypatch.setattr(work, "cell_work", lambda plan, cells: {cell: frames[cell.camera] for cell in cells})
+    monkeypatch.setattr(worker, "worker_command",
                         lambda plan, out, progress=False: [sys.executable, "-c", FAKE_WORKER, str(out)])
     assert run_cells(plan, tmp_path / "study", gpus=["0", "1", "2", "3"], per_gpu=3) == 0
     printed = capsys.readouterr().out
@@ -238,17 +252,17 @@ name = "long"
 set = ["data.max_train_images=10"]
 '''), [*FAST, "train.epochs=3"])
     cells = plan.cells()
-    work = runner.cell_work(plan, cells)
-    assert {cell.camera: work[cell] for cell in cells} == {"rggb": 3 * 16 * 48 * 64, "rccb": 3 * 16 * 48 * 64,
+    lengths = work.cell_work(plan, cells)
+    assert {cell.camera: lengths[cell] for cell in cells} == {"rggb": 3 * 16 * 48 * 64, "rccb": 3 * 16 * 48 * 64,
                                                            "learned": 3 * 16 * 48 * 64, "long": 3 * 10 * 48 * 64}
     plan = load_plan(_plan_file(tmp_path), [*FAST, "train.epochs=2", "data.crop_height=32"])  # crop pixels count
-    assert set(runner.cell_work(plan, plan.cells()).values()) == {2 * 16 * 32 * 64}
+    assert set(work.cell_work(plan, plan.cells()).values()) == {2 * 16 * 32 * 64}
 
     def unreadable(data_config, seed=0):
         raise engine.DatasetError("train.txt: no such file")
 
     monkeypatch.setattr("warpsense.data.build_training", unreadable)
-    assert set(runner.cell_work(plan, cells).values()) == {1}
+    assert set(work.cell_work(plan, cells).values()) == {1}
 
 
 def test_a_failure_record_that_cannot_be_written_does_not_stop_the_study(tmp_path, monkeypatch):
@@ -259,30 +273,29 @@ def test_a_failure_record_that_cannot_be_written_does_not_stop_the_study(tmp_pat
     def full_disk(target):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(runner, "atomic_write", full_disk)
-    runner.record_failure(tmp_path, plan.cells()[0], "RuntimeError: boom")
-    assert runner.recorded_failure(tmp_path, plan.cells()[0]) is None
+    monkeypatch.setattr(study_dir, "atomic_write", full_disk)
+    study_dir.record_failure(tmp_path, plan.cells()[0], "RuntimeError: boom")
+    assert study_dir.recorded_failure(tmp_path, plan.cells()[0]) is None
 
 
 def test_a_worker_that_cannot_start_fails_its_cells_and_the_pool_goes_on(tmp_path, capsys, monkeypatch):
     """Every worker fails to start (here: no such program): each cell is reported failed (none lost, exit 1) and no
     slot waits for a GPU whose slots stopped."""
-    from warpsense.study import runner
 
     plan = load_plan("smoke", FAST)
     cells = plan.cells()[:5]
-    monkeypatch.setattr(runner, "worker_command", lambda plan, out, progress=False: [str(tmp_path / "no-such-worker")])
+    monkeypatch.setattr(worker, "worker_command", lambda plan, out, progress=False: [str(tmp_path / "no-such-worker")])
     assert run_cells(plan, tmp_path / "study", cells, gpus=["0", "1"], per_gpu=2) == 1
     err = capsys.readouterr().err
     assert err.count(": FAILED (") == len(cells) and f"{len(cells)} of {len(cells)} cells failed" in err
     # each failure is recorded for `study status` until the cell trains again
-    assert all("no-such-worker" in runner.recorded_failure(tmp_path / "study", cell) for cell in cells)
+    assert all("no-such-worker" in study_dir.recorded_failure(tmp_path / "study", cell) for cell in cells)
     import sys
 
-    monkeypatch.setattr(runner, "worker_command",
+    monkeypatch.setattr(worker, "worker_command",
                         lambda plan, out, progress=False: [sys.executable, "-c", FAKE_WORKER, str(out)])
     assert run_cells(plan, tmp_path / "study", cells, gpus=["0", "1"], per_gpu=2) == 0
-    assert [runner.recorded_failure(tmp_path / "study", cell) for cell in cells] == [None] * len(cells)
+    assert [study_dir.recorded_failure(tmp_path / "study", cell) for cell in cells] == [None] * len(cells)
 
 
 def test_the_local_pool_trains_its_cells_on_one_worker_process_per_slot(tmp_path, capsys):
@@ -310,13 +323,13 @@ def test_progress_reaches_the_pool_workers_as_bars_in_each_cells_log(tmp_path, c
     log = (tmp_path / "logs" / f"{cell.run_name}.log").read_text()
     assert re.search(r"epoch 1/2 \(\w+\): +\d+%\|", log)  # a tqdm bar of the first epoch
     assert "--progress: each cell's progress bars go to its log" in capsys.readouterr().out
-    assert "--progress" not in runner.worker_command(plan, tmp_path)
+    assert "--progress" not in worker.worker_command(plan, tmp_path)
 
 
 def test_a_pool_worker_sees_its_gpu_and_its_share_of_the_cores():
     """Each worker gets one GPU and cores // workers OpenMP threads (two workers of 16 threads each on 16 cores made
     every cell's set-up 5-8x slower on the 2 x H100 machine); a thread count the caller set is kept."""
-    from warpsense.study.runner import worker_environment
+    from warpsense.study.worker import worker_environment
 
     environment = worker_environment("1", 2, {"PATH": "/bin", "CUDA_VISIBLE_DEVICES": "0,1"}, cores=16)
     assert environment == {"PATH": "/bin", "CUDA_VISIBLE_DEVICES": "1", "OMP_NUM_THREADS": "8"}
@@ -328,7 +341,7 @@ def test_pool_ids_count_within_the_parents_cuda_visible_devices(monkeypatch):
     """A pool id is an index into this process's CUDA_VISIBLE_DEVICES, as torch's cuda:N: with 2,3 (a Slurm
     allocation) the workers of ids 0 and 1 get "2" and "3", not the machine's GPUs 0 and 1; UUIDs are passed on
     as they are; unset, the id itself. Under the pool's MPS daemon the id stays bare (the daemon renumbers)."""
-    from warpsense.study.runner import worker_environment
+    from warpsense.study.worker import worker_environment
 
     def device(gpu, extra=None):
         return worker_environment(gpu, 2, cores=4, extra=extra)["CUDA_VISIBLE_DEVICES"]
@@ -346,7 +359,7 @@ def test_pool_ids_count_within_the_parents_cuda_visible_devices(monkeypatch):
 
 @pytest.mark.parametrize("visible, shown", [("2,3", "CUDA_VISIBLE_DEVICES=2,3"), ("", "CUDA_VISIBLE_DEVICES=(empty")])
 def test_a_pool_id_past_the_visible_devices_is_one_error_naming_gpus(monkeypatch, visible, shown):
-    from warpsense.study.runner import worker_environment
+    from warpsense.study.worker import worker_environment
 
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", visible)
     for extra in (None, {"CUDA_MPS_PIPE_DIRECTORY": "/tmp/pipe"}):
@@ -370,8 +383,8 @@ def test_the_gpu_reading_child_sees_the_workers_gpus(monkeypatch, uuid_cache):
 
     monkeypatch.setattr(subprocess, "run", run)
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
-    assert runner.cuda_uuids(("1", "0")) is not None and seen == ["3,2"]
-    assert runner.cuda_uuids(("2",)) is None and seen == ["3,2"]  # past the visible devices: nothing to read
+    assert study_gpus.cuda_uuids(("1", "0")) is not None and seen == ["3,2"]
+    assert study_gpus.cuda_uuids(("2",)) is None and seen == ["3,2"]  # past the visible devices: nothing to read
 
 
 def test_explicit_gpu_ids_are_checked_against_the_visible_devices(monkeypatch):
@@ -451,7 +464,6 @@ def test_a_worker_that_dies_fails_its_cell_and_a_fresh_one_takes_the_next(tmp_pa
     slot starts a new worker for the next cell; the study reports both failures and exits 1."""
     import sys
 
-    from warpsense.study import runner
 
     started = []
 
@@ -459,7 +471,7 @@ def test_a_worker_that_dies_fails_its_cell_and_a_fresh_one_takes_the_next(tmp_pa
         started.append(1)
         return [sys.executable, "-c", "import sys; sys.stdin.readline(); sys.exit(3)"]
 
-    monkeypatch.setattr(runner, "worker_command", dying_worker)
+    monkeypatch.setattr(worker, "worker_command", dying_worker)
     plan = load_plan("smoke", FAST)
     cells = plan.cells()[:2]
     assert run_cells(plan, tmp_path, cells, gpus=["0"], per_gpu=1) == 1
@@ -469,31 +481,64 @@ def test_a_worker_that_dies_fails_its_cell_and_a_fresh_one_takes_the_next(tmp_pa
 
 
 def test_a_worker_answers_each_cell_and_goes_on_past_a_failed_one(tmp_path, monkeypatch, capfd):
-    """The worker protocol: cell ids on stdin, one answer line each on stdout; a cell's output and a failure's
-    traceback go to its log, and the next cell still trains."""
+    """The worker protocol: a cell's typed fields on stdin (a JSON object a line), one answer line each on stdout; a
+    cell's output and a failure's traceback go to its log, and the next cell still trains. A line that is not a cell
+    of the plan (a bare id, a seed as text, a cell of no such camera) is answered failed, naming it, and the worker
+    goes on: the seed reaches the worker as the integer the plan made, never parsed back from text."""
+    import dataclasses
     import io
-
-    from warpsense.study import runner
 
     plan = load_plan("smoke", FAST)
     bad, good = plan.cells()[:2]
-    real = runner.train_cell
+    real = training.train_cell
 
     def train_cell(plan, out, cell, progress=False):
         if cell == bad:
             raise ValueError("no light to see by\nsecond line")
         return real(plan, out, cell, progress)
 
-    monkeypatch.setattr(runner, "train_cell", train_cell)
-    monkeypatch.setattr("sys.stdin", io.StringIO(f"{bad.id}\n{good.id}\n"))
-    runner.record_plan(plan, tmp_path)
+    monkeypatch.setattr(training, "train_cell", train_cell)
+    text_seed = json.dumps({**dataclasses.asdict(good), "seed": str(good.seed)})
+    unknown = json.dumps({**dataclasses.asdict(good), "camera": "no_such_camera"})
+    lines = [worker.cell_line(bad), good.id, text_seed, unknown, worker.cell_line(good)]
+    monkeypatch.setattr("sys.stdin", io.StringIO("".join(line + "\n" for line in lines)))
+    study_dir.record_plan(plan, tmp_path)
     (tmp_path / "logs").mkdir()
-    assert runner.cell_worker(plan, tmp_path) == 0
-    answers = capfd.readouterr().out.splitlines()
-    assert answers == [f"failed {bad.id} ValueError: no light to see by", f"done {good.id}"]
+    assert worker.cell_worker(plan, tmp_path) == 0
+    answers = [worker.Answer.parse(line) for line in capfd.readouterr().out.splitlines()]
+    assert answers[0] == worker.Answer(bad, False, "ValueError: no light to see by")
+    assert answers[4] == worker.Answer(good, True)
+    for refused in answers[1:4]:
+        assert refused.cell is None and not refused.done and refused.reason.startswith("PlanError: ")
+    assert "not a cell of the pool's protocol" in answers[1].reason and repr(good.id) in answers[1].reason
+    assert "not a cell of the pool's protocol" in answers[2].reason  # the seed as text is not taken for a number
+    assert "no cell 'no_such_camera/" in answers[3].reason
     assert "Traceback" in (tmp_path / "logs" / f"{bad.run_name}.log").read_text()
-    assert runner.cell_state(tmp_path, bad) == "new" and runner.cell_state(tmp_path, good) == "done"
+    assert study_dir.cell_state(tmp_path, bad) == "new" and study_dir.cell_state(tmp_path, good) == "done"
     assert "epoch" in (tmp_path / "logs" / f"{good.run_name}.log").read_text()
+
+
+def test_the_pool_fails_a_cell_whose_worker_answers_for_another_or_not_at_all(tmp_path, capsys, monkeypatch):
+    """A worker's line that is no answer (stray output on stdout) or answers another cell fails the cell it was
+    given, saying so; nothing is taken as done without its own answer."""
+    import sys
+
+    script = """
+import json, sys
+for number, line in enumerate(sys.stdin):
+    cell = json.loads(line)
+    if number == 0:
+        print("progress 50%", flush=True)
+    else:
+        print(json.dumps({"cell": {**cell, "seed": cell["seed"] + 1}, "done": True, "reason": ""}), flush=True)
+"""
+    monkeypatch.setattr(worker, "worker_command", lambda plan, out, progress=False: [sys.executable, "-c", script])
+    plan = load_plan("smoke", FAST)
+    cells = plan.cells()[:2]
+    assert run_cells(plan, tmp_path, cells, gpus=["0"], per_gpu=1) == 1
+    err = capsys.readouterr().err
+    assert "FAILED (the worker's answer is not one: 'progress 50%')" in err
+    assert "FAILED (the worker answered for another cell (done))" in err and "2 of 2 cells failed" in err
 
 
 def test_reuse_copies_in_another_studys_runs_of_the_same_training_and_trains_the_rest(tmp_path, capsys):
@@ -543,14 +588,14 @@ def test_reuse_reads_an_older_runs_config_with_the_defaults_of_keys_added_since(
         (passed_over[name] / "config.json").write_text(json.dumps({**config, section: {**config[section], key: 2}}))
     capsys.readouterr()
 
-    found = runner.finished_runs([tmp_path / "earlier"])
+    found = reuse.finished_runs([tmp_path / "earlier"])
     assert list(found.values()) == [saved.parent]
     printed = capsys.readouterr().out
     assert f"--reuse: {passed_over['unknown']} not considered: " in printed
     assert f"--reuse: {passed_over['retired']} not considered: loss.lovasz_stride = 2 was retired" in printed
-    assert runner.reuse_cells(earlier, tmp_path / "same", [cell], found) == {cell: saved.parent}
+    assert reuse.reuse_cells(earlier, tmp_path / "same", [cell], found) == {cell: saved.parent}
     deeper = load_plan("smoke", FAST + ["model.full_depth=2"])
-    assert runner.reuse_cells(deeper, tmp_path / "other", [deeper.cell(cell.id)], found) == {}
+    assert reuse.reuse_cells(deeper, tmp_path / "other", [deeper.cell(cell.id)], found) == {}
 
 
 BAD_PLANS = [
@@ -674,7 +719,7 @@ def test_unreadable_study_records_are_one_line_errors_naming_the_file(tmp_path, 
     assert_clean_failure(capsys, ["study", "report", str(out), "--resamples", "20"], (str(out / "throughput.json"),))
     capsys.readouterr()
     # at a run's end, when its cells have trained: a warning naming the file, the study does not fail there
-    assert runner.record_throughput(out, 1, 1.0, None, 1, None)["cells_finished"] == 1
+    assert study_dir.record_throughput(out, 1, 1.0, None, 1, None)["cells_finished"] == 1
     assert f"study: warning: {out / 'throughput.json'}: unreadable" in capsys.readouterr().err
     assert (out / "throughput.json").read_text() == "[{"  # kept as it was, for its owner to mend
     (out / "slurm").mkdir()
@@ -717,14 +762,13 @@ def test_ctrl_c_stops_the_local_pool_and_a_rerun_resumes(tmp_path, capsys):
 def test_throughput_is_recorded_with_the_sampled_gpu_busy_fraction(tmp_path, monkeypatch, capsys):
     """Each invocation appends cells finished, seconds and cells/hour; with a pool, the GPUs' busy fraction is the
     mean of nvidia-smi samples (here a fake nvidia-smi: GPU 0 at 80%, GPU 1 at 40%)."""
-    from warpsense.study import runner
 
-    monkeypatch.setattr(runner, "gpu_busy", lambda gpus: [80.0, 40.0][: len(gpus)])
+    monkeypatch.setattr(study_gpus, "gpu_busy", lambda gpus: [80.0, 40.0][: len(gpus)])
     plan = load_plan("smoke", FAST)
     cells = [cell for cell in plan.cells() if cell.camera == "rggb"]
     assert run_cells(plan, tmp_path, cells, gpus=["0", "1"], per_gpu=1) == 0
     assert run_cells(plan, tmp_path, cells) == 0  # nothing left to run: no entry
-    entries = json.loads((tmp_path / runner.THROUGHPUT).read_text())
+    entries = json.loads((tmp_path / study_dir.StudyDir.THROUGHPUT).read_text())
     assert len(entries) == 1
     entry = entries[0]
     assert entry["cells_finished"] == len(cells) and entry["gpus"] == ["0", "1"] and entry["per_gpu"] == 1
@@ -769,9 +813,9 @@ def _fake_gpus(rows=SMI_ROWS, cuda_order=(1, 0), lookup_works=True, calls=None):
 
 @pytest.fixture
 def uuid_cache():
-    runner.cuda_uuids.cache_clear()
+    study_gpus.cuda_uuids.cache_clear()
     yield
-    runner.cuda_uuids.cache_clear()
+    study_gpus.cuda_uuids.cache_clear()
 
 
 def test_gpu_readings_are_the_cuda_ids_gpus_not_nvidia_smis_rows_of_the_same_number(monkeypatch, uuid_cache):
@@ -783,16 +827,16 @@ def test_gpu_readings_are_the_cuda_ids_gpus_not_nvidia_smis_rows_of_the_same_num
 
     calls = []
     monkeypatch.setattr(subprocess, "run", _fake_gpus(calls=calls))
-    assert runner.gpu_memory_gib(["0", "1"]) == [20.0, pytest.approx(81000 / 1024)]
-    assert runner.gpu_busy(["1", "0"]) == [5.0, 97.0]
-    assert runner.gpu_busy(["0", "1"]) == [97.0, 5.0]
+    assert study_gpus.gpu_memory_gib(["0", "1"]) == [20.0, pytest.approx(81000 / 1024)]
+    assert study_gpus.gpu_busy(["1", "0"]) == [5.0, 97.0]
+    assert study_gpus.gpu_busy(["0", "1"]) == [97.0, 5.0]
     # one lookup per set of ids (cached: the busy sampler reads every 2 s), by this interpreter's torch
     assert [visible for _, visible in calls] == ["0,1", "1,0"]
     assert calls[0][0][:2] == [sys.executable, "-c"] and "uuid" in calls[0][0][2]
     monkeypatch.setattr(subprocess, "run", _fake_gpus(cuda_order=(0, 1)))  # CUDA_DEVICE_ORDER=PCI_BUS_ID
-    runner.cuda_uuids.cache_clear()
-    assert runner.gpu_busy(["0", "1"]) == [5.0, 97.0]
-    assert runner.gpu_busy(["2"]) is None  # no such GPU
+    study_gpus.cuda_uuids.cache_clear()
+    assert study_gpus.gpu_busy(["0", "1"]) == [5.0, 97.0]
+    assert study_gpus.gpu_busy(["2"]) is None  # no such GPU
 
 
 def test_gpu_readings_unknown_where_the_ids_cannot_be_matched(monkeypatch, uuid_cache):
@@ -801,33 +845,32 @@ def test_gpu_readings_unknown_where_the_ids_cannot_be_matched(monkeypatch, uuid_
     import subprocess
 
     monkeypatch.setattr(subprocess, "run", _fake_gpus(lookup_works=False))
-    assert runner.gpu_memory_gib(["0", "1"]) is None and runner.gpu_busy(["0"]) is None
+    assert study_gpus.gpu_memory_gib(["0", "1"]) is None and study_gpus.gpu_busy(["0"]) is None
     monkeypatch.setattr(subprocess, "run", _fake_gpus(rows=SMI_ROWS[1:], cuda_order=(0,), lookup_works=False))
-    assert runner.gpu_memory_gib(["0"]) == [20.0] and runner.gpu_busy(["1"]) is None
+    assert study_gpus.gpu_memory_gib(["0"]) == [20.0] and study_gpus.gpu_busy(["1"]) is None
 
     def missing(*args, **kwargs):
         raise FileNotFoundError("nvidia-smi")
 
     monkeypatch.setattr(subprocess, "run", missing)
-    assert runner.gpu_busy(["0"]) is None
+    assert study_gpus.gpu_busy(["0"]) is None
 
 
 def test_a_failed_cell_with_a_resume_point_says_how_to_start_it_again(tmp_path, monkeypatch, capsys):
     """A cell that fails while resuming (e.g. a corrupt checkpoint_last) would fail the same way on every retry: the
     summary names its run folder and says to delete it to train the cell from the start."""
-    from warpsense.study import runner
     from warpsense.train.run_dir import LAST
 
     plan = load_plan("smoke", FAST)
     cell = plan.cells()[0]
-    folder = runner.run_dir(tmp_path, cell)
+    folder = study_dir.run_dir(tmp_path, cell)
     folder.mkdir(parents=True)
     (folder / LAST).write_bytes(b"not a checkpoint")
 
     def corrupt(*args, **kwargs):
         raise ValueError(f"{folder / LAST}: not a readable safetensors checkpoint")
 
-    monkeypatch.setattr(runner, "train_cell", corrupt)
+    monkeypatch.setattr(training, "train_cell", corrupt)
     assert run_cells(plan, tmp_path, [cell]) == 1
     err = capsys.readouterr().err
     assert f"A retry resumes {folder} from its last checkpoint" in err and "delete that folder" in err

@@ -41,7 +41,7 @@ def test_an_interrupted_extension_leaves_an_unfinished_run_that_resumes_to_its_n
     assert (run / "curves.epoch1.png").read_bytes() == b"the old end's plot" and not (run / "curves.png").exists()
 
     from warpsense.study.plan import Cell
-    from warpsense.study.runner import cell_state
+    from warpsense.study.study_dir import cell_state
 
     study = tmp_path / "study"
     cell = Cell(camera="c", light="night", seed=0)

@@ -145,7 +145,8 @@ def test_a_reused_run_whose_class_table_changed_is_not_copied(tmp_path, capsys):
     """`study run --reuse DIR` copies a finished run for a cell of the same config: one that read another content of
     the same class table trained another task, and is not copied (the cell trains on today's table)."""
     from warpsense.study import load_plan
-    from warpsense.study.runner import evaluation_path, finished_runs, record_plan, reuse_cells, run_dir
+    from warpsense.study.reuse import finished_runs, reuse_cells
+    from warpsense.study.study_dir import evaluation_path, record_plan, run_dir
 
     data = tmp_path / "data"
     make_folder(data)

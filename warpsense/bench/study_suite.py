@@ -4,7 +4,7 @@ in one call on one machine, with each cell's score and time compared between the
 The same cells train twice, into ``OUT/alone`` (one cell per GPU at a time, no MPS) and ``OUT/shared`` (``per_gpu``
 at a time on each GPU, under MPS as ``mps`` says). A cell's throughput is 1 / its time alone and ``per_gpu`` / its
 time shared; the suite also reports each run's training epochs (median) and the study-level cells per
-GPU-hour. A cell's speedup compares steady wall times (`warpsense.study.report.steady_run_seconds`: a process's
+GPU-hour. A cell's speedup compares steady wall times (`warpsense.study.run_times.steady_run_seconds`: a process's
 first epoch, where a fresh worker compiles its kernels, counted at the median of its other epochs): a pool worker
 pays that first use with its first cell only, so in a small suite the cells that happen to come first on a worker
 would otherwise decide the ratio; the invocations' own cells per GPU-hour (first use included) are reported beside
@@ -20,8 +20,9 @@ import statistics
 from pathlib import Path
 
 from warpsense.study.plan import PlanError, load_plan
-from warpsense.study.report import run_times
-from warpsense.study.runner import THROUGHPUT, read_record, read_throughput, run_cells, run_dir
+from warpsense.study.run_times import run_times
+from warpsense.study.runner import run_cells
+from warpsense.study.study_dir import StudyDir, read_record
 from warpsense.train.run_dir import RunDir
 
 
@@ -59,10 +60,11 @@ def _cell_times(path: Path) -> dict:
 
 
 def _invocation(out: Path) -> dict:
-    """The last `study run` invocation's throughput entry of a study directory (`read_throughput`)."""
-    entries = read_throughput(out / THROUGHPUT)
+    """The last `study run` invocation's throughput entry of a study directory (`StudyDir.read_throughput`)."""
+    study = StudyDir(out)
+    entries = study.read_throughput()
     if not entries:
-        raise PlanError(f"{out / THROUGHPUT}: no invocation recorded (its cells were not trained by this suite)")
+        raise PlanError(f"{study.throughput}: no invocation recorded (its cells were not trained by this suite)")
     return entries[-1]
 
 
@@ -102,7 +104,7 @@ def run_study_suite(plan: str, out: str | Path, cells: int = 0, gpus: list[str] 
     for cell in chosen:
         row = {"cell": cell.id}
         for name, folder in (("alone", alone), ("shared", shared)):
-            run = RunDir(run_dir(folder, cell))
+            run = StudyDir(folder).run(cell)
             split, miou = judged_miou(read_record(run.evaluation, dict), run.evaluation)
             row["split"], row[name] = split, {"miou": miou, **_cell_times(run.path)}
         row["miou_difference"] = row["shared"]["miou"] - row["alone"]["miou"]

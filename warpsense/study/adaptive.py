@@ -19,9 +19,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 from warpsense.study.plan import Cell, Plan
-from warpsense.study.runner import cell_state
 from warpsense.study.search import cell_score, read_search, search_cells, search_summary
 from warpsense.study.sequential import judge, stop_text
+from warpsense.study.study_dir import cell_state
 
 
 def plan_only_notes(plan: Plan) -> list[str]:

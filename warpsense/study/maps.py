@@ -20,12 +20,9 @@ import numpy as np
 
 from warpsense.study.keys import LEARNED_KEYS  # swept key -> (its learnable flag, its learned value's key)
 from warpsense.study.plan import Plan, PlanError
-from warpsense.study.runner import read_record, run_dir
 from warpsense.study.statistics import bounded, interval_text
-from warpsense.train.run_dir import METRICS, read_metrics
-
-CONFIG = "config.json"
-"""A run directory's resolved config (`warpsense.config.Config.save`)."""
+from warpsense.study.study_dir import StudyDir, read_record
+from warpsense.train.run_dir import RunDir
 
 
 def _lookup(config: dict, key: str):
@@ -34,7 +31,7 @@ def _lookup(config: dict, key: str):
 
 
 def learned_parameters(config: dict, parameters) -> list[str]:
-    """The swept ``parameters`` a run's resolved ``config`` (a config.json) learns."""
+    """The swept ``parameters`` a run's resolved ``config`` (`RunDir.CONFIG`) learns."""
     return [key for key in parameters if key in LEARNED_KEYS and _lookup(config, LEARNED_KEYS[key][0]) is True]
 
 
@@ -42,7 +39,7 @@ def trajectory(directory: Path, parameters, config: dict) -> dict | None:
     """A learned run's path through ``parameters``: its start (the config's values) and each epoch's values.
 
     Args:
-        directory: the run directory (its metrics.jsonl).
+        directory: the run directory (its metrics, `RunDir.METRICS`).
         parameters: the sweep's keys.
         config: the run's resolved config.
 
@@ -52,7 +49,7 @@ def trajectory(directory: Path, parameters, config: dict) -> dict | None:
     """
     learned = set(learned_parameters(config, parameters))
     by_epoch = {}
-    for record in read_metrics(directory / METRICS):  # a resumed run may repeat an epoch: its last record counts
+    for record in RunDir(directory).read_metrics():  # a resumed run may repeat an epoch: its last record counts
         if "epoch" in record:
             by_epoch[record["epoch"]] = record
     if not by_epoch:
@@ -81,13 +78,13 @@ def _learned_value(directory: Path, epoch: int, record: dict, key: str) -> float
     field = LEARNED_KEYS[key][1]
     value = record.get(field)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise PlanError(f"{directory / METRICS}: epoch {epoch}: {field}: expected the learned value (a finite "
+        raise PlanError(f"{RunDir(directory).metrics}: epoch {epoch}: {field}: expected the learned value (a finite "
                         f"number), got {value!r}")
     return value
 
 
 def _read_config(path: Path) -> dict:
-    """A finished run's config.json (`CONFIG`), its sections objects; a one-line PlanError naming the file and
+    """A finished run's config (`RunDir.CONFIG`), its sections objects; a one-line PlanError naming the file and
     section where it is missing or damaged: a learned camera is never left off a map without a word."""
     config = read_record(path, dict)
     for section, value in config.items():
@@ -113,7 +110,7 @@ def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: di
     """The report's ``maps``: one per sweep, light level and split with a scored grid point.
 
     Args:
-        study_dir: the study directory (the learned runs' metrics.jsonl and config.json).
+        study_dir: the study directory (the learned runs' metrics and configs).
         plan: the study's plan.json.
         cells: the report's evaluated cells (`warpsense.study.report.study_record`'s ``cells``).
         splits: the report's per-split records (their ``groups``: mean mIoU with its interval per camera and light).
@@ -132,7 +129,7 @@ def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: di
     configs: dict[str, dict | None] = {}  # per camera: the config of one of its finished runs
     for cell in plan_spec.cells():
         if cell.camera not in swept and cell.id in finished and configs.get(cell.camera) is None:
-            configs[cell.camera] = _read_config(run_dir(study_dir, cell) / CONFIG)
+            configs[cell.camera] = _read_config(StudyDir(study_dir).run(cell).config)
     maps = []
     for sweep in plan_spec.sweeps:
         for light in plan_spec.lights:
@@ -159,8 +156,8 @@ def design_maps(study_dir: str | Path, plan: dict, cells: list[dict], splits: di
                     for cell in plan_spec.cells():
                         if cell.camera != camera.name or cell.light != light.name or cell.id not in finished:
                             continue
-                        directory = run_dir(study_dir, cell)
-                        path = trajectory(directory, sweep.parameters, _read_config(directory / CONFIG))
+                        run = StudyDir(study_dir).run(cell)
+                        path = trajectory(run.path, sweep.parameters, _read_config(run.config))
                         if path is not None:
                             runs.append({"cell": cell.id, "fold": cell.fold, "seed": cell.seed,
                                          "miou": finished[cell.id]["miou"].get(split), **path})
@@ -372,9 +369,8 @@ def maps_figure(record: dict, split: str | None = None):
         if entry["learned"]:
             axis.legend(fontsize=7, loc="best")
         mean = entry["best"]["miou"]["mean"]
-        axis.set_title(f"{entry['sweep']} at {entry['light']} ({entry['split']}): "
-                       + (f"no best point, {len(tied)} points tie at {mean:.3f}" if tied else f"best {best} {mean:.3f}"),
-                       fontsize=9)
+        verdict = f"no best point, {len(tied)} points tie at {mean:.3f}" if tied else f"best {best} {mean:.3f}"
+        axis.set_title(f"{entry['sweep']} at {entry['light']} ({entry['split']}): {verdict}", fontsize=9)
     figure.suptitle(f"study {record['study']}: design map (o start, * end of each learned run)", fontsize=10)
     figure.tight_layout()
     return figure

@@ -2,27 +2,20 @@
 with 95% intervals over seeds (clustered by fold with sequence folds); the paired difference to the reference camera
 (over seeds, or (fold, seed) pairs) and a bootstrap interval that resamples blocks of frames within their sequences;
 with folds, a per-sequence table; the learned camera and the wall time of every run, in total and steady (without
-the one-off kernel compilation of a process's first epoch: `steady_run_seconds`). The console text and the JSON are rendered
-from one record (`study_record`)."""
+the one-off kernel compilation of a process's first epoch: `warpsense.study.run_times`). The console text and the
+JSON are rendered from one record (`study_record`)."""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 
 from warpsense.study.adaptive import expected_cells, plan_view
 from warpsense.study.maps import design_maps, map_lines
-from warpsense.study.plan import Cell, PlanError
-from warpsense.study.runner import (
-    THROUGHPUT,
-    evaluation_path,
-    read_plan_record,
-    read_record,
-    read_throughput,
-    throughput_line,
-)
+from warpsense.study.plan import PlanError
+from warpsense.study.report_checks import cell_name, check_evaluation
+from warpsense.study.run_times import run_times
 from warpsense.study.search_report import search_lines, search_record
 from warpsense.study.sequential_report import judged_comparison, sequential_lines
 from warpsense.study.statistics import (
@@ -36,7 +29,7 @@ from warpsense.study.statistics import (
     paired_difference,
     t_interval,
 )
-from warpsense.train.run_dir import METRICS, read_metrics
+from warpsense.study.study_dir import StudyDir, read_record, throughput_line
 
 NOT_DISTINGUISHABLE = "not distinguishable"
 
@@ -71,59 +64,6 @@ def precision_recall(image_counts) -> tuple[list[float | None], list[float | Non
     precision = [float(t / (t + f)) if t + f > 0 else None for t, f in zip(tp, fp)]
     recall = [float(t / (t + f)) if t + f > 0 else None for t, f in zip(tp, fn)]
     return precision, recall
-
-
-def _processes(records: list[dict]) -> list[list[dict]]:
-    """A run's metrics records by process (a record with ``setup_s`` starts one), only those with ``wall_s``;
-    processes without any left out."""
-    processes: list[list[dict]] = [[]]
-    for record in records:
-        if "setup_s" in record and processes[-1]:
-            processes.append([])
-        if "wall_s" in record:
-            processes[-1].append(record)
-    return [records for records in processes if records]
-
-
-def _total_seconds(processes: list[list[dict]]) -> float | None:
-    return sum(float(records[-1]["wall_s"]) for records in processes) if processes else None
-
-
-def _steady_seconds(processes: list[list[dict]]) -> float | None:
-    if not processes:
-        return None
-    total = 0.0
-    for records in processes:
-        walls = [float(r["wall_s"]) for r in records]
-        total += walls[-1]
-        if len(walls) > 1:
-            first = walls[0] - float(records[0].get("setup_s", 0.0))
-            total += float(np.median(np.diff(walls))) - first
-    return total
-
-
-def run_times(records: list[dict]) -> tuple[float | None, float | None]:
-    """(`run_seconds`, `steady_run_seconds`) of a run's metrics ``records`` (`read_metrics`), for a caller that
-    holds them already: the log read once for both times."""
-    processes = _processes(records)
-    return _total_seconds(processes), _steady_seconds(processes)
-
-
-def run_seconds(metrics_path: Path) -> float | None:
-    """A run's wall seconds from its ``metrics.jsonl``: each process's ``wall_s`` at its last epoch (setup,
-    training and evaluation), summed over the processes of a resumed run (a record with ``setup_s`` starts one); None
-    without records. The work an interrupted process did after its last epoch is not counted."""
-    return _total_seconds(_processes(read_metrics(metrics_path)))
-
-
-def steady_run_seconds(metrics_path: Path) -> float | None:
-    """`run_seconds` without the one-off costs of a fresh process: in each process (a record with ``setup_s`` starts
-    one) the first epoch's share of ``wall_s`` (``wall_s`` minus ``setup_s``: training and evaluation, where the Warp
-    kernels of a cold cache compile, 10-25 s on a CPU) is counted at the median of that process's other epochs'
-    shares (their ``wall_s`` differences). Setup (data loading) is kept. A process with one epoch has nothing to
-    compare with and is counted as it ran, so a run of one epoch per process is its `run_seconds`. None without
-    records."""
-    return _steady_seconds(_processes(read_metrics(metrics_path)))
 
 
 def _per_class(per_seed: list[list[float | None]], classes: list[str]) -> dict:
@@ -168,14 +108,14 @@ def _paired_frames(camera: str, light: str, runs: dict, reference: dict, name: s
     else a one-line PlanError naming both cells and their files. A pair is never left out of the bootstrap."""
     sequences, first = {}, {}
     for fold, seed in keys:
-        cell, base = _cell_name(camera, light, fold, seed), _cell_name(name, light, fold, seed)
+        cell, base = cell_name(camera, light, fold, seed), cell_name(name, light, fold, seed)
         frames, judged = _frames(runs[fold, seed]), _frames(reference[fold, seed])
         shapes = [list(np.shape(run["image_counts"])) for run in (runs[fold, seed], reference[fold, seed])]
         if shapes[0] != shapes[1] or frames != judged:
             raise PlanError(f"{cell}: image_counts {shapes[0]} / image_sequences: judged on other frames than the "
                             f"reference {base} ({shapes[1]}); the pair cannot be compared frame by frame")
         if sequences.setdefault(fold, judged) != judged:
-            other = _cell_name(name, light, fold, first[fold])
+            other = cell_name(name, light, fold, first[fold])
             raise PlanError(f"{base}: image_sequences: judged on other frames than {other} of the same fold "
                             f"({len(judged)} against {len(sequences[fold])} frames, or other sequences)")
         first.setdefault(fold, seed)
@@ -186,7 +126,8 @@ def _comparison(camera: str, light: str, runs: dict, reference: dict, plan: dict
                 resamples: int, block: int) -> dict:
     keys = sorted(set(runs) & set(reference))
     label = (lambda key: key) if any(fold for fold, _ in keys) else (lambda key: key[1])  # no folds: the seed
-    paired = paired_difference({label(k): runs[k]["miou"] for k in keys}, {label(k): reference[k]["miou"] for k in keys})
+    paired = paired_difference({label(k): runs[k]["miou"] for k in keys},
+                               {label(k): reference[k]["miou"] for k in keys})
     sequences = _paired_frames(camera, light, runs, reference, plan["reference"], keys)
     pairs = [(runs[k]["image_counts"], reference[k]["image_counts"], k[0]) for k in keys]
     bootstrap = block_bootstrap_difference(pairs, sequences, block, resamples)
@@ -255,126 +196,6 @@ def _split_record(plan: dict, evaluations: dict, run_s: dict, steady_s: dict, sp
             "shared_sequences": [] if plan.get("folds") == "blocks" else _shared_sequences(evaluations, split)}
 
 
-def _cell_name(camera: str, light: str, fold: str, seed: int) -> str:
-    """A cell's id and evaluation file (relative to the study directory) from its key, for a message."""
-    cell = Cell(camera, light, seed, fold)
-    return f"cell {cell.id} ({evaluation_path(Path(), cell)})"
-
-
-def _check_scores(evaluation: dict, cell: str, path: Path, checked: dict | None = None) -> None:
-    """A cell's evaluation holds every field the report reads, present and finite, else a one-line PlanError naming
-    the cell, the file and the field: class_names (non-empty distinct names; the same as the cells already
-    ``checked``, by (camera, light, fold, seed), whose first the report takes them from), epoch, network_parameters,
-    the learned camera's numbers, train_sequences (null or names), and per split: mIoU and each class's IoU (null
-    where the class was neither labelled nor predicted) in [0, 1], per-image (TP, FP, FN) pixel counts [N, K, 3]
-    (N >= 1 frames, K classes; finite and >= 0) and image_sequences (null or one name per frame). A damaged cell is
-    refused, never left out of a mean or a bootstrap."""
-    def refuse(field: str, problem: str):
-        return PlanError(f"{path}: cell {cell}: {field}: {problem}")
-
-    if not isinstance(evaluation, dict):
-        raise refuse("the record", f"expected a JSON object, got {type(evaluation).__name__}")
-    splits = evaluation.get("splits")
-    if not isinstance(splits, dict) or not splits:
-        raise refuse("splits", f"expected an object of the splits judged, got {splits!r}")
-    for split, metrics in splits.items():  # the scores first (a missing one is named below, with its field)
-        if not isinstance(metrics, dict):
-            continue
-        scores = metrics.get("per_class_iou")
-        values = [*([metrics["miou"]] if "miou" in metrics else []),
-                  *(v for v in (scores.values() if isinstance(scores, dict) else ()) if v is not None)]
-        if not all(_score(value) for value in values):
-            raise PlanError(f"{path}: cell {cell}: {split} scores must be finite and in [0, 1], got mIoU "
-                            f"{metrics.get('miou')!r}")
-    for field in ("class_names", "epoch", "network_parameters", "camera"):
-        if field not in evaluation:
-            raise refuse(field, "missing (not an evaluation record, or a damaged one)")
-    classes = evaluation["class_names"]
-    if not (isinstance(classes, list) and classes and all(isinstance(name, str) and name for name in classes)
-            and len(set(classes)) == len(classes)):
-        raise refuse("class_names", f"expected a list of distinct class names, got {classes!r}")
-    if checked:
-        key, first = next(iter(checked.items()))
-        if first["class_names"] != classes:
-            raise refuse("class_names", f"{', '.join(classes)}; {_cell_name(*key)} has {', '.join(first['class_names'])}"
-                         ": the cells were judged on other classes (another class table?)")
-    for field in ("epoch", "network_parameters"):
-        value = evaluation[field]
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise refuse(field, f"expected an integer >= 0, got {value!r}")
-    for field in ("train_frames", "labelled_frames"):  # a fold's counts (the report's fold lines), where recorded
-        value = evaluation.get(field)
-        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-            raise refuse(field, f"expected null or an integer >= 1, got {value!r}")
-    _check_camera(evaluation["camera"], refuse)
-    train_sequences = evaluation.get("train_sequences")
-    if train_sequences is not None and not _names(train_sequences):
-        raise refuse("train_sequences", f"expected null or a list of sequence names, got {train_sequences!r}")
-    for split, metrics in splits.items():
-        _check_split(metrics, classes, lambda field, problem, split=split: refuse(f"splits.{split}.{field}", problem))
-
-
-def _names(values) -> bool:
-    """Whether ``values`` is a list of strings."""
-    return isinstance(values, list) and all(isinstance(value, str) for value in values)
-
-
-def _score(value) -> bool:
-    """Whether ``value`` is a finite score in [0, 1] (not a bool)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and 0 <= value <= 1
-
-
-def _check_camera(camera, refuse) -> None:
-    """The learned camera's numbers the report prints (`_learned`) are finite numbers."""
-    if not isinstance(camera, dict):
-        raise refuse("camera", f"expected an object (the learned camera), got {camera!r}")
-    for key in ("exposure_gain", "f_number", "exposure_ms", "analog_gain"):
-        value = camera.get(key)
-        if key in camera and (isinstance(value, bool) or not isinstance(value, (int, float))
-                              or not math.isfinite(value)):
-            raise refuse(f"camera.{key}", f"expected a finite number, got {value!r}")
-    if "zernike_waves" in camera:
-        waves = camera["zernike_waves"]
-        on_axis = [row[0] if isinstance(row, list) and row else row for row in waves] if isinstance(waves, list) \
-            else [None]
-        if not all(isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) for w in on_axis):
-            raise refuse("camera.zernike_waves", "expected a list of finite numbers (or of rows of them)")
-
-
-def _check_split(metrics, classes: list[str], refuse) -> None:
-    """One split of an evaluation (`_check_scores`); ``refuse(field, problem)`` makes the error."""
-    if not isinstance(metrics, dict):
-        raise refuse("", f"expected an object, got {metrics!r}")
-    for field in ("miou", "per_class_iou", "image_counts"):
-        if field not in metrics:
-            raise refuse(field, "missing")
-    if not _score(metrics["miou"]):
-        raise refuse("miou", f"must be a finite score in [0, 1], got {metrics['miou']!r}")
-    per_class = metrics["per_class_iou"]
-    if not isinstance(per_class, dict):
-        raise refuse("per_class_iou", f"expected an object of class -> IoU, got {per_class!r}")
-    for name in classes:
-        if name not in per_class:
-            raise refuse(f"per_class_iou.{name}", "missing")
-        if per_class[name] is not None and not _score(per_class[name]):
-            raise refuse(f"per_class_iou.{name}", f"must be null or a finite score in [0, 1], got {per_class[name]!r}")
-    try:
-        counts = np.asarray(metrics["image_counts"], dtype=np.float64)
-    except (ValueError, TypeError):
-        counts = None
-    if counts is None or counts.ndim != 3 or counts.shape[1:] != (len(classes), 3) or not len(counts):
-        shape = "ragged or not numbers" if counts is None else f"shape {list(counts.shape)}"
-        raise refuse("image_counts", f"expected per-image (TP, FP, FN) counts [N, {len(classes)}, 3] with N >= 1 "
-                     f"frames, got {shape}")
-    if not (np.isfinite(counts).all() and (counts >= 0).all()):
-        raise refuse("image_counts", "holds negative, NaN or infinite counts")
-    sequences = metrics.get("image_sequences")
-    if sequences is not None and not (_names(sequences) and len(sequences) == len(counts)):
-        raise refuse("image_sequences", f"expected null or one sequence name per frame ({len(counts)}), got "
-                     f"{len(sequences) if isinstance(sequences, list) else repr(sequences)}"
-                     f"{' entries' if isinstance(sequences, list) else ''}")
-
-
 def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) -> dict:
     """Everything the report says, as JSON-ready data: the plan, each cell (its scores and learned camera, or
     that it is missing), and per split the groups, comparisons and, with sequence folds, the per-sequence table;
@@ -383,18 +204,19 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
     if resamples < 1 or block < 1:
         raise ValueError(f"{'--resamples' if resamples < 1 else '--block-frames'} must be >= 1")
     study_dir = Path(study_dir)
-    plan = plan_view(study_dir, read_plan_record(study_dir))  # with a [[search]]'s designs among the cameras
+    study = StudyDir(study_dir)
+    plan = plan_view(study_dir, study.read_plan())  # with a [[search]]'s designs among the cameras
     evaluations, run_s, steady_s, cells, missing = {}, {}, {}, [], []
     for cell in expected_cells(study_dir, plan):  # study.sequential, [[search]]: the cells needed so far
-        path = evaluation_path(study_dir, cell)
-        if not path.is_file():
+        run = study.run(cell)
+        if not run.finished():
             missing.append(cell.id)
             continue
-        evaluation = read_record(path)
-        _check_scores(evaluation, cell.id, path, evaluations)
+        evaluation = read_record(run.evaluation)
+        check_evaluation(evaluation, cell.id, run.evaluation, evaluations)
         key = (cell.camera, cell.light, cell.fold, cell.seed)
         evaluations[key] = evaluation
-        run_s[key], steady_s[key] = run_times(read_metrics(path.parent / METRICS))
+        run_s[key], steady_s[key] = run_times(run.read_metrics())
         cells.append({"cell": cell.id, "camera": cell.camera, "light": cell.light, "fold": cell.fold,
                       "seed": cell.seed, "epoch": evaluation["epoch"],
                       "network_parameters": evaluation["network_parameters"], "run_s": run_s[key],
@@ -404,8 +226,7 @@ def study_record(study_dir: str | Path, resamples: int = 2000, block: int = 10) 
     if not evaluations:
         raise PlanError(f"{study_dir}: no finished cell yet ({len(missing)} cells planned, none evaluated)")
     splits = list(dict.fromkeys(split for e in evaluations.values() for split in e["splits"]))
-    throughput_path = study_dir / THROUGHPUT
-    throughput = read_throughput(throughput_path)
+    throughput = study.read_throughput()
     parts = {split: _split_record(plan, evaluations, run_s, steady_s, split, resamples, block) for split in splits}
     for part in parts.values():
         for comparison in part["comparisons"]:
@@ -499,8 +320,8 @@ def _per_sequence_lines(split: str, part: dict, reference: str) -> list[str]:
 def _protocol_text(record: dict) -> str:
     """How the study's cells were trained and judged, in words."""
     if record.get("folds") == "sequence":
-        return (f"sequence folds (held out: {', '.join(record['sequences'])}): each cell trains on the other sequences' "
-                f"frames and is judged on its own")
+        return (f"sequence folds (held out: {', '.join(record['sequences'])}): each cell trains on the other "
+                "sequences' frames and is judged on its own")
     if record.get("folds") == "blocks":
         plan = record.get("plan", {})
         return (f"block folds ({plan.get('blocks')} blocks of every sequence, buffer {plan.get('block_buffer')} frame "
@@ -522,8 +343,8 @@ def render_text(record: dict) -> str:
     if record["missing"]:
         shown = record["missing"][:MISSING_SHOWN]
         more = len(record["missing"]) - len(shown)
-        lines.append(f"  missing: {', '.join(shown)}" + (f" and {more} more (`warpsense study status "
-                                                            f"{record['directory']}` lists every cell)" if more else ""))
+        rest = f" and {more} more (`warpsense study status {record['directory']}` lists every cell)" if more else ""
+        lines.append(f"  missing: {', '.join(shown)}{rest}")
     lines += few_values_note(record, record["level"])
     over = "(fold, seed)" if folds else "seeds"
     for split, part in record["splits"].items():

@@ -49,9 +49,10 @@ from pathlib import Path
 from warpsense.files import write_json
 from warpsense.study.keys import LEARNED_KEYS
 from warpsense.study.plan import Cell, Plan, PlanError
-from warpsense.study.runner import cell_state, read_evaluation, read_record, run_dir
+from warpsense.study.study_dir import StudyDir, cell_state, read_evaluation, read_record, run_dir
+from warpsense.train.run_dir import RunDir
 
-SEARCH_RECORD = "search.json"
+SEARCH_RECORD = StudyDir.SEARCH
 """The study directory's record of its search: the designs in the order proposed."""
 
 SAMPLERS = ("gp", "tpe")
@@ -85,7 +86,7 @@ def cell_score(out: Path, cell: Cell) -> float:
 def read_search(out: Path) -> dict:
     """The study directory's `SEARCH_RECORD` ({"designs": [], "warm_started": false} before the first round); a one-line
     PlanError naming the file where it is damaged."""
-    path = Path(out) / SEARCH_RECORD
+    path = StudyDir(out).search
     if not path.is_file():
         return {"designs": [], "warm_started": False}
     record = read_record(path, dict)
@@ -98,7 +99,7 @@ def read_search(out: Path) -> dict:
 
 
 def _write(out: Path, record: dict) -> None:
-    write_json(Path(out) / SEARCH_RECORD, record)
+    write_json(StudyDir(out).search, record)
 
 
 def _done(plan: Plan, out: Path, design: dict) -> int:
@@ -174,13 +175,13 @@ def learned_design(plan: Plan, out: Path, camera: str) -> tuple[float, ...]:
         section, name = key.split(".", 1)
         samples = []
         for cell in cells:
-            config = read_record(run_dir(out, cell) / "config.json", dict)
+            config = read_record(StudyDir(out).run(cell).config, dict)
             learned = read_evaluation(out, cell).get("camera", {})
             flag, field = LEARNED_KEYS.get(key, (None, None))
             learns = flag is not None and config.get(flag.split(".")[0], {}).get(flag.split(".")[1]) is True
             value = learned.get(field) if learns else config.get(section, {}).get(name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                where = f"evaluation.json camera.{field}" if learns else f"config.json {key}"
+                where = f"{RunDir.EVALUATION} camera.{field}" if learns else f"{RunDir.CONFIG} {key}"
                 raise PlanError(f"{run_dir(out, cell)}: {where}: expected a number to start the search from, got "
                                 f"{value!r}")
             samples.append(float(value))
@@ -198,13 +199,13 @@ def known_design(plan: Plan, out: Path, camera: str) -> tuple[float, ...]:
     if cell is None:
         raise PlanError(f"{plan.source}: search[0].known: {camera!r} has no finished run at {spec.light!r} to start "
                         "the search from")
-    config = read_record(run_dir(out, cell) / "config.json", dict)
+    config = read_record(StudyDir(out).run(cell).config, dict)
     values = []
     for key in spec.parameters:
         section, name = key.split(".", 1)
         value = config.get(section, {}).get(name)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise PlanError(f"{run_dir(out, cell) / 'config.json'}: {key}: expected a number, got {value!r}")
+            raise PlanError(f"{StudyDir(out).run(cell).config}: {key}: expected a number, got {value!r}")
         values.append(float(value))
     return tuple(values)
 

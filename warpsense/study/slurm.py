@@ -1,9 +1,10 @@
-"""Running a study's cells on a Slurm cluster through submitit, and the state of every cell of a study directory.
+"""Running a study's cells on a Slurm cluster through submitit: the executor's options, the job array, and following
+its tasks (the state of every cell of a study directory: `warpsense.study.slurm_status`).
 
 `warpsense study run PLAN --out DIR --executor slurm` submits the cells that are neither finished nor queued as one
-job array (`submitit.SlurmExecutor.map_array`), one cell per task; each task trains its cell in the ordinary run
-directory DIR/runs/<cell> (`warpsense.study.runner.train_cell`), so that the report reads the same directory
-whichever executor ran it. DIR must be on a file system the cluster's nodes share.
+job array (`submitit.SlurmExecutor.map_array`), one cell per task, each task given its `Cell`; each task trains its
+cell in the ordinary run directory in DIR (`warpsense.study.training.train_cell`), so that the report reads the same
+directory whichever executor ran it. DIR must be on a file system the cluster's nodes share.
 
 Resuming is the run directory's: a finished cell (its evaluation written) is never submitted again, and a cell whose
 task was cancelled, killed, timed out or failed resumes from its last checkpoint when the study is submitted again.
@@ -11,16 +12,12 @@ A task that Slurm preempts, or whose time limit nears (Slurm's signal, ``--signa
 checkpointed and requeued by submitit (`CellTask` is a `submitit.helpers.Checkpointable`: its checkpoint is the run
 directory's last epoch, the call is the same) and resumes in the same array task.
 
-The ids of the submitted tasks are kept in DIR/`JOBS`; `warpsense study status DIR` reads them with the directory:
-a cell is done (evaluated), running or pending (queued or not submitted) as squeue says, or failed (its last task
-ended without finishing it). squeue rather than submitit's sacct watcher: sacct needs Slurm's accounting database,
-which many small clusters (and tools/slurm/local-cluster.sh's) do without.
+The ids of the submitted tasks are kept in the study directory (`StudyDir.JOBS`); `warpsense study status DIR`
+reads them with the directory (`warpsense.study.slurm_status`).
 """
 
 from __future__ import annotations
 
-import contextlib
-import json
 import os
 import re
 import shlex
@@ -32,10 +29,15 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
-from warpsense.files import write_json
-from warpsense.study import runner
-from warpsense.study.plan import Cell, Plan, PlanError
-from warpsense.train.run_dir import RunLock
+# the names imported "as" themselves are what `warpsense study run | status` (warpsense.study.launch) import from
+# here; they are slurm_status's
+from warpsense.study import slurm_status, training, work
+from warpsense.study.plan import Cell, Plan
+from warpsense.study.reuse import finished_runs, reuse_cells
+from warpsense.study.slurm_status import cell_status, latest_jobs, queued_cells
+from warpsense.study.slurm_status import check_not_queued as check_not_queued
+from warpsense.study.slurm_status import print_status as print_status
+from warpsense.study.study_dir import StudyDir
 
 try:
     from submitit.helpers import Checkpointable
@@ -43,11 +45,6 @@ except ImportError:  # without submitit the local executor and `study status` wo
     Checkpointable = object
 
 EXECUTORS = ("local", "slurm")
-JOBS = "slurm/jobs.json"
-"""The study directory's record of its Slurm submissions: each one's array job id and the task id of every cell."""
-
-SUBMITIT_FOLDER = "slurm/%j"
-"""submitit's folder of each task (its sbatch script, pickles and logs), under the study directory."""
 
 POLL_SECONDS = 10.0
 """How often `--wait` asks squeue."""
@@ -61,11 +58,6 @@ MANAGED = {"array": "--array-parallelism", "partition": "--slurm-partition", "ti
            "gpus-per-node": "--gpus-per-cell", "output": None, "error": None, "open-mode": None, "signal": None,
            "wrap": None, "test-only": None}
 """sbatch options the executor sets itself (and the option of this command that sets each, where there is one)."""
-
-ACTIVE = ("PENDING", "CONFIGURING", "RUNNING", "COMPLETING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "RESIZING",
-          "SUSPENDED", "STOPPED", "SIGNALING", "STAGE_OUT", "RESV_DEL_HOLD")
-"""squeue states of a task that still holds its cell (queued, running or being requeued)."""
-
 
 @dataclass(frozen=True)
 class SlurmOptions:
@@ -213,270 +205,34 @@ class CellTask(Checkpointable):
     def __init__(self, plan_source: str, overrides: tuple[str, ...], out: str):
         self.plan_source, self.overrides, self.out = plan_source, tuple(overrides), out
 
-    def __call__(self, cell_id: str) -> dict:
+    def __call__(self, cell: Cell | str) -> dict:
+        """Train ``cell`` (a `Cell` of the plan, as submitted; a cell id from a submission of an earlier version)."""
         import torch
 
-        from warpsense.study.plan import load_plan
+        from warpsense.study.plan import PlanError, load_plan
 
         cpus = os.environ.get("SLURM_CPUS_PER_TASK") or os.environ.get("SLURM_CPUS_ON_NODE")
         if cpus and cpus.isdigit() and "OMP_NUM_THREADS" not in os.environ:
             torch.set_num_threads(int(cpus))  # the task's CPUs, not the node's
         plan = load_plan(self.plan_source, self.overrides)
-        cell = plan.cell(cell_id)
-        state = runner.cell_state(Path(self.out), cell)
+        planned = plan.cell(cell if isinstance(cell, str) else cell.id)
+        if not isinstance(cell, str) and planned != cell:
+            raise PlanError(f"{plan.source}: no cell {cell!r}")
+        cell = planned
+        state = StudyDir(self.out).cell_state(cell)
         job = os.environ.get("SLURM_ARRAY_JOB_ID", os.environ.get("SLURM_JOB_ID", "?"))
         task = os.environ.get("SLURM_ARRAY_TASK_ID")
         restarts = os.environ.get("SLURM_RESTART_COUNT", "0")
         print(f"{cell.id}: {'resuming' if state == 'partial' else 'training' if state == 'new' else 'finished'} "
               f"in Slurm job {job}{'_' + task if task else ''} (restart {restarts}), {torch.get_num_threads()} "
               "thread(s)", flush=True)
-        return runner.train_cell(plan, Path(self.out), cell)
-
-
-def read_jobs(out: Path) -> list[dict]:
-    """The study directory's Slurm submissions (`JOBS`), oldest first; a one-line PlanError naming the file and
-    field where it is damaged (each submission: its array's job_id and the task id of every cell)."""
-    path = Path(out) / JOBS
-    if not path.is_file():
-        return []
-    submissions = runner.read_record(path, dict).get("submissions")
-    if not isinstance(submissions, list):
-        raise PlanError(f"{path}: submissions: expected a list of Slurm submissions, got {submissions!r}")
-    for number, submission in enumerate(submissions, start=1):
-        cells = submission.get("cells") if isinstance(submission, dict) else None
-        if not isinstance(cells, dict) or not all(isinstance(task, str) for task in cells.values()):
-            raise PlanError(f"{path}: submission {number}: cells: expected an object of cell -> task id, got {cells!r}")
-        if not isinstance(submission.get("job_id"), str):
-            raise PlanError(f"{path}: submission {number}: job_id: expected a job id, got {submission.get('job_id')!r}")
-    return submissions
-
-
-def latest_jobs(out: Path) -> dict[str, str]:
-    """Each submitted cell's latest task id ("<array job>_<index>", or a job id)."""
-    jobs: dict[str, str] = {}
-    for submission in read_jobs(out):
-        jobs.update(submission["cells"])
-    return jobs
-
-
-def queue_states() -> dict[str, tuple[str, str]] | None:
-    """This user's Slurm tasks as squeue lists them (arrays one line per task): id to (state, reason); None where
-    squeue cannot be run or the controller does not answer."""
-    try:
-        result = subprocess.run(["squeue", "--me", "--noheader", "--array", "--format=%i|%T|%r"], capture_output=True,
-                                text=True, timeout=60)
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    if result.returncode != 0:
-        return None
-    states = {}
-    for line in result.stdout.splitlines():
-        parts = line.strip().split("|")
-        if len(parts) == 3:
-            states[parts[0]] = (parts[1], parts[2])
-    return states
-
-
-def queued_cells(out: Path, cells: list[Cell]) -> dict[Cell, str] | None:
-    """The cells of ``cells`` whose latest Slurm task (`latest_jobs`) squeue lists as queued or running (`ACTIVE`),
-    with that task's id: cells no other run may train now. Empty where none was submitted; None where some were
-    and squeue does not answer."""
-    jobs = latest_jobs(out)
-    if not any(cell.id in jobs for cell in cells):
-        return {}
-    queue = queue_states()
-    if queue is None:
-        return None
-    return {cell: jobs[cell.id] for cell in cells if cell.id in jobs and jobs[cell.id] in queue
-            and queue[jobs[cell.id]][0] in ACTIVE}
-
-
-def check_not_queued(out: Path, cells: list[Cell]) -> None:
-    """Refuse to train here (the local executor) cells that Slurm tasks of this study hold, queued or running: the
-    two would write one run directory, and the run lock cannot see a process on another node. One-line PlanError
-    naming them and their tasks; where squeue does not answer, a warning and no refusal (a copy of the study on a
-    machine without Slurm)."""
-    queued = queued_cells(out, cells)
-    if queued is None:
-        print(f"study: warning: squeue does not answer; {out / JOBS} lists Slurm tasks, which may still train some "
-              "of these cells", file=sys.stderr, flush=True)
-    elif queued:
-        held = ", ".join(f"{cell.id} (job {job})" for cell, job in queued.items())
-        raise PlanError(f"{out}: {len(queued)} cell(s) are queued or running on Slurm: {held}; not trained here as "
-                        f"well: follow them with `warpsense study status {out}`, or cancel them (scancel) first")
-
-
-def _epochs(out: Path, cell: Cell) -> str:
-    """"epoch k of n": the epochs the cell's run has finished, of its config's; "" before its first epoch."""
-    from warpsense.train.run_dir import METRICS, read_metrics
-
-    folder = runner.run_dir(out, cell)
-    try:
-        records = read_metrics(folder / METRICS) if (folder / METRICS).is_file() else []
-    except ValueError as error:  # a damaged line in one cell's record: that cell's status says so, not every cell's
-        return f"epoch ? ({error})"
-    if not records:
-        return ""
-    epoch = records[-1].get("epoch")
-    if isinstance(epoch, bool) or not isinstance(epoch, int):  # the cell's status names the damage, not every cell's
-        return f"epoch ? ({folder / METRICS}: last record: epoch: expected an integer, got {epoch!r})"
-    try:
-        total = runner.read_record(folder / "config.json", dict)["train"]["epochs"]
-    except PlanError as error:  # one cell's damaged config: its status says so, as for its metrics above
-        total = f"? ({error})"
-    except (KeyError, TypeError):
-        total = f"? ({folder / 'config.json'}: train.epochs: missing)"
-    return f"epoch {epoch + 1} of {total}"
-
-
-def _submitit_job(out: Path, job_id: str):
-    import submitit
-
-    return submitit.SlurmJob(folder=Path(out) / SUBMITIT_FOLDER, job_id=job_id)
-
-
-def failure(out: Path, job_id: str) -> str:
-    """Why a cell's task ended without finishing the cell: the exception it raised (submitit's result), or the last
-    line of its log (Slurm's "CANCELLED ... DUE TO TIME LIMIT", a crash)."""
-    from submitit.core.utils import pickle_load
-
-    job = _submitit_job(out, job_id)
-    with contextlib.suppress(Exception):
-        outcome, trace = pickle_load(job.paths.result_pickle)
-        if outcome == "error":
-            lines = [line for line in str(trace).strip().splitlines() if line.strip()]
-            return lines[-1].strip() if lines else "the task raised an error"
-    for log in (job.paths.stderr, job.paths.stdout):
-        with contextlib.suppress(OSError):
-            lines = [line.strip() for line in log.read_text(errors="replace").splitlines() if line.strip()]
-            if lines:
-                return lines[-1]
-    return "the task ended without finishing the cell (no log)"
-
-
-@dataclass(frozen=True)
-class CellStatus:
-    """A cell's state in a study directory: "done", "running", "pending" or "failed", and a few words on it."""
-
-    cell: Cell
-    state: str
-    detail: str
-
-
-def cell_status(out: Path, cell: Cell, job_id: str | None, queue: dict[str, tuple[str, str]] | None) -> CellStatus:
-    """One cell's `CellStatus`.
-
-    Args:
-        out: the study directory.
-        cell: the cell.
-        job_id: its latest Slurm task (`latest_jobs`); None if it was never submitted.
-        queue: squeue's states (`queue_states`); None where the scheduler does not answer.
-
-    Returns:
-        "done" where its evaluation is written; "running" or "pending" while squeue lists its task so (or, never
-        submitted, while a process of this machine holds its run directory); "failed" where its task is gone
-        without finishing it, or a local run recorded its failure (`runner.record_failure`); else "pending" (not
-        started; stopped, which the next run resumes from its last checkpoint, or trains from the start where it
-        stopped before its first; or the scheduler does not answer).
-    """
-    state = runner.cell_state(out, cell)
-    progress = _epochs(out, cell)
-    if state == "done":
-        try:
-            return CellStatus(cell, "done", runner.score_line(runner.read_evaluation(out, cell)))
-        except (OSError, ValueError, KeyError):
-            return CellStatus(cell, "done", "evaluated")
-    if job_id is not None and queue is not None and job_id in queue and queue[job_id][0] in ACTIVE:
-        slurm_state, reason = queue[job_id]
-        if slurm_state in ("RUNNING", "COMPLETING"):
-            return CellStatus(cell, "running", f"job {job_id}" + (f", {progress}" if progress else ""))
-        why = f" ({reason})" if reason and reason != "None" else ""
-        return CellStatus(cell, "pending", f"job {job_id} {slurm_state.lower()}{why}"
-                          + (f", {progress}" if progress else ""))
-    if job_id is not None and queue is not None:
-        where = f"stopped at {progress}" if progress else "no epoch finished"
-        return CellStatus(cell, "failed", f"job {job_id} ended, {where}: {failure(out, job_id)}")
-    if job_id is not None:
-        return CellStatus(cell, "pending", f"submitted as job {job_id} (the scheduler does not answer)")
-    pid = RunLock(runner.run_dir(out, cell)).holder()  # never submitted: perhaps training here (the local executor)
-    if pid is not None:
-        return CellStatus(cell, "running", f"process {pid} on this machine" + (f", {progress}" if progress else ""))
-    # never submitted and no process here holds it: not started, or stopped (a local run interrupted or failed), which
-    # the next `study run` resumes from its last checkpoint: with train.checkpoint_every > 1 (the camvid presets: 5)
-    # that can lie epochs before the last one metrics.jsonl records, and before the first there is none
-    detail = _stopped(out, cell, state, progress)
-    reason = runner.recorded_failure(out, cell)  # a local run's failure (Slurm's are its tasks' states, above)
-    return CellStatus(cell, "pending", detail) if reason is None else CellStatus(cell, "failed", f"{reason}; {detail}")
-
-
-def _stopped(out: Path, cell: Cell, state: str, progress: str) -> str:
-    """Where a cell that runs nowhere stands: not started, or stopped at an epoch and what the next run resumes."""
-    if not progress:
-        return "not started"
-    if state != "partial":
-        return f"stopped at {progress} before its first checkpoint, trains from the start"
-    saved = _checkpoint_epochs(out, cell)
-    if saved is None:
-        return f"stopped at {progress}, resumes from its last checkpoint"
-    if progress.startswith(f"epoch {saved} of "):
-        return f"stopped at {progress}, resumes there"
-    return f"stopped at {progress}, resumes after epoch {saved} (its last checkpoint)"
-
-
-def _checkpoint_epochs(out: Path, cell: Cell) -> int | None:
-    """The epochs the cell's last checkpoint (its resume point) holds, from the file's metadata (its header only: no
-    tensor is read); None where that cannot be read."""
-    from safetensors import safe_open
-
-    from warpsense.system.checkpoint import METADATA_KEY
-    from warpsense.train.run_dir import LAST
-
-    with contextlib.suppress(Exception):  # an unreadable file: the caller says "its last checkpoint"
-        with safe_open(str(runner.run_dir(out, cell) / LAST), framework="pt") as handle:
-            epoch = json.loads((handle.metadata() or {})[METADATA_KEY])["state"]["epoch"]
-        if isinstance(epoch, int) and not isinstance(epoch, bool):
-            return epoch + 1
-    return None
-
-
-def study_status(out: Path, plan: Plan, cells: list[Cell] | None = None) -> tuple[list[CellStatus], bool]:
-    """Every cell's `CellStatus`, and whether the scheduler answered (True also where nothing was submitted)."""
-    jobs = latest_jobs(out)
-    queue = queue_states() if jobs else {}
-    return [cell_status(out, cell, jobs.get(cell.id), queue) for cell in cells or plan.cells()], queue is not None
-
-
-def print_status(study_dir: str | Path) -> int:
-    """`warpsense study status DIR`: one line per cell (pending, running, done or failed, from the directory and the
-    scheduler) and the counts."""
-    from warpsense.study.adaptive import expected_cells
-
-    out = Path(study_dir)
-    record = runner.read_plan_record(out)
-    plan = Plan.from_dict(record)
-    # study.sequential and [[search]]: the cells needed so far (a search's designs among them), not every seed
-    statuses, answered = study_status(out, plan, expected_cells(out, record))
-    submissions = read_jobs(out)
-    jobs = f" (Slurm job{'s' if len(submissions) > 1 else ''} {', '.join(s['job_id'] for s in submissions)})" \
-        if submissions else ""
-    print(f"study {plan.name}: {len(statuses)} cells in {out}{jobs}")
-    if not answered:
-        print("study: squeue does not answer: the states of submitted cells are from the directory alone")
-    width = max(len(status.cell.id) for status in statuses)
-    for status in statuses:
-        print(f"  {status.cell.id:<{width}}  {status.state:<7}  {status.detail}")
-    counts = {state: sum(s.state == state for s in statuses) for state in ("done", "running", "pending", "failed")}
-    print(f"{len(statuses)} cells: " + ", ".join(f"{count} {state}" for state, count in counts.items()))
-    if counts["failed"]:
-        print("failed cells resume from their last checkpoint when the study is run again")
-    if counts["done"] == len(statuses):
-        print(f"report: warpsense study report {out}")
-    return 0
+        return training.train_cell(plan, Path(self.out), cell)
 
 
 def default_gpus(plan: Plan, out: Path, cells: list[Cell]) -> int:
     """GPUs per task when --gpus-per-cell is not given: 0 where every cell's config runs on the CPU, else 1."""
-    return 0 if all(plan.config(cell, Path(out) / "runs").run.device == "cpu" for cell in cells) else 1
+    runs = StudyDir(out).runs
+    return 0 if all(plan.config(cell, runs).run.device == "cpu" for cell in cells) else 1
 
 
 def submit_study(plan: Plan, out: Path, options: SlurmOptions, cells: list[Cell] | None = None,
@@ -492,7 +248,7 @@ def submit_study(plan: Plan, out: Path, options: SlurmOptions, cells: list[Cell]
         options: the executor's options (`slurm_options`); with ``options.wait`` the tasks are followed (`follow`).
         cells: the cells to run (default: all of the plan).
         reuse: other study directories whose finished runs are copied in for the cells they already trained
-            (`warpsense.study.runner.reuse_cells`), before the rest is submitted.
+            (`warpsense.study.reuse.reuse_cells`), before the rest is submitted.
 
     Returns:
         The exit code: 0 once submitted (or, with ``options.wait``, `follow`'s).
@@ -501,20 +257,21 @@ def submit_study(plan: Plan, out: Path, options: SlurmOptions, cells: list[Cell]
         ValueError: submitit or Slurm's commands missing, or options Slurm refuses (one line naming the option).
     """
     out = Path(out).absolute()
+    study = StudyDir(out)
     all_cells = plan.cells()
     cells = all_cells if cells is None else cells
     require_slurm()
-    finished = runner.finished_runs(list(reuse or []))  # a bad --reuse directory is refused before anything is written
+    finished = finished_runs(list(reuse or []))  # a bad --reuse directory is refused before anything is written
     queued = queued_cells(out, cells)
     if queued is None:
         raise ValueError("--executor slurm: squeue does not answer (is the Slurm controller up?)")
-    todo = [cell for cell in cells if cell not in queued and runner.cell_state(out, cell) != "done"]
+    todo = [cell for cell in cells if cell not in queued and study.cell_state(cell) != "done"]
     # a cell a local `study run` trains now: a task on another node would take its run directory over (the run lock
     # holds a pid, which that node cannot check). Only cells never submitted: a submitted cell's lock may be its
     # killed task's, a pid of another node that means nothing here
     submitted = latest_jobs(out)
     training = {cell: pid for cell in todo if cell.id not in submitted
-                and (pid := RunLock(runner.run_dir(out, cell)).holder()) is not None}
+                and (pid := study.run(cell).lock().holder()) is not None}
     if training:
         held = ", ".join(f"{cell.id} (process {pid})" for cell, pid in training.items())
         raise ValueError(f"--executor slurm: {len(training)} cell(s) are training on this machine now: {held}; "
@@ -522,8 +279,8 @@ def submit_study(plan: Plan, out: Path, options: SlurmOptions, cells: list[Cell]
     gpus = options.gpus_per_cell if options.gpus_per_cell is not None else default_gpus(plan, out, todo or cells)
     if todo:
         check_submission(options, gpus, len(todo))
-    runner.record_plan(plan, out)
-    reused = runner.reuse_cells(plan, out, todo, finished)
+    study.record_plan(plan)
+    reused = reuse_cells(plan, out, todo, finished)
     todo = [cell for cell in todo if cell not in reused]
     numbering = {cell: all_cells.index(cell) + 1 for cell in cells}
     total = len(all_cells)
@@ -538,11 +295,11 @@ def submit_study(plan: Plan, out: Path, options: SlurmOptions, cells: list[Cell]
     if todo:
         # the longest cells first: Slurm starts an array's tasks by index, so with fewer nodes (or
         # --array-parallelism) than cells the short ones fill the end, as the local pool hands them out
-        work = runner.cell_work(plan, todo)
-        array = submit(plan, out, sorted(todo, key=lambda cell: -work[cell]), options, gpus)
-        resumed = sum(runner.cell_state(out, cell) == "partial" for cell in todo)
+        lengths = work.cell_work(plan, todo)
+        array = submit(plan, out, sorted(todo, key=lambda cell: -lengths[cell]), options, gpus)
+        resumed = sum(study.cell_state(cell) == "partial" for cell in todo)
         print(f"study: submitted {len(todo)} cell(s) ({resumed} resuming from a checkpoint) as Slurm job {array} "
-              f"({_described(options, gpus)}); logs in {out / 'slurm'}", flush=True)
+              f"({_described(options, gpus)}); logs in {study.slurm}", flush=True)
     if options.wait:
         return follow(plan, out, cells)
     if todo or queued:
@@ -553,12 +310,13 @@ def submit_study(plan: Plan, out: Path, options: SlurmOptions, cells: list[Cell]
 
 
 def submit(plan: Plan, out: Path, cells: list[Cell], options: SlurmOptions, gpus: int) -> str:
-    """Submit ``cells`` as one job array through submitit and record the tasks' ids in <out>/`JOBS`; returns the
-    array's job id."""
+    """Submit ``cells`` as one job array through submitit (each task given its `Cell`) and record the tasks' ids in
+    the study directory (`StudyDir.record_submission`); returns the array's job id."""
     import submitit
     from submitit.core.utils import FailedJobError, FailedSubmissionError
 
-    executor = submitit.SlurmExecutor(folder=Path(out) / SUBMITIT_FOLDER)
+    study = StudyDir(out)
+    executor = submitit.SlurmExecutor(folder=study.submitit)
     parameters = {"job_name": f"warpsense-{plan.name}", "time": options.time_minutes,
                   "array_parallelism": options.array_parallelism, "additional_parameters": dict(options.extra)}
     if options.partition:
@@ -568,19 +326,17 @@ def submit(plan: Plan, out: Path, cells: list[Cell], options: SlurmOptions, gpus
     executor.update_parameters(**parameters)
     task = CellTask(str(Path(plan.source).absolute()), plan.overrides, str(out))
     try:
-        jobs = executor.map_array(task, [cell.id for cell in cells])
+        jobs = executor.map_array(task, list(cells))
     except (subprocess.CalledProcessError, FailedJobError, FailedSubmissionError) as error:
         output = getattr(error, "output", None) or getattr(error, "stderr", None) or str(error)
         output = output.decode(errors="replace") if isinstance(output, bytes) else str(output)
         raise ValueError(f"--executor slurm: sbatch refused the job array: {output.strip().splitlines()[-1]}") \
             from None
     array = jobs[0].job_id.split("_")[0]
-    submissions = read_jobs(out) + [{
+    study.record_submission({
         "job_id": array, "submitted": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "sbatch": _sbatch_flags(options, gpus, len(cells)),
-        "cells": {cell.id: job.job_id for cell, job in zip(cells, jobs)}}]
-    (Path(out) / JOBS).parent.mkdir(parents=True, exist_ok=True)
-    write_json(Path(out) / JOBS, {"submissions": submissions})
+        "cells": {cell.id: job.job_id for cell, job in zip(cells, jobs)}})
     return array
 
 
@@ -597,14 +353,15 @@ def follow(plan: Plan, out: Path, cells: list[Cell], poll: float | None = None) 
         0 (all finished), 1 (some failed: the same command resumes them) or 130 (Ctrl-C: the tasks go on).
     """
     out = Path(out)
+    study = StudyDir(out)
     all_cells = plan.cells()
     total = len(all_cells)
     jobs = latest_jobs(out)
-    waiting = [cell for cell in cells if runner.cell_state(out, cell) != "done" and cell.id in jobs]
+    waiting = [cell for cell in cells if study.cell_state(cell) != "done" and cell.id in jobs]
     started, failed = time.perf_counter(), []
     try:
         while waiting:
-            queue = queue_states()
+            queue = slurm_status.queue_states()
             for cell in list(waiting):
                 status = cell_status(out, cell, jobs[cell.id], queue)
                 if status.state not in ("done", "failed"):
@@ -626,6 +383,6 @@ def follow(plan: Plan, out: Path, cells: list[Cell], poll: float | None = None) 
         print(f"study: {len(failed)} of {total} cells failed: {', '.join(cell.id for cell in failed)}; run the same "
               "command again to resume them (finished cells are kept)", file=sys.stderr)
         return 1
-    if all(runner.cell_state(out, cell) == "done" for cell in cells):
+    if all(study.cell_state(cell) == "done" for cell in cells):
         print(f"study finished; report: warpsense study report {out}")
     return 0
