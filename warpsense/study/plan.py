@@ -57,392 +57,66 @@ fold's ``data.holdout_block`` (with ``data.holdout_blocks`` and ``data.block_buf
 the seed (plus the camera's ``seed_offset``), then the command line's ``--set`` (whose ``study.KEY=VALUE`` entries
 change the plan's [study] table instead, e.g. ``--set study.folds=none``). In any of these overrides ``{fold}`` and
 ``{seed}`` stand for the cell's fold ("block2", or the held-out sequence) and seed (`fill_placeholders`), for inputs
-made per fold. A sweep's point is
-a camera like the others (crossed with lights, folds and seeds; the reference may be one), named
-``<name>_<label><value>_...`` in the grid's key order (``grid_f1p4_t30``): camera names hold no '.', which
-separates a run directory's parts, so a value's decimal point is written ``p`` and a minus sign ``m``. Unknown keys, wrong types, duplicate or unknown names,
-folds that hold no frame, a dataset without sequence names and configs that do not resolve are one-line `PlanError`s
-naming the plan file and key, found before anything is written.
+made per fold. A sweep's point is a camera like the others (crossed with lights, folds and seeds; the reference may
+be one), named ``<name>_<label><value>_...`` in the grid's key order (``grid_f1p4_t30``): camera names hold no '.',
+which separates a run directory's parts, so a value's decimal point is written ``p`` and a minus sign ``m``. Unknown
+keys, wrong types, duplicate or unknown names, folds that hold no frame, a dataset without sequence names and configs
+that do not resolve are one-line `PlanError`s naming the plan file and key, found before anything is written.
+
+The plan as typed data (`Plan`, `Cell`, the cameras, lights and sweeps) is `warpsense.study.plan_model`, its tables'
+checks `warpsense.study.plan_tables`, its folds' frames `warpsense.study.folds`; this module reads a plan file and puts
+them together (`load_plan`), and every name the study's other modules take from a plan is importable from here.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import fnmatch
-import itertools
-import json
-from dataclasses import dataclass
 from pathlib import Path
 
 from warpsense.choices import LIGHT_LEVELS
-from warpsense.config import Config, ConfigError, flatten_keys, load_config, parse_override, read_toml
-from warpsense.data import DatasetError, build_dataset, sequence_names
+from warpsense.config import ConfigError, read_toml
+from warpsense.data import DatasetError, build_dataset
 from warpsense.resources import CONFIG_DIR
 from warpsense.study.conflicts import check_conflicts
+from warpsense.study.folds import fold_lines, fold_sequences, fold_sizes
 from warpsense.study.keys import LEARNED_KEYS, value_label
-from warpsense.study.search_space import SearchError, SearchSpec, corner_designs, parse_search
-from warpsense.study.sequential import SequentialRule, check_rule
+from warpsense.study.plan_model import (
+    BLOCK_FOLD,
+    FOLDS,
+    CameraSpec,
+    Cell,
+    LightSpec,
+    Plan,
+    PlanError,
+    SweepSpec,
+    cell_overrides,
+    fill_placeholders,
+)
+from warpsense.study.plan_tables import (
+    CAMERA_KEYS,
+    LIGHT_KEYS,
+    STUDY_KEYS,
+    check_names,
+    check_table,
+    optional_float,
+    point_overrides,
+    search_spec,
+    seed_offset,
+    sequential_rule,
+    sequential_seeds,
+    string_list,
+    study_overrides,
+    sweep_spec,
+)
+from warpsense.study.search_space import corner_designs
 
-
-class PlanError(ValueError):
-    """A study plan that cannot run; the message names the plan file and key."""
-
-
-@dataclass(frozen=True)
-class CameraSpec:
-    name: str
-    preset: str = ""
-    set: tuple[str, ...] = ()
-    seed_offset: int = 0
-
-
-@dataclass(frozen=True)
-class SweepSpec:
-    """A ``[[sweep]]`` table as the plan resolved it: the swept config keys (``parameters``, in the grid's order),
-    their name labels and values, and per grid point its camera's name and its value of each key (``points``)."""
-
-    name: str
-    preset: str = ""
-    set: tuple[str, ...] = ()
-    parameters: tuple[str, ...] = ()
-    labels: tuple[str, ...] = ()
-    values: tuple[tuple, ...] = ()
-    points: tuple[tuple[str, tuple], ...] = ()  # (camera, (value per parameter))
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "SweepSpec":
-        return cls(data["name"], data.get("preset", ""), tuple(data.get("set", ())), tuple(data["parameters"]),
-                   tuple(data["labels"]), tuple(tuple(v) for v in data["values"]),
-                   tuple((camera, tuple(values)) for camera, values in data["points"]))
-
-
-@dataclass(frozen=True)
-class LightSpec:
-    """A light level stated physically: for the noise stage, electrons at the white level (full well) and read noise
-    in electrons; for the photon budget, a scene light level (``scene``, `warpsense.choices.LIGHT_LEVELS`) with the
-    analog gain and, where given, the full well and read noise; ADC bits; and the operating point's other overrides
-    (``set``)."""
-
-    name: str
-    full_well_electrons: float | None = None
-    read_electrons: float | None = None
-    bits: int = 10
-    cameras: tuple[str, ...] = ()  # the cameras studied at this level (empty: all)
-    scene: str = ""
-    analog_gain: float | None = None
-    set: tuple[str, ...] = ()
-
-    def overrides(self) -> list[str]:
-        if self.scene:
-            keys = [f"photons.light={self.scene!r}".replace("'", '"')]
-            for key in ("analog_gain", "full_well_electrons", "read_electrons"):
-                if getattr(self, key) is not None:
-                    keys.append(f"photons.{key}={getattr(self, key)!r}")
-        else:
-            keys = [f"noise.full_well_electrons={self.full_well_electrons!r}",
-                    f"noise.read_electrons={self.read_electrons!r}"]
-        return [*keys, f"quantize.bits={self.bits}", *self.set]
-
-
-FOLDS = ("none", "blocks", "sequence")
-"""A study's protocol: "none" (train on the train split, judge on val), "blocks" (one fold per block of every
-sequence of the labelled splits, buffered: `warpsense.data.block_fold`) or "sequence" (one fold per held-out
-sequence of the labelled splits)."""
-
-BLOCK_FOLD = "block"
-"""Block folds are named BLOCK_FOLD + their number: "block1" ... "block5"."""
-
-
-@dataclass(frozen=True)
-class Cell:
-    """One training run of a study; ``fold`` is the fold's name ("block2", the held-out sequence; "" without
-    folds)."""
-
-    camera: str
-    light: str
-    seed: int
-    fold: str = ""
-
-    @property
-    def id(self) -> str:
-        """"camera/light/seed", or "camera/light/fold/seed" with folds, as `--cell` takes it."""
-        return "/".join([self.camera, self.light, *([self.fold] if self.fold else []), str(self.seed)])
-
-    @property
-    def run_name(self) -> str:
-        """The run directory's name under <out>/runs."""
-        return ".".join([self.camera, self.light, *([self.fold] if self.fold else []), f"seed{self.seed}"])
-
-
-@dataclass(frozen=True)
-class Plan:
-    source: str
-    name: str
-    base: str
-    set: tuple[str, ...]
-    seeds: tuple[int, ...]
-    reference: str
-    cameras: tuple[CameraSpec, ...]
-    lights: tuple[LightSpec, ...]
-    overrides: tuple[str, ...] = ()  # from the command line, applied last
-    folds: str = "none"  # FOLDS
-    sequences: tuple[str, ...] = ()  # the held-out sequences, one fold each (folds = "sequence")
-    sweeps: tuple[SweepSpec, ...] = ()  # where the cameras of [[sweep]] tables came from (they are in ``cameras``)
-    blocks: int = 5  # folds = "blocks": blocks per sequence, one fold each
-    block_buffer: int = 30  # folds = "blocks": frame numbers around a held-out block left out of training
-    sequential: SequentialRule | None = None  # study.sequential: seeds added while comparisons are unsettled
-    search: SearchSpec | None = None  # a [[search]] table: designs proposed by a Bayesian search
-    designs: tuple[str, ...] = ()  # the search's designs started so far (their cells join `cells`; not recorded)
-
-    def with_designs(self, cameras) -> "Plan":
-        """This plan with the search's design ``cameras`` among its cells (`cells`, `cell`), as a round of the search
-        trains them; its record (`to_dict`) is the plan's own."""
-        return dataclasses.replace(self, designs=tuple(dict.fromkeys([*self.designs, *cameras])))
-
-    def camera_spec(self, name: str) -> CameraSpec | None:
-        """The camera ``name``: one of the plan's cameras, or a design of its search (`SearchSpec.design_values`:
-        the name says the design); None otherwise."""
-        for camera in self.cameras:
-            if camera.name == name:
-                return camera
-        values = self.search.design_values(name) if self.search is not None else None
-        if values is None:
-            return None
-        return CameraSpec(name, self.search.preset, tuple(self.search.overrides(values)))
-
-    def design_cells(self, camera: str) -> list[Cell]:
-        """A search design's cells in the order its rungs take them: seed by seed (the first ``search.seeds`` of
-        the plan's seeds), fold by fold, at the search's light."""
-        return [Cell(camera, self.search.light, seed, fold) for seed in self.seeds[:self.search.seeds]
-                for fold in self.fold_names()]
-
-    def fold_names(self) -> tuple[str, ...]:
-        """The folds' names, in order ("block1".., the held-out sequences; one "" without folds)."""
-        if self.folds == "blocks":
-            return tuple(f"{BLOCK_FOLD}{j}" for j in range(1, self.blocks + 1))
-        return self.sequences if self.folds == "sequence" else ("",)
-
-    def fold_overrides(self, fold: str) -> list[str]:
-        """The data keys that make a run fold ``fold`` of this plan (none for "")."""
-        if not fold:
-            return []
-        if self.folds == "blocks":
-            return [f"data.holdout_block={int(fold.removeprefix(BLOCK_FOLD))}", f"data.holdout_blocks={self.blocks}",
-                    f"data.block_buffer={self.block_buffer}"]
-        return [f"data.holdout_sequence={json.dumps(fold)}"]
-
-    def cells(self) -> list[Cell]:
-        """Every cell, light by light, seed by seed, fold by fold, camera by camera (so a partial study run in this
-        order has whole comparisons: every fold of seed 0 before seed 1). The local pool and the Slurm executor hand
-        them out longest first instead (`warpsense.study.runner.cell_work`), the order that finishes a study
-        soonest; cells of equal work (the cameras of one fold and seed, as a rule) keep this order."""
-        folds = self.fold_names()
-        return [Cell(camera.name, light.name, seed, fold) for light in self.lights for seed in self.seeds
-                for fold in folds for camera in self.cameras if not light.cameras or camera.name in light.cameras] \
-            + [cell for camera in self.designs for cell in self.design_cells(camera)]
-
-    def cell(self, cell_id: str) -> Cell:
-        for cell in self.cells():
-            if cell.id == cell_id:
-                return cell
-        camera = cell_id.split("/", 1)[0]
-        if self.search is not None and camera not in {c.name for c in self.cameras} and self.camera_spec(camera):
-            for cell in self.design_cells(camera):  # a design of the search: its name says its config
-                if cell.id == cell_id:
-                    return cell
-        form = "camera/light/fold/seed" if self.folds != "none" else "camera/light/seed"
-        raise PlanError(f"{self.source}: no cell {cell_id!r}; cells are {form}, e.g. {self.cells()[0].id}")
-
-    def select(self, patterns: list[str] | tuple[str, ...]) -> list[Cell]:
-        """The cells whose id (`Cell.id`) matches any of the shell ``patterns`` (`fnmatch`: "fixed_isp/*",
-        "*/night/block1/*"), in plan order; every cell without patterns. A pattern that matches no cell is a
-        PlanError naming it."""
-        cells = self.cells()
-        if not patterns:
-            return cells
-        for pattern in patterns:
-            if not any(fnmatch.fnmatchcase(cell.id, pattern) for cell in cells):
-                form = "camera/light/fold/seed" if self.folds != "none" else "camera/light/seed"
-                raise PlanError(f"{self.source}: --cells {pattern!r} matches no cell; cells are {form}, e.g. "
-                                f"{cells[0].id}")
-        return [cell for cell in cells if any(fnmatch.fnmatchcase(cell.id, pattern) for pattern in patterns)]
-
-    def config(self, cell: Cell, output_dir: str | Path) -> Config:
-        """The resolved config of ``cell``, its run directory <output_dir>/<cell.run_name>."""
-        camera = self.camera_spec(cell.camera)
-        light = next(light for light in self.lights if light.name == cell.light)
-        files = [file for file in (self.base, camera.preset) if file]
-        overrides = [*self.set, *camera.set, *light.overrides(), *self.fold_overrides(cell.fold),
-                     f"run.seed={cell.seed + camera.seed_offset}",
-                     f"run.name={cell.run_name}", f"run.output_dir={output_dir}", *cell_overrides(self.overrides)]
-        return load_config(files, [fill_placeholders(text, cell) for text in overrides])
-
-    def to_dict(self) -> dict:
-        """The plan as JSON-ready data; ``sweeps`` only where it has some, the block keys only with block folds and a
-        camera's ``seed_offset`` only where it is set (a study directory recorded before plans had them holds the
-        same plan)."""
-        data = dataclasses.asdict(self)
-        if not self.sweeps:
-            del data["sweeps"]
-        del data["designs"]  # the search's state, kept in the study directory (warpsense.study.search)
-        for key in ("sequential", "search"):  # absent where unused: a directory recorded before them matches
-            if data[key] is None:
-                del data[key]
-        if self.sequential is not None:
-            data["sequential"] = self.sequential.to_dict()
-        if self.folds != "blocks":
-            del data["blocks"], data["block_buffer"]
-        for camera in data["cameras"]:
-            if not camera["seed_offset"]:
-                del camera["seed_offset"]
-        return data
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "Plan":
-        """The plan `to_dict` wrote (a study directory's plan.json)."""
-        return cls(source=data.get("source", ""), name=data["name"], base=data["base"], set=tuple(data["set"]),
-                   seeds=tuple(data["seeds"]), reference=data["reference"], folds=data.get("folds", "none"),
-                   sequences=tuple(data.get("sequences", ())), blocks=data.get("blocks", 5),
-                   block_buffer=data.get("block_buffer", 30),
-                   cameras=tuple(CameraSpec(c["name"], c["preset"], tuple(c["set"]), c.get("seed_offset", 0))
-                                 for c in data["cameras"]),
-                   lights=tuple(LightSpec(x["name"], x.get("full_well_electrons"), x.get("read_electrons"),
-                                          x["bits"], tuple(x["cameras"]), x.get("scene", ""),
-                                          x.get("analog_gain"), tuple(x.get("set", ()))) for x in data["lights"]),
-                   overrides=tuple(data.get("overrides", ())),
-                   sweeps=tuple(SweepSpec.from_dict(sweep) for sweep in data.get("sweeps", ())),
-                   sequential=SequentialRule.from_dict(data["sequential"]) if data.get("sequential") else None,
-                   search=SearchSpec.from_dict(data["search"]) if data.get("search") else None)
-
-
-STUDY_KEYS = {"name": str, "base": str, "set": list, "seeds": list, "reference": str, "folds": str, "sequences": list,
-              "blocks": int, "block_buffer": int, "sequential": dict}
-
-
-CAMERA_KEYS = {"name": str, "preset": str, "set": list, "seed_offset": int}
-SWEEP_KEYS = {"name": str, "preset": str, "set": list, "grid": dict, "labels": dict}
-LIGHT_KEYS = {"name": str, "full_well_electrons": (int, float), "read_electrons": (int, float), "bits": int,
-              "cameras": list, "scene": str, "analog_gain": (int, float), "set": list}
-
-
-def _is_study_override(text: str) -> bool:
-    """Whether a ``--set`` entry changes the plan (``study.KEY`` its [study] table, ``search.KEY`` its [[search]])
-    rather than every cell's config."""
-    return text.split("=", 1)[0].strip().startswith(("study.", "search."))
-
-
-def fill_placeholders(text: str, cell: "Cell") -> str:
-    """``text`` (an override) with ``{fold}`` and ``{seed}`` replaced by ``cell``'s held-out sequence and seed: a
-    per-fold input, such as a distillation teacher trained without the held-out drive
-    (``loss.teacher="teachers/runs/rgb.night.{fold}.seed0/..."``)."""
-    return text.replace("{fold}", cell.fold).replace("{seed}", str(cell.seed))
-
-
-def cell_overrides(overrides) -> list[str]:
-    """The command line's ``--set`` entries for the cells' configs (``study.KEY=VALUE`` ones change the plan)."""
-    return [text for text in overrides if not _is_study_override(text)]
-
-
-def _study_overrides(study: dict, overrides, source: str, table: str = "study") -> dict:
-    """The [study] table (or, with ``table`` "search", a [[search]] table) with the command line's
-    ``study.KEY=VALUE`` (``search.KEY=VALUE``) entries applied."""
-    study = dict(study)
-    for text in overrides:
-        if text.split("=", 1)[0].strip().startswith(f"{table}."):
-            try:
-                study.update(parse_override(text)[table])
-            except ConfigError as error:
-                raise PlanError(f"{source}: {error}") from None
-    return study
+__all__ = ["BLOCK_FOLD", "FOLDS", "CameraSpec", "Cell", "LightSpec", "Plan", "PlanError", "SweepSpec", "cell_overrides",
+           "fill_placeholders", "fold_lines", "fold_sizes", "load_plan", "study_names", "value_label"]
 
 
 def study_names() -> list[str]:
     """The plans shipped in configs/studies/."""
     return sorted(p.name[:-5] for p in (CONFIG_DIR / "studies").iterdir() if p.name.endswith(".toml"))
-
-
-def _table(data: dict, keys: dict, where: str, required: tuple[str, ...]) -> dict:
-    for key in data:
-        if key not in keys:
-            raise PlanError(f"{where}.{key}: unknown key; valid keys: {', '.join(keys)}")
-    for key in required:
-        if key not in data:
-            raise PlanError(f"{where}.{key}: missing")
-    for key, value in data.items():
-        expected = keys[key]
-        if isinstance(value, bool) or not isinstance(value, expected):
-            kinds = " or ".join(t.__name__ for t in (expected if isinstance(expected, tuple) else (expected,)))
-            raise PlanError(f"{where}.{key}: expected {kinds}, got {type(value).__name__} {value!r}")
-    return data
-
-
-def _strings(values: list, where: str) -> tuple[str, ...]:
-    if not all(isinstance(value, str) for value in values):
-        raise PlanError(f"{where}: expected a list of \"section.key=value\" strings")
-    return tuple(values)
-
-
-def _float(value) -> float | None:
-    return None if value is None else float(value)
-
-
-def _plain(text: str) -> bool:
-    """Whether ``text`` can be part of a cell id and a run directory's name: no '/', no '.', no spaces at the ends."""
-    return "/" not in text and "." not in text and text == text.strip()
-
-
-def _names(items: list, where: str, other: str = "") -> None:
-    seen = set()
-    for item in items:
-        name = item["name"]
-        if not name or not _plain(name):
-            raise PlanError(f"{where}.name: {name!r} must be a plain name (no '/', '.' or spaces at the ends)")
-        if name in seen:
-            raise PlanError(f"{where}.name: duplicate name {name!r}" + (f" (also {other})" if other else ""))
-        seen.add(name)
-
-
-def _config_key(key: str, where: str) -> None:
-    """``key`` ("section.field") names a field of the config, else a PlanError at ``where``."""
-    section, _, name = key.partition(".")
-    part = getattr(Config(), section, None) if section in {f.name for f in dataclasses.fields(Config)} else None
-    if part is None or name not in {f.name for f in dataclasses.fields(part)}:
-        raise PlanError(f"{where}: {key!r} is not a config key (section.key, e.g. optics.f_number)")
-
-
-def _sweep(table: dict, where: str) -> SweepSpec:
-    """A checked ``[[sweep]]`` table with its points (the grid's Cartesian product, first key slowest)."""
-    table = _table(table, SWEEP_KEYS, where, ("name", "grid"))
-    grid, labels = flatten_keys(table["grid"]), flatten_keys(table.get("labels", {}))
-    if not grid:
-        raise PlanError(f"{where}.grid: give at least one config key and its values")
-    for key, values in grid.items():
-        _config_key(key, f"{where}.grid.{key}")
-        if not isinstance(values, list) or not values:
-            raise PlanError(f"{where}.grid.{key}: expected a non-empty list of values, got {values!r}")
-        if not all(isinstance(v, (str, int, float, bool)) for v in values) or len(set(map(repr, values))) != len(values):
-            raise PlanError(f"{where}.grid.{key}: expected distinct numbers, strings or booleans, got {values!r}")
-    for key, label in labels.items():
-        if key not in grid:
-            raise PlanError(f"{where}.labels.{key}: not a key of the grid; keys: {', '.join(grid)}")
-        if not isinstance(label, str) or not _plain(label):
-            raise PlanError(f"{where}.labels.{key}: expected a plain string (no '/', '.' or spaces), got {label!r}")
-    names = tuple(labels.get(key, key.rsplit(".", 1)[-1]) for key in grid)
-    points, seen = [], {}
-    for values in itertools.product(*grid.values()):
-        camera = "_".join([table["name"], *(f"{label}{value_label(v)}" for label, v in zip(names, values))])
-        if camera in seen:
-            raise PlanError(f"{where}.labels: points {seen[camera]!r} and {values!r} are both named {camera!r}; give "
-                            "the grid's keys distinct labels or its values distinct names")
-        seen[camera] = values
-        points.append((camera, tuple(values)))
-    return SweepSpec(table["name"], table.get("preset", ""), _strings(table.get("set", []), f"{where}.set"),
-                     tuple(grid), names, tuple(tuple(v) for v in grid.values()), tuple(points))
-
-
-def _point_overrides(sweep: SweepSpec, values: tuple) -> list[str]:
-    """A grid point's overrides: ``key=value`` per swept key (after the sweep's ``set``)."""
-    return [f"{key}={json.dumps(value)}" for key, value in zip(sweep.parameters, values)]
 
 
 def _locate(name_or_path: str | Path) -> Path:
@@ -470,7 +144,8 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
     study = data.get("study")
     if not isinstance(study, dict):
         raise PlanError(f"{source}: [study] table missing")
-    study = _table(_study_overrides(study, overrides, source), STUDY_KEYS, f"{source}: study", ("seeds", "reference"))
+    study = check_table(study_overrides(study, overrides, source), STUDY_KEYS, f"{source}: study",
+                        ("seeds", "reference"))
     if study.get("folds", "none") not in FOLDS:
         raise PlanError(f"{source}: study.folds: {study['folds']!r} is not a protocol; valid: {', '.join(FOLDS)}")
     if study.get("sequences") and study.get("folds", "none") != "sequence":
@@ -489,24 +164,24 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
         raise PlanError(f"{source}: camera: at least one [[camera]] or [[sweep]] table is needed")
     if not isinstance(lights, list) or not lights:
         raise PlanError(f"{source}: light: at least one [[light]] table is needed")
-    cameras = [_table(c, CAMERA_KEYS, f"{source}: camera[{i}]", ("name",)) for i, c in enumerate(cameras)]
-    lights = [_table(x, LIGHT_KEYS, f"{source}: light[{i}]", ("name",)) for i, x in enumerate(lights)]
-    _names(cameras, f"{source}: camera")
-    sweeps = [_sweep(table, f"{source}: sweep[{i}]") for i, table in enumerate(sweep_tables)]
-    _names([{"name": sweep.name} for sweep in sweeps], f"{source}: sweep")  # before its points, named after it
-    _names([*cameras, *({"name": camera} for sweep in sweeps for camera, _ in sweep.points)], f"{source}: camera",
+    cameras = [check_table(c, CAMERA_KEYS, f"{source}: camera[{i}]", ("name",)) for i, c in enumerate(cameras)]
+    lights = [check_table(x, LIGHT_KEYS, f"{source}: light[{i}]", ("name",)) for i, x in enumerate(lights)]
+    check_names(cameras, f"{source}: camera")
+    sweeps = [sweep_spec(table, f"{source}: sweep[{i}]") for i, table in enumerate(sweep_tables)]
+    check_names([{"name": sweep.name} for sweep in sweeps], f"{source}: sweep")  # before its points, named after it
+    check_names([*cameras, *({"name": camera} for sweep in sweeps for camera, _ in sweep.points)], f"{source}: camera",
            "a [[camera]] or another sweep's point")
-    cameras += [{"name": camera, "preset": sweep.preset, "set": [*sweep.set, *_point_overrides(sweep, values)]}
+    cameras += [{"name": camera, "preset": sweep.preset, "set": [*sweep.set, *point_overrides(sweep, values)]}
                 for sweep in sweeps for camera, values in sweep.points]
-    _names(lights, f"{source}: light")
+    check_names(lights, f"{source}: light")
     seeds = study["seeds"]
     if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds) \
             or len(set(seeds)) != len(seeds):
         raise PlanError(f"{source}: study.seeds: expected distinct integers >= 0, got {seeds!r}")
-    rule = _sequential_rule(study, source, 2)  # the rule's own keys here; its first look's pairs once folds are known
+    rule = sequential_rule(study, source, 2)  # the rule's own keys here; its first look's pairs once folds are known
     if rule is not None:
-        seeds = _sequential_seeds(seeds, rule, source)
-    search = _search(data.get("search", []), source, [x["name"] for x in lights], [c["name"] for c in cameras],
+        seeds = sequential_seeds(seeds, rule, source)
+    search = search_spec(data.get("search", []), source, [x["name"] for x in lights], [c["name"] for c in cameras],
                      overrides)
     if search is None and any(text.strip().startswith("search.") for text in overrides):
         raise PlanError(f"{source}: --set search.KEY: the plan has no [[search]] table")
@@ -542,26 +217,26 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
 
     plan = Plan(
         source=source, name=study.get("name", path.stem), base=study.get("base", ""),
-        set=_strings(study.get("set", []), f"{source}: study.set"), seeds=tuple(seeds),
+        set=string_list(study.get("set", []), f"{source}: study.set"), seeds=tuple(seeds),
         reference=study["reference"],
-        cameras=tuple(CameraSpec(c["name"], c.get("preset", ""), _strings(c.get("set", []), f"{source}: camera "
-                                                                           f"{c['name']}.set"),
-                                 _seed_offset(c, source)) for c in cameras),
-        lights=tuple(LightSpec(x["name"], _float(x.get("full_well_electrons")), _float(x.get("read_electrons")),
-                               x.get("bits", 10), tuple(x.get("cameras", [])), x.get("scene", ""),
-                               _float(x.get("analog_gain")),
-                               _strings(x.get("set", []), f"{source}: light {x['name']}.set")) for x in lights),
+        cameras=tuple(CameraSpec(c["name"], c.get("preset", ""),
+                                 string_list(c.get("set", []), f"{source}: camera {c['name']}.set"),
+                                 seed_offset(c, source)) for c in cameras),
+        lights=tuple(LightSpec(x["name"], optional_float(x.get("full_well_electrons")),
+                               optional_float(x.get("read_electrons")), x.get("bits", 10), tuple(x.get("cameras", [])),
+                               x.get("scene", ""), optional_float(x.get("analog_gain")),
+                               string_list(x.get("set", []), f"{source}: light {x['name']}.set")) for x in lights),
         overrides=tuple(overrides), folds=study.get("folds", "none"), sweeps=tuple(sweeps),
         blocks=study.get("blocks", 5), block_buffer=study.get("block_buffer", 30), sequential=rule, search=search)
     if plan.folds == "sequence":
-        plan = dataclasses.replace(plan, sequences=_fold_sequences(plan, study.get("sequences", [])))
+        plan = dataclasses.replace(plan, sequences=fold_sequences(plan, study.get("sequences", [])))
     elif plan.folds == "blocks":
         fold_sizes(plan)  # every fold judges and trains on frames, else a PlanError naming it
     elif any("{fold}" in text for text in _all_overrides(plan)):
         raise PlanError(f"{source}: {{fold}} in a set stands for a cell's fold: it needs study.folds = \"blocks\" "
                         f"or \"sequence\"")
     if rule is not None:
-        _sequential_rule(study, source, len(plan.fold_names()))
+        sequential_rule(study, source, len(plan.fold_names()))
     if search is not None:
         _check_designs(plan)
     checked_data = set()
@@ -590,47 +265,6 @@ def load_plan(name_or_path: str | Path, overrides: list[str] | tuple[str, ...] =
                     raise PlanError(f"{where}: data: {error}") from None
     check_conflicts(plan, PlanError)  # two tables setting one key differently: the plan would not say what runs
     return plan
-
-
-def _sequential_rule(study: dict, source: str, pairs_per_seed: int) -> SequentialRule | None:
-    """The plan's ``study.sequential`` rule checked (None without one), its first look holding ``pairs_per_seed`` x
-    min_seeds pairs; a PlanError naming the key otherwise."""
-    if "sequential" not in study:
-        return None
-    try:
-        return check_rule(study["sequential"], f"{source}: study.sequential", pairs_per_seed)
-    except ValueError as error:
-        raise PlanError(str(error)) from None
-
-
-def _sequential_seeds(seeds: list, rule: SequentialRule, source: str) -> list:
-    """A sequential plan's seeds in the order they are added: ``seeds``, then the next integers not among them, up
-    to max_seeds; a PlanError where ``seeds`` lists more."""
-    if len(seeds) > rule.max_seeds:
-        raise PlanError(f"{source}: study.seeds: {len(seeds)} seeds listed, study.sequential.max_seeds is "
-                        f"{rule.max_seeds}: list at most that many (the rest follow the last)")
-    seeds, candidate = list(seeds), max(seeds) + 1
-    while len(seeds) < rule.max_seeds:
-        if candidate not in seeds:
-            seeds.append(candidate)
-        candidate += 1
-    return seeds
-
-
-def _search(tables, source: str, lights: list[str], cameras: list[str], overrides) -> SearchSpec | None:
-    """The plan's ``[[search]]`` (at most one), with the command line's ``search.KEY=VALUE`` entries, checked; a
-    PlanError naming the key otherwise."""
-    if not isinstance(tables, list) or not all(isinstance(table, dict) for table in tables):
-        raise PlanError(f"{source}: search: expected a [[search]] table")
-    if len(tables) > 1:
-        raise PlanError(f"{source}: search: one [[search]] table per plan, got {len(tables)}")
-    if not tables:
-        return None
-    try:
-        return parse_search(_study_overrides(tables[0], overrides, source, "search"), f"{source}: search[0]", lights,
-                            cameras)
-    except SearchError as error:
-        raise PlanError(str(error)) from None
 
 
 def _check_designs(plan: Plan) -> None:
@@ -676,88 +310,7 @@ def _check_designs(plan: Plan) -> None:
                                 "change it after the design's own; leave the key to the search")
 
 
-def _seed_offset(camera: dict, source: str) -> int:
-    offset = camera.get("seed_offset", 0)
-    if offset < 0:
-        raise PlanError(f"{source}: camera {camera['name']}.seed_offset: expected an integer >= 0, got {offset}")
-    return offset
-
-
-def _base_data(plan: Plan):
-    """The data section of the plan's base config with the study's and the command line's overrides (what the folds
-    are cut from), any placeholder left empty; a PlanError naming the key or file where it does not resolve."""
-    unfilled = Cell("", "", 0, "")
-    overrides = [fill_placeholders(text, unfilled) for text in [*plan.set, *cell_overrides(plan.overrides)]]
-    try:
-        return load_config([plan.base] if plan.base else None, overrides).data
-    except ConfigError as error:
-        raise PlanError(f"{plan.source}: {error}") from None
-
-
-def fold_sizes(plan: Plan) -> list[dict]:
-    """Per fold of the plan: {"fold", "train" (frames it trains on), "judged" (frames it is judged on), "labelled"
-    (frames of the labelled splits: train_split + val_split)}, from the base config's data (file lists only; before
-    ``max_train_images`` and ``max_val_images``). Without folds, one row "" of the train and val splits. A fold that
-    judges no frame or trains on none is a PlanError naming it."""
-    from warpsense.data import build_dataset, fold_frames
-
-    data = _base_data(plan)
-    rows = []
-    try:
-        if plan.folds == "none":
-            train = len(build_dataset(data, data.train_split, train=True, seed=0))
-            judged = len(build_dataset(data, data.val_split, train=False, seed=0))
-            return [{"fold": "", "train": train, "judged": judged, "labelled": train + judged}]
-        for fold in plan.fold_names():
-            keys = dict(_assignment(text) for text in plan.fold_overrides(fold))
-            train, held = fold_frames(dataclasses.replace(data, **keys))
-            rows.append({"fold": fold, "train": len(train), "judged": len(held),
-                         "labelled": len(train.sources[0]) + len(train.sources[1])})
-    except DatasetError as error:
-        where = f"study.folds = {plan.folds!r}" + (f", fold {fold}" if plan.folds != "none" else "")
-        raise PlanError(f"{plan.source}: {where}: data: {error}") from None
-    return rows
-
-
-def _assignment(text: str) -> tuple[str, object]:
-    """"data.key=value" as (key, the parsed value)."""
-    return next(iter(parse_override(text)["data"].items()))
-
-
-def fold_lines(rows: list[dict]) -> list[str]:
-    """`fold_sizes`' rows in words: "fold block1: train 372 frames (79% of the labelled frames), judge 93 frames"."""
-    return [f"{'fold ' + row['fold'] if row['fold'] else 'no folds (the train split; judged on val)'}: train "
-            f"{row['train']} frames ({row['train'] / max(row['labelled'], 1):.0%} of the labelled frames), judge "
-            f"{row['judged']} frames" for row in rows]
-
-
 def _all_overrides(plan: Plan) -> list[str]:
     """Every override string of the plan: the study's, the cameras', the lights' and the command line's."""
     return [*plan.set, *(text for camera in plan.cameras for text in camera.set),
             *(text for light in plan.lights for text in light.set), *cell_overrides(plan.overrides)]
-
-
-def _fold_sequences(plan: Plan, wanted: list) -> tuple[str, ...]:
-    """The held-out sequences of a ``folds = "sequence"`` plan: ``wanted`` (study.sequences) or every sequence of
-    the base config's labelled splits (train_split + val_split), checked against the frames."""
-    where = f"{plan.source}: study.folds"
-    data = _base_data(plan)  # the config's own errors (a bad --set, a missing data root) name their key or file
-    try:
-        names = sequence_names(data)
-    except DatasetError as error:
-        raise PlanError(f"{plan.source}: data: {error} (study.folds = \"sequence\" lists the labelled splits' "
-                        "sequences)") from None
-    if len(names) < 2:
-        raise PlanError(f"{where}: the labelled splits ({data.train_split}, {data.val_split}) hold "
-                        f"{len(names)} sequence(s) ({', '.join(names)}): a fold needs others to train on")
-    if not all(isinstance(name, str) for name in wanted) or len(set(wanted)) != len(wanted):
-        raise PlanError(f"{plan.source}: study.sequences: expected distinct sequence names, got {wanted!r}")
-    for name in wanted:
-        if name not in names:
-            raise PlanError(f"{plan.source}: study.sequences: {name!r} holds no frame of the labelled splits "
-                            f"({data.train_split}, {data.val_split}); sequences: {', '.join(names)}")
-    chosen = tuple(wanted) or tuple(names)
-    for name in chosen:
-        if not name or not _plain(name):
-            raise PlanError(f"{where}: sequence {name!r} cannot name a cell (no '/', '.' or spaces at the ends)")
-    return chosen
