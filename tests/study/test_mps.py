@@ -92,8 +92,8 @@ def test_per_gpu_auto_takes_three_cells_a_gpu_under_mps_where_memory_holds_them(
 
 
 def test_study_run_says_what_per_gpu_auto_chose(fake_control, monkeypatch, capsys):
-    from warpsense.commands.study import pool_cells_per_gpu
     from warpsense.study import load_plan
+    from warpsense.study.launch import pool_cells_per_gpu
     from warpsense.study.mps import RECIPE_PIXELS
 
     seen, measure = {}, work.step_pixels
@@ -114,7 +114,7 @@ def test_study_run_says_what_per_gpu_auto_chose(fake_control, monkeypatch, capsy
 def test_study_run_passes_its_auto_choice_to_the_pool_and_falls_back_when_mps_fails(tmp_path, monkeypatch, capsys):
     """`--per-gpu auto`: one GPU at 1 runs in this process, at 3 a pool of three slots; an MPS daemon that cannot
     start turns the choice into one cell a GPU without MPS (an explicit --per-gpu keeps the error)."""
-    from warpsense.commands import study
+    from warpsense.study import launch as study
 
     calls = []
 

@@ -392,7 +392,7 @@ def test_explicit_gpu_ids_are_checked_against_the_visible_devices(monkeypatch):
     it), in one line naming --gpus and the visible devices."""
     import torch
 
-    from warpsense.commands.options import check_local_gpus
+    from warpsense.study.launch import check_local_gpus
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)

@@ -8,7 +8,7 @@ import sys
 
 from warpsense.bench import BENCH_SUITES
 from warpsense.choices import DEVICES, MPS_MODES
-from warpsense.commands.options import check_local_gpus, count, parse_gpus
+from warpsense.commands.options import count
 from warpsense.files import check_output_file, check_plot_file
 
 CAMVID_SUITES = ("accuracy", "time-to-accuracy", "all")  # the suites that read --camvid ("all": its accuracy suite)
@@ -131,6 +131,7 @@ def run_study_suite_command(plan: str | None, out: str | None, cells: int, per_g
     """`warpsense.bench.study_suite.run_study_suite` after checking its options; prints the comparison."""
     from warpsense.bench.study_suite import SuiteStopped, format_study_suite, run_study_suite
     from warpsense.files import write_json
+    from warpsense.study.launch import check_local_gpus, parse_gpus
 
     if not plan or not out:
         raise ValueError("--suite study needs --plan (a study plan) and --out (the suite's folder)")
