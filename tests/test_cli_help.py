@@ -44,3 +44,15 @@ def test_eval_latency_prints_a_table_of_the_figures_it_records(tmp_path, capsys)
         ms, rate = (float(x) for x in re.findall(r"([\d.]+) (?:ms|frames/s)", row))
         assert ms == pytest.approx(record[key], abs=5e-4) and rate == pytest.approx(1000 / record[key], abs=0.05)
     assert "CUDA graph" not in printed  # the CPU records no graph replays
+
+
+def test_study_run_help_names_every_shipped_plan(capsys):
+    """Before: its epilog said only "shipped plans: configs/studies/", naming none (issue 71, item 11)."""
+    from pathlib import Path
+
+    with pytest.raises(SystemExit):
+        main(["study", "run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    epilog = text.split("shipped plans", 1)[1]
+    plans = sorted(p.stem for p in (Path(__file__).resolve().parents[1] / "configs" / "studies").glob("*.toml"))
+    assert len(plans) >= 3 and [plan for plan in plans if plan not in epilog] == []

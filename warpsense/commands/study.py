@@ -7,6 +7,7 @@ import argparse
 
 from warpsense.choices import MPS_MODES
 from warpsense.commands.options import count
+from warpsense.resources import shipped_studies
 
 
 def register(commands: argparse._SubParsersAction, name: str) -> None:
@@ -66,7 +67,7 @@ def _add_run(subcommands: argparse._SubParsersAction) -> None:
         "(id 0) at one cell a GPU, and a CPU, run them in this process. A plan with study.sequential (seeds added "
         "to unsettled comparisons) or a [[search]] (designs proposed by Bayesian optimisation, losers stopped early) "
         "chooses its next cells from the finished ones, round after round, on the same runner.",
-        epilog="shipped plans: configs/studies/")
+        epilog=f"shipped plans (configs/studies/): {', '.join(shipped_studies())}")
     parser.add_argument("plan", help="a study plan TOML file or a shipped plan name (configs/studies/)")
     parser.add_argument("--out", required=True, help="the study directory")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",

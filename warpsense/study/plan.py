@@ -76,7 +76,7 @@ from pathlib import Path
 from warpsense.choices import LIGHT_LEVELS
 from warpsense.config import ConfigError, read_toml
 from warpsense.data import DatasetError, build_dataset
-from warpsense.resources import CONFIG_DIR
+from warpsense.resources import CONFIG_DIR, shipped_studies
 from warpsense.study.conflicts import check_conflicts
 from warpsense.study.folds import fold_lines, fold_sequences, fold_sizes
 from warpsense.study.keys import LEARNED_KEYS, value_label
@@ -116,7 +116,7 @@ __all__ = ["BLOCK_FOLD", "FOLDS", "CameraSpec", "Cell", "LightSpec", "Plan", "Pl
 
 def study_names() -> list[str]:
     """The plans shipped in configs/studies/."""
-    return sorted(p.name[:-5] for p in (CONFIG_DIR / "studies").iterdir() if p.name.endswith(".toml"))
+    return shipped_studies()
 
 
 def _locate(name_or_path: str | Path) -> Path:
