@@ -1,5 +1,5 @@
 """Finished studies as measurements: the cells of study directories, or of the .tar.xz archives of them that
-docs/runs keeps (each study directory's plan.json and, per run, evaluation.json and metrics.jsonl), read without
+docs/records keeps (each study directory's plan.json and, per run, evaluation.json and metrics.jsonl), read without
 unpacking."""
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 A camera entered twice (a twin with its own seeds: ``seed_offset``) differs from itself only by its training's
 randomness: per fold f and seed s the paired difference is d = e_A - e_B, two independent draws of the within-fold
 seed residual of one camera's mIoU (the fold's own difficulty cancels in the pair). `seed_residuals` measures those
-residuals in finished studies' run directories (the archives of docs/runs: each cell's evaluation.json), and
+residuals in finished studies' run directories (the archives of docs/records: each cell's evaluation.json), and
 `simulate` draws A/A studies from them, normal with the measured standard deviation (`normal_differences`) or by
 resampling the measured residuals themselves, with their tails (`resampled_differences`), and counts how often each
 rule calls a difference:

@@ -1,9 +1,8 @@
 """CUDA MPS (Multi-Process Service) for a study's local pool: several cells on one GPU that really run at once.
 
 Without MPS a GPU time-slices the CUDA contexts of separate processes, so two cells on one GPU each get about half of
-it (plus switching cost); with MPS their kernels share the GPU's SMs concurrently. Measured on one H100 with a
-training process of a study cell's shape (batch 16, 352 x 480, 0.44M network): 2 processes 434 img/s in total
-without MPS, 515 with it; 4 processes 388 without, 592 with (1.6x one process).
+it (plus switching cost); with MPS their kernels share the GPU's SMs concurrently, so a cell's small kernels fill
+the SMs another cell leaves idle (the measured gains: docs/benchmarks.md, studies per GPU-hour).
 
 The pool starts its own control daemon (``nvidia-cuda-mps-control -d``) with pipe and log directories in a fresh
 temporary folder, passes them to its worker processes (``CUDA_MPS_PIPE_DIRECTORY``, ``CUDA_MPS_LOG_DIRECTORY``) and
@@ -48,18 +47,17 @@ def wanted(mode: str, per_gpu: int) -> bool:
 
 
 AUTO_CELLS = 3
-"""Cells a GPU takes under ``--per-gpu auto`` with MPS: 12 cells of the presets' recipe, 3 a GPU, ran at 1.30x the
-cells per GPU-hour of one a GPU by the studies' clocks (1.14-1.32x as packed), each cell's score within the seeds'
-spread; two steps on a GPU overlap 1.13x, three 1.18x (docs/benchmarks.md, studies per GPU-hour)."""
+"""Cells a GPU takes under ``--per-gpu auto`` with MPS: three cells of the presets' recipe a GPU gave the most cells
+per GPU-hour measured, with each cell's score within the seeds' spread (docs/benchmarks.md, studies per GPU-hour)."""
 
 CELL_MEMORY_GIB = 14.1
 """GPU memory a worker of the presets' recipe held at its peak (batch 16 at 352 x 480, CUDA graphs, evaluation; the
 largest of four workers as nvidia-smi counted it, 9.3-14.1 GiB, the two that trained cells of all three folds ~14,
-docs/runs/answers/alone_memory_peaks.json)."""
+docs/records/answers/alone_memory_peaks.json)."""
 
 CELL_FIXED_GIB = 0.9
 """Of `CELL_MEMORY_GIB`, what does not grow with a step's pixels (the CUDA context, weights, workspaces): one process
-held 8.81 GiB at batch 16 and 16.73 at 32 after training and evaluating (nvidia-smi; docs/runs/answers/memory*.json),
+held 8.81 GiB at batch 16 and 16.73 at 32 after training and evaluating (nvidia-smi; docs/records/answers/memory*.json),
 0.9 GiB at none."""
 
 RECIPE_PIXELS = 16 * 352 * 480
