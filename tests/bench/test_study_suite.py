@@ -141,7 +141,8 @@ def test_a_failed_cell_stops_the_suite_before_its_second_invocation(tmp_path, ca
 
 
 @pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])
-def test_ctrl_c_or_sigterm_stops_the_suite_at_once_and_it_resumes(tmp_path, capsys, monkeypatch, signal_name):
+def test_ctrl_c_or_sigterm_stops_the_suite_at_once_and_it_resumes(tmp_path, capsys, monkeypatch, signal_name,
+                                                                   ctrl_c):
     """Ctrl-C (or SIGTERM) in the alone invocation's first cell: the alone invocation stopped that cell, and then
     the shared invocation started training all cells anew. Now the suite stops there (exit 130, 143 for SIGTERM),
     one line, no traceback, and the same command resumes the interrupted cell and finishes."""

@@ -727,7 +727,7 @@ def test_unreadable_study_records_are_one_line_errors_naming_the_file(tmp_path, 
     assert_clean_failure(capsys, ["study", "status", str(out)], (str(out / "slurm" / "jobs.json"),))
 
 
-def test_ctrl_c_stops_the_local_pool_and_a_rerun_resumes(tmp_path, capsys):
+def test_ctrl_c_stops_the_local_pool_and_a_rerun_resumes(tmp_path, capsys, ctrl_c):
     import os
     import signal
     import threading
