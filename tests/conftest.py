@@ -8,6 +8,10 @@ from warpsense.cli import CPU_THREAD_DEFAULTS
 # spinning default a test after them ran 40x slower than alone (3 s -> 130 s for a 3-epoch resume test).
 for _key, _value in CPU_THREAD_DEFAULTS.items():
     os.environ.setdefault(_key, _value)
+# pytest-xdist's workers share the cores: torch's threads (and those of the commands a test starts) a share each
+_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _WORKERS > 1:
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, len(os.sched_getaffinity(0)) // _WORKERS)))
 
 import pytest  # noqa: E402
 import torch  # noqa: E402
@@ -20,6 +24,8 @@ def cuda_available() -> bool:
 
 
 def pytest_collection_modifyitems(config, items):
+    # the longest tests first, so that the workers run the others beside them instead of after them
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
     if cuda_available():
         return
     skip = pytest.mark.skip(reason="no CUDA GPU present")

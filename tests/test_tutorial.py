@@ -13,6 +13,8 @@ import subprocess
 import time
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 MARK = "@@ tutorial block {} @@"
 OUTPUTS = ["two_cameras.toml", "study", "report.json", "report.png", "map", "map.json", "map.png", "map_map.png"]
@@ -36,6 +38,7 @@ def run_tutorial(home: Path) -> tuple[Path, list[str]]:
     return home / "warpsense-tutorial", outputs
 
 
+@pytest.mark.slow
 def test_tutorial_commands_run_in_a_folder_of_their_own_and_give_what_the_page_says(tmp_path):
     started = time.time()
     folder, outputs = run_tutorial(tmp_path)

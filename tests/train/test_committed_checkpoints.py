@@ -16,6 +16,7 @@ from warpsense.config import load_config
 CHECKPOINTS = Path(__file__).resolve().parents[2] / "checkpoints"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["camvid_codesign", "camvid_fixed_isp"])
 def test_committed_checkpoint_reproduces_its_val_miou_on_cpu(name, shared_data):
     recorded = json.loads((CHECKPOINTS / f"{name}.json").read_text())["state"]["record"]
