@@ -5,6 +5,7 @@ verdicts, searches) are checked by hand in a second."""
 import json
 from pathlib import Path
 
+from warpsense.study import slurm, slurm_status
 from warpsense.study.study_dir import run_dir
 
 CLASSES = ["sky", "road"]
@@ -44,3 +45,20 @@ class FakeTraining:
         (directory / "evaluation.json").write_text(json.dumps(record))
         self.trained.append(cell.id)
         return record
+
+
+def fake_cluster(monkeypatch, arrays: list) -> None:
+    """Slurm's commands answered here; a submitted array's tasks run at once in this process (submitit's CellTask),
+    and each array's cell ids are appended to ``arrays``."""
+    monkeypatch.setattr(slurm, "require_slurm", lambda: None)
+    monkeypatch.setattr(slurm, "check_submission", lambda *args: None)
+    monkeypatch.setattr(slurm_status, "queue_states", lambda: {})
+
+    def submit(plan, out, cells, options, gpus):
+        task = slurm.CellTask(str(Path(plan.source).absolute()), plan.overrides, str(out))
+        for cell in cells:
+            task(cell)
+        arrays.append([cell.id for cell in cells])
+        return str(len(arrays))
+
+    monkeypatch.setattr(slurm, "submit", submit)

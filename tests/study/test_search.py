@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from tests.study.fakes import FakeTraining
+from tests.study.fakes import FakeTraining, fake_cluster
 from warpsense.cli import main
 from warpsense.resources import CONFIG_DIR
-from warpsense.study import load_plan, slurm, slurm_status, study_record, training
+from warpsense.study import load_plan, study_record, training
 from warpsense.study.plan import Plan, PlanError
 from warpsense.study.search import SEARCH_RECORD, read_search
 from warpsense.study.search_report import plot_search, search_lines
@@ -211,19 +211,8 @@ def test_the_search_runs_through_the_slurm_executor(tmp_path, monkeypatch, capsy
     cluster would) resolve a design's cell from its name alone."""
     fake = FakeTraining(_score)
     monkeypatch.setattr(training, "train_cell", fake)
-    monkeypatch.setattr(slurm, "require_slurm", lambda: None)
-    monkeypatch.setattr(slurm, "check_submission", lambda *args: None)
-    monkeypatch.setattr(slurm_status, "queue_states", lambda: {})
     arrays = []
-
-    def submit(plan, out, cells, options, gpus):
-        task = slurm.CellTask(str(Path(plan.source).absolute()), plan.overrides, str(out))
-        for cell in cells:
-            task(cell)
-        arrays.append([cell.id for cell in cells])
-        return str(len(arrays))
-
-    monkeypatch.setattr(slurm, "submit", submit)
+    fake_cluster(monkeypatch, arrays)
     out = tmp_path / "study"
     assert main(_arguments(out, ["search.budget=6"]) + ["--executor", "slurm", "--wait"]) == 0
     assert arrays[0] == [cell.id for cell in load_plan("smoke_search").cells()]  # the plan's own cells first

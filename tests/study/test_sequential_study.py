@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from tests.study.fakes import FakeTraining
+from tests.study.fakes import FakeTraining, fake_cluster
 from warpsense.cli import main
 from warpsense.resources import CONFIG_DIR
-from warpsense.study import load_plan, slurm, slurm_status, study_record, training
+from warpsense.study import load_plan, study_record, training
 from warpsense.study.plan import Plan
 from warpsense.study.report import render_text
 from warpsense.study.sequential import critical_value, nominal_level
@@ -137,26 +137,10 @@ def test_only_unsettled_comparisons_get_more_seeds_and_the_report_judges_where_t
     assert interrupted.trained + rest.trained == expected
 
 
-def _fake_cluster(monkeypatch, arrays: list) -> None:
-    """Slurm's commands answered here; a submitted array's tasks run at once in this process (submitit's CellTask)."""
-    monkeypatch.setattr(slurm, "require_slurm", lambda: None)
-    monkeypatch.setattr(slurm, "check_submission", lambda *args: None)
-    monkeypatch.setattr(slurm_status, "queue_states", lambda: {})
-
-    def submit(plan, out, cells, options, gpus):
-        task = slurm.CellTask(str(Path(plan.source).absolute()), plan.overrides, str(out))
-        for cell in cells:
-            task(cell)
-        arrays.append([cell.id for cell in cells])
-        return str(len(arrays))
-
-    monkeypatch.setattr(slurm, "submit", submit)
-
-
 def test_slurm_rounds_with_and_without_wait(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(training, "train_cell", FakeTraining(_score))
     arrays = []
-    _fake_cluster(monkeypatch, arrays)
+    fake_cluster(monkeypatch, arrays)
     plan = str(_plan_file(tmp_path))
     waited = tmp_path / "waited"
     assert main(["study", "run", plan, "--out", str(waited), "--executor", "slurm", "--wait"]) == 0
