@@ -12,6 +12,23 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
+class Folder:
+    """A folder that an owner class names the files of (`warpsense.train.run_dir.RunDir`,
+    `warpsense.study.study_dir.StudyDir`): built from its path, printed and passed to ``open``/``os`` as that path."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({str(self.path)!r})"
+
+    def __str__(self) -> str:
+        return str(self.path)
+
+    def __fspath__(self) -> str:
+        return str(self.path)
+
+
 def located(path: str | Path) -> str:
     """``path`` as an error names a file it looked for: a relative path with the absolute one it resolved to from the
     working directory ("classes.toml (/home/me/run/classes.toml)"), where a path in a config or on the command line

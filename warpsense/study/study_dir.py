@@ -12,12 +12,12 @@ import sys
 from pathlib import Path
 
 from warpsense.errors import first_line
-from warpsense.files import atomic_write, write_json
+from warpsense.files import Folder, atomic_write, write_json
 from warpsense.study.plan import Cell, Plan, PlanError
 from warpsense.train.run_dir import RunDir
 
 
-class StudyDir:
+class StudyDir(Folder):
     """A study directory: the one owner of its files' names and of how each is read and written.
 
     Files: `PLAN` (the resolved plan, written by the study's first run; `record_plan`), `RUNS`/<cell> (each cell's
@@ -43,18 +43,6 @@ class StudyDir:
     SUBMITIT = "slurm/%j"
     """submitit's folder of each task (its sbatch script, pickles and logs)."""
     SEARCH = "search.json"
-
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-
-    def __repr__(self) -> str:
-        return f"StudyDir({str(self.path)!r})"
-
-    def __str__(self) -> str:
-        return str(self.path)
-
-    def __fspath__(self) -> str:
-        return str(self.path)
 
     # --- where each file is ------------------------------------------------------------------------------------
 

@@ -14,10 +14,10 @@ from pathlib import Path
 
 from warpsense.config import Config, ConfigError, config_from_dict, flatten_keys
 from warpsense.errors import first_line
-from warpsense.files import atomic_write, write_json
+from warpsense.files import Folder, atomic_write, write_json
 
 
-class RunDir:
+class RunDir(Folder):
     """A training run's directory: the one owner of its files' names and of how each is read and written.
 
     Files: `CONFIG` (the run's resolved config, `Config.save`; a continuation that changed it keeps the earlier one
@@ -41,18 +41,6 @@ class RunDir:
     INPUTS = "inputs.json"
     """{"files": {path: {"key": the config key that named it, "sha256": its content's digest}}}."""
     LOCK = "train.lock"
-
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-
-    def __repr__(self) -> str:
-        return f"RunDir({str(self.path)!r})"
-
-    def __str__(self) -> str:
-        return str(self.path)
-
-    def __fspath__(self) -> str:
-        return str(self.path)
 
     # --- where each file is ------------------------------------------------------------------------------------
 
