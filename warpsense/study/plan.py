@@ -114,9 +114,8 @@ __all__ = ["BLOCK_FOLD", "FOLDS", "CameraSpec", "Cell", "LightSpec", "Plan", "Pl
            "fill_placeholders", "fold_lines", "fold_sizes", "load_plan", "study_names", "value_label"]
 
 
-def study_names() -> list[str]:
-    """The plans shipped in configs/studies/."""
-    return shipped_studies()
+study_names = shipped_studies
+"""The plans shipped in configs/studies/ (one definition, in warpsense.resources, which the CLI's help also asks)."""
 
 
 def _locate(name_or_path: str | Path) -> Path:
