@@ -1,13 +1,12 @@
 import os
 from pathlib import Path
 
-from warpsense.cli import CPU_THREAD_DEFAULTS
+from warpsense.cli import _cpu_thread_defaults
 
 # Before torch loads its OpenMP runtime: its idle threads sleep instead of spinning, as in every command's process.
 # The suite runs study pools, CLI subprocesses and sampler threads beside the test process, and with libgomp's
 # spinning default a test after them ran 40x slower than alone (3 s -> 130 s for a 3-epoch resume test).
-for _key, _value in CPU_THREAD_DEFAULTS.items():
-    os.environ.setdefault(_key, _value)
+_cpu_thread_defaults()
 # pytest-xdist's workers share the cores: torch's threads (and those of the commands a test starts) a share each
 _WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _WORKERS > 1:
